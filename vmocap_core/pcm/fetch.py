@@ -1,0 +1,185 @@
+"""`vmocap models fetch`: obtain the BlazePose models from the PyPI wheel and convert them to ONNX.
+
+No model hub is involved: `pip download --no-deps mediapipe==0.10.14` fetches the wheel (Apache-2.0),
+the two .tflite files are unzipped and checked against pinned SHA-256 sums, and vmocap's own
+translator (tflite2onnx.py) writes the ONNX files. `manifest.json` records the SHA-256 of every
+cached file; `model_path()` verifies it and tells the user the one command that rebuilds the cache.
+
+Cache directory: $VMOCAP_MODELS if set, else `<repo>/models` for a source checkout (gitignored),
+else ~/.cache/vmocap/models.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+
+from ..errors import ModelError
+from . import tflite2onnx
+
+WHEEL_REQUIREMENT = "mediapipe==0.10.14"
+# member of the wheel -> pinned SHA-256 of that member (measured on the 0.10.14 cp311 wheel)
+SOURCES: dict[str, tuple[str, str]] = {
+    "pose_detection": (
+        "mediapipe/modules/pose_detection/pose_detection.tflite",
+        "9ba9dd3d42efaaba86b4ff0122b06f29c4122e756b329d89dca1e297fd8f866c",
+    ),
+    "pose_landmark_full": (
+        "mediapipe/modules/pose_landmark/pose_landmark_full.tflite",
+        "e9a5c5cb17f736fafd4c2ec1da3b3d331d6edbe8a0d32395855aeb2cdfd64b9f",
+    ),
+}
+REBUILD_COMMAND = "vmocap models fetch"
+MANIFEST = "manifest.json"
+
+_verified: set[tuple[str, float]] = set()  # (path, mtime) already checked in this process
+
+
+def model_dir() -> Path:
+    """The model cache directory (not created)."""
+    env = os.environ.get("VMOCAP_MODELS")
+    if env:
+        return Path(env).expanduser()
+    repo = Path(__file__).resolve().parents[2]
+    if (repo / "setup.py").exists() and (repo / "vmocap_core").is_dir():
+        return repo / "models"
+    return Path.home() / ".cache" / "vmocap" / "models"
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _read_manifest(directory: Path) -> dict:
+    try:
+        return json.loads((directory / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def verify(directory: Path | None = None) -> dict[str, str]:
+    """Problems of the cache per file name ({} when every cached file matches its checksum)."""
+    directory = directory or model_dir()
+    manifest = _read_manifest(directory)
+    if manifest.get("converter_version") != tflite2onnx.CONVERTER_VERSION:
+        return {MANIFEST: "missing or written by another converter version"}
+    problems = {}
+    for fname, digest in manifest.get("files", {}).items():
+        p = directory / fname
+        if not p.exists():
+            problems[fname] = "missing"
+        elif sha256(p) != digest:
+            problems[fname] = "checksum mismatch (corrupt or modified)"
+    for name in SOURCES:
+        for ext in (".tflite", ".onnx"):
+            if name + ext not in manifest.get("files", {}):
+                problems[name + ext] = "not in the manifest"
+    return problems
+
+
+def model_path(name: str, kind: str = "onnx", directory: Path | None = None) -> Path:
+    """Verified path of a cached model file (kind "onnx" or "tflite").
+
+    Raises ModelError naming the rebuild command when the file is missing or corrupt.
+    """
+    if name not in SOURCES:
+        raise ModelError(f"unknown model '{name}' (known: {', '.join(SOURCES)})")
+    directory = directory or model_dir()
+    fname = f"{name}.{kind}"
+    path = directory / fname
+    if not path.exists():
+        raise ModelError(f"model file {path} is missing; run `{REBUILD_COMMAND}` to build the model cache")
+    key = (str(path), path.stat().st_mtime)
+    if key not in _verified:
+        manifest = _read_manifest(directory)
+        digest = manifest.get("files", {}).get(fname)
+        if manifest.get("converter_version") != tflite2onnx.CONVERTER_VERSION or digest is None:
+            raise ModelError(f"model cache {directory} is outdated; run `{REBUILD_COMMAND}` to rebuild it")
+        if sha256(path) != digest:
+            raise ModelError(f"model file {path} is corrupt (checksum mismatch); run `{REBUILD_COMMAND}` to rebuild it")
+        _verified.add(key)
+    return path
+
+
+def _download_wheel(dest: Path) -> Path:
+    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--disable-pip-version-check", "-q",
+           "--only-binary=:all:", "-d", str(dest), WHEEL_REQUIREMENT]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    wheels = sorted(dest.glob("mediapipe-*.whl"))
+    if res.returncode != 0 or not wheels:
+        raise ModelError(f"`{' '.join(cmd[2:])}` failed (network?): {res.stderr.strip()[-400:]}")
+    return wheels[0]
+
+
+def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None = None, quiet: bool = False) -> dict[str, Path]:
+    """Build (or keep, when valid) the model cache; returns name -> ONNX path.
+
+    `wheel`: a local mediapipe-0.10.14 wheel instead of downloading one.
+    """
+    directory = directory or model_dir()
+    say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
+    if not force and not verify(directory):
+        say(f"model cache {directory} is valid")
+        return {n: directory / f"{n}.onnx" for n in SOURCES}
+    directory.mkdir(parents=True, exist_ok=True)
+    files: dict[str, str] = {}
+    with tempfile.TemporaryDirectory(prefix="vmocap-fetch-") as tmp:
+        if wheel is None:
+            say(f"downloading {WHEEL_REQUIREMENT} (pip download --no-deps)...")
+            wheel = _download_wheel(Path(tmp))
+        try:
+            zf = zipfile.ZipFile(wheel)
+        except (OSError, zipfile.BadZipFile) as exc:
+            raise ModelError(f"{wheel}: not a readable wheel ({exc})") from exc
+        with zf:
+            for name, (member, digest) in SOURCES.items():
+                try:
+                    data = zf.read(member)
+                except KeyError as exc:
+                    raise ModelError(f"{wheel} has no {member}") from exc
+                if hashlib.sha256(data).hexdigest() != digest:
+                    raise ModelError(f"{wheel}:{member} does not match the pinned checksum")
+                src = directory / f"{name}.tflite"
+                src.write_bytes(data)
+                files[src.name] = digest
+    for name in SOURCES:
+        t0 = time.perf_counter()
+        dst = directory / f"{name}.onnx"
+        tflite2onnx.convert_file(directory / f"{name}.tflite", dst)
+        files[dst.name] = sha256(dst)
+        say(f"converted {name}.tflite -> {dst} ({time.perf_counter() - t0:.1f} s)")
+    manifest = {"source": WHEEL_REQUIREMENT, "converter_version": tflite2onnx.CONVERTER_VERSION, "files": files}
+    tmp_manifest = directory / (MANIFEST + ".tmp")
+    tmp_manifest.write_text(json.dumps(manifest, indent=1) + "\n")
+    tmp_manifest.replace(directory / MANIFEST)
+    _verified.clear()
+    return {n: directory / f"{n}.onnx" for n in SOURCES}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--dir", type=Path, default=None, help=f"cache directory (default: {model_dir()})")
+    parser.add_argument("--force", action="store_true", help="rebuild even if the cache is valid")
+    parser.add_argument("--wheel", type=Path, default=None, help="use this local mediapipe-0.10.14 wheel")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        paths = fetch(args.dir, force=args.force, wheel=args.wheel)
+    except ModelError as exc:
+        print(f"vmocap models fetch: {exc}", file=sys.stderr)
+        return 1
+    for name, p in paths.items():
+        print(f"{name}: {p}")
+    return 0
