@@ -1,0 +1,5 @@
+"""MCAP bags without ROS: CDR codec, rosbag2-compatible reader/writer, message conversions."""
+
+from .mcap_io import BagMessage, BagReader, BagWriter
+
+__all__ = ["BagMessage", "BagReader", "BagWriter"]

@@ -1,0 +1,282 @@
+"""rosbag2-compatible MCAP files: profile "ros2", schemas "ros2msg" (full definition text),
+messages "cdr". Readable by ros2 bag, `rosbags` and Foxglove.
+
+The writer never leaves a half-written file under the final name: it writes `NAME.partial`
+and renames it to NAME only after the MCAP footer and summary are written (on close, on an
+exception inside `with`, and on SIGINT/SIGTERM in the recorder, which closes it). A process
+killed with SIGKILL leaves only `NAME.partial`, which `BagReader(..., recover=True)` reads.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from ..errors import BagError
+from . import cdr
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"\x89MCAP0\r\n"
+PARTIAL_SUFFIX = ".partial"
+# What rosbag2 records as the publisher QoS (reliable, volatile, keep last): players use it.
+_QOS_YAML = (
+    "- history: 1\n  depth: {depth}\n  reliability: 1\n  durability: 2\n"
+    "  deadline:\n    sec: 2147483647\n    nsec: 4294967295\n"
+    "  lifespan:\n    sec: 2147483647\n    nsec: 4294967295\n"
+    "  liveliness: 1\n  liveliness_lease_duration:\n    sec: 2147483647\n    nsec: 4294967295\n"
+    "  avoid_ros_namespace_conventions: false\n"
+)
+_COMPRESSION = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
+
+
+@dataclass
+class BagMessage:
+    """One message of a bag: raw CDR bytes, decoded on demand."""
+
+    topic: str
+    type: str  # "pkg/msg/Type"
+    log_time_ns: int
+    data: bytes
+
+    def decode(self) -> dict:
+        try:
+            return cdr.decode(self.type, self.data)
+        except BagError as exc:
+            raise BagError(f"topic {self.topic} at {self.log_time_ns} ns: {exc}") from None
+
+
+class BagWriter:
+    """Write messages (dicts or CDR bytes) into a rosbag2-compatible MCAP file."""
+
+    def __init__(self, path: str | os.PathLike, compression: str = "none", chunk_size: int = 4 << 20) -> None:
+        self.path = Path(path)
+        if compression not in _COMPRESSION:
+            raise BagError(f"{self.path}: unknown compression {compression!r} (none, zstd, lz4)")
+        self.tmp_path = self.path.with_name(self.path.name + PARTIAL_SUFFIX)
+        self._compression = _COMPRESSION[compression]
+        self._chunk_size = chunk_size
+        self._file: Any = None
+        self._writer: Writer | None = None
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, tuple[int, str]] = {}
+        self._seq: dict[int, int] = {}
+        self.count = 0
+
+    def open(self) -> "BagWriter":
+        if self._writer is not None:
+            return self
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self._file = open(self.tmp_path, "wb")
+        except OSError as exc:
+            raise BagError(f"{self.path}: cannot create ({exc})") from None
+        self._writer = Writer(self._file, chunk_size=self._chunk_size, compression=self._compression)
+        self._writer.start(profile="ros2", library="vmocap")
+        return self
+
+    def add_topic(self, topic: str, type_name: str, qos_depth: int = 10) -> int:
+        """Register `topic` with message type `type_name` ("pkg/msg/Type"); idempotent."""
+        if self._writer is None:
+            self.open()
+        assert self._writer is not None
+        if topic in self._channels:
+            cid, known = self._channels[topic]
+            if known != type_name:
+                raise BagError(f"{self.path}: topic {topic} already has type {known}, not {type_name}")
+            return cid
+        if type_name not in self._schemas:
+            self._schemas[type_name] = self._writer.register_schema(
+                name=type_name, encoding="ros2msg", data=cdr.schema_text(type_name).encode()
+            )
+        cid = self._writer.register_channel(
+            topic=topic,
+            message_encoding="cdr",
+            schema_id=self._schemas[type_name],
+            metadata={"offered_qos_profiles": _QOS_YAML.format(depth=qos_depth)},
+        )
+        self._channels[topic] = (cid, type_name)
+        self._seq[cid] = 0
+        return cid
+
+    def write(self, topic: str, type_name: str, msg: dict | bytes, log_time_ns: int, publish_time_ns: int | None = None) -> None:
+        cid = self.add_topic(topic, type_name)
+        data = msg if isinstance(msg, (bytes, bytearray, memoryview)) else cdr.encode(type_name, msg)
+        self._seq[cid] += 1
+        assert self._writer is not None
+        self._writer.add_message(
+            channel_id=cid,
+            log_time=int(log_time_ns),
+            data=bytes(data),
+            publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
+            sequence=self._seq[cid],
+        )
+        self.count += 1
+
+    def close(self) -> None:
+        """Write the footer and summary, flush to disk and move the file to its final name."""
+        if self._writer is None:
+            return
+        writer, f = self._writer, self._file
+        self._writer = None
+        try:
+            writer.finish()
+            f.flush()
+            os.fsync(f.fileno())
+        finally:
+            f.close()
+        os.replace(self.tmp_path, self.path)
+
+    def __enter__(self) -> "BagWriter":
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class BagReader:
+    """Read a rosbag2 MCAP file. A file without a valid footer/summary (truncated, e.g. a
+    recorder killed hard) raises BagError naming the file, unless `recover=True`: then the
+    messages before the damage are read linearly."""
+
+    def __init__(self, path: str | os.PathLike, recover: bool = False) -> None:
+        self.path = Path(path)
+        self.recover = recover
+        self.damaged: str | None = None  # why the summary could not be read
+        self.topics: dict[str, str] = {}  # topic -> "pkg/msg/Type"
+        self.message_counts: dict[str, int] = {}
+        self.start_ns = 0
+        self.end_ns = 0
+        self._f: Any = None
+        self._summary: Any = None
+
+    # --------------------------------------------------------------------------- opening
+    def open(self) -> "BagReader":
+        if self._f is not None:
+            return self
+        if not self.path.is_file():
+            raise BagError(f"{self.path}: no such bag file")
+        self._f = open(self.path, "rb")
+        head = self._f.read(len(MAGIC))
+        if head != MAGIC:
+            self.close()
+            raise BagError(f"{self.path}: not an MCAP file (bad magic {head[:8]!r})")
+        try:
+            self._f.seek(0)
+            self._summary = SeekingReader(self._f).get_summary()
+            if self._summary is None:
+                self.damaged = "the file has no summary section"
+        except (McapError, ValueError, OSError, StopIteration, KeyError) as exc:
+            self.damaged = f"no valid footer/summary ({type(exc).__name__}: {exc})"
+        if self.damaged is None:
+            s = self._summary
+            for ch in s.channels.values():
+                schema = s.schemas.get(ch.schema_id)
+                self._register(ch, schema)
+            if s.statistics is not None:
+                self.start_ns = s.statistics.message_start_time
+                self.end_ns = s.statistics.message_end_time
+                for cid, n in s.statistics.channel_message_counts.items():
+                    self.message_counts[s.channels[cid].topic] = n
+            return self
+        if not self.recover:
+            self.close()
+            raise BagError(
+                f"{self.path}: truncated or corrupt MCAP: {self.damaged}. It was probably not "
+                "closed properly; open it with recover=True (vmocap play/process --recover) "
+                "to read the messages before the damage"
+            )
+        log.warning("%s: %s; recovering the readable messages", self.path, self.damaged)
+        first = None
+        for msg in self._stream_messages(None):
+            first = msg.log_time_ns if first is None else min(first, msg.log_time_ns)
+            self.end_ns = max(self.end_ns, msg.log_time_ns)
+            self.message_counts[msg.topic] = self.message_counts.get(msg.topic, 0) + 1
+        self.start_ns = first or 0
+        return self
+
+    def _register(self, ch: Channel, schema: Schema | None) -> str:
+        if ch.message_encoding != "cdr":
+            raise BagError(f"{self.path}: topic {ch.topic} has encoding {ch.message_encoding!r}, expected 'cdr'")
+        name = schema.name if schema is not None else ""
+        if name.count("/") == 1:
+            name = name.replace("/", "/msg/")
+        self.topics[ch.topic] = name
+        return name
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+
+    def __enter__(self) -> "BagReader":
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --------------------------------------------------------------------------- reading
+    def messages(self, topics: Iterable[str] | None = None, start_ns: int | None = None, end_ns: int | None = None) -> Iterator[BagMessage]:
+        """Messages of `topics` (all when None) in log-time order within [start_ns, end_ns)."""
+        self.open()
+        wanted = None if topics is None else set(topics)
+        if wanted is not None:
+            missing = wanted - set(self.topics)
+            if missing:
+                raise BagError(f"{self.path}: no topic(s) {sorted(missing)}; the bag has {sorted(self.topics)}")
+        if self.damaged is not None:
+            for m in self._stream_messages(wanted):
+                if (start_ns is None or m.log_time_ns >= start_ns) and (end_ns is None or m.log_time_ns < end_ns):
+                    yield m
+            return
+        try:
+            self._f.seek(0)
+            reader = SeekingReader(self._f)
+            reader._summary = self._summary
+            for schema, ch, rec in reader.iter_messages(
+                topics=None if wanted is None else sorted(wanted), start_time=start_ns, end_time=end_ns, log_time_order=True
+            ):
+                yield BagMessage(ch.topic, self.topics[ch.topic], rec.log_time, rec.data)
+        except (McapError, ValueError, OSError, EOFError) as exc:
+            raise BagError(f"{self.path}: corrupt MCAP data ({type(exc).__name__}: {exc})") from None
+
+    def _stream_messages(self, wanted: set[str] | None) -> Iterator[BagMessage]:
+        """Linear read that stops quietly at the first damaged record (recovery mode)."""
+        self._f.seek(0)
+        channels: dict[int, Channel] = {}
+        schemas: dict[int, Schema] = {}
+        records = StreamReader(self._f, skip_magic=False, validate_crcs=True).records
+        while True:
+            try:
+                rec = next(records)
+            except StopIteration:
+                return
+            except Exception as exc:  # noqa: BLE001 - any decode failure ends recovery here
+                log.info("%s: stopped reading at damaged data (%s: %s)", self.path, type(exc).__name__, exc)
+                return
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec
+                self._register(rec, schemas.get(rec.schema_id))
+            elif isinstance(rec, Message):
+                ch = channels.get(rec.channel_id)
+                if ch is None or (wanted is not None and ch.topic not in wanted):
+                    continue
+                yield BagMessage(ch.topic, self.topics[ch.topic], rec.log_time, rec.data)
+
+
+def read_topics(path: str | os.PathLike) -> dict[str, str]:
+    """topic -> type of a bag (convenience)."""
+    with BagReader(path) as r:
+        return dict(r.topics)
