@@ -1,0 +1,1 @@
+"""Evaluation on real data: the Shelf benchmark (multi-person, real OpenPose detections)."""
