@@ -136,7 +136,7 @@ def crops_from_skeleton(
     if kp.shape != (len(KEYPOINTS), 3):
         raise ModelError(f"keypoints must be ({len(KEYPOINTS)}, 3), got {kp.shape}")
     uv, front = rig.project(kp)  # (C, 25, 2), (C, 25)
-    uv = np.where(front[..., None] & np.isfinite(kp)[None], uv, np.nan)
+    uv = np.where(front[..., None] & np.isfinite(kp).all(axis=1)[None, :, None], uv, np.nan)
     center, side, rot = crops_from_keypoints_2d(uv, rotation, margin)
     wh = np.array([[c.width, c.height] for c in rig.cameras], dtype=np.float64)
     half = np.where(np.isfinite(side), side, 0.0)[:, None] * 0.7072  # circumradius of the square
