@@ -13,6 +13,7 @@ N pixels exactly tile the side (cv2.warpAffine with `image_to_crop` samples it).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -108,7 +109,8 @@ def crops_from_keypoints_2d(
     enough = ok.sum(axis=1) >= 2
     xm = np.where(ok, x, np.nan)
     ym = np.where(ok, y, np.nan)
-    with np.errstate(all="ignore"):
+    with warnings.catch_warnings():  # cameras that see no keypoint: all-NaN rows, handled below
+        warnings.simplefilter("ignore", RuntimeWarning)
         x0, x1 = np.nanmin(xm, axis=1), np.nanmax(xm, axis=1)
         y0, y1 = np.nanmin(ym, axis=1), np.nanmax(ym, axis=1)
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2

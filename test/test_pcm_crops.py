@@ -1,0 +1,145 @@
+"""Crop and heatmap-cell geometry: the exact image <-> crop <-> map affines (no model needed)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from vmocap_core.camera import Camera, Rig, look_at
+from vmocap_core.errors import ModelError
+from vmocap_core.heatmaps import PcmViews, apply_affine, invert_affine, stride_affine
+from vmocap_core.keypoints import INDEX, KEYPOINTS, LOWER_BODY
+from vmocap_core.pcm.blazepose import rotated_crops
+from vmocap_core.pcm.crops import Crops, compose_affine, crop_affine, crops_from_skeleton, tilt_from_points
+from vmocap_core.pcm.model import letterbox_affine
+from vmocap_core.tracker import trunk_tilt
+
+N = 256
+
+
+def test_crop_affine_centre_edges_and_rotation() -> None:
+    c, side = np.array([400.0, 300.0]), 512.0
+    A = crop_affine(c, side, 0.0, N)[0]
+    # the crop centre (N-1)/2 is the crop's image centre; crop edges (-0.5, N-0.5) are the side's edges
+    np.testing.assert_allclose(apply_affine(A, c), [(N - 1) / 2] * 2, atol=1e-12)
+    np.testing.assert_allclose(apply_affine(A, c - side / 2), [-0.5, -0.5], atol=1e-12)
+    np.testing.assert_allclose(apply_affine(A, c + side / 2), [N - 0.5, N - 0.5], atol=1e-12)
+    # rotation pi/2: a person leaning to image +u (head at c + (d, 0)) is upright in the crop
+    A = crop_affine(c, side, np.pi / 2, N)[0]
+    np.testing.assert_allclose(apply_affine(A, c + [100.0, 0.0]), [(N - 1) / 2, (N - 1) / 2 - 50.0], atol=1e-9)
+    assert tilt_from_points(c, c + [100.0, 0.0]) == pytest.approx(np.pi / 2)
+    assert tilt_from_points(c, c - [0.0, 100.0]) == pytest.approx(0.0)
+
+
+def _blob(w: int, h: int, uv: np.ndarray, sigma: float = 4.0) -> np.ndarray:
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    g = np.exp(-((u - uv[0]) ** 2 + (v - uv[1]) ** 2) / (2 * sigma**2))
+    return np.round(g * 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("rotation", [0.0, 0.7, np.pi])
+@pytest.mark.parametrize("side", [256.0, 400.0])
+def test_warp_affine_agrees_with_the_affine(rotation: float, side: float) -> None:
+    """cv2.warpAffine with image_to_crop puts an image point exactly where the affine says."""
+    uv = np.array([331.3, 207.8])
+    img = _blob(640, 480, uv)
+    A = crop_affine([300.0, 250.0], side, rotation, N)[0]
+    crop = cv2.warpAffine(img, A, (N, N), flags=cv2.INTER_LINEAR).astype(np.float64)
+    xs, ys = np.meshgrid(np.arange(N), np.arange(N))
+    w = np.where(crop > 20, crop, 0)
+    centroid = np.array([(w * xs).sum(), (w * ys).sum()]) / w.sum()
+    np.testing.assert_allclose(centroid, apply_affine(A, uv), atol=0.1)
+
+
+def test_blazepose_half_cell_convention() -> None:
+    """Map cell (x, y) is centred on crop pixel ((x+0.5)*4-0.5, (y+0.5)*4-0.5)."""
+    c, side, rot = np.array([500.0, 400.0]), 600.0, 0.3
+    image_to_crop = crop_affine(c, side, rot, N)[0]
+    image_to_map = compose_affine(stride_affine(4.0), image_to_crop)
+    cells = np.array([[0, 0], [10, 20], [63, 63]], dtype=np.float64)
+    crop_px = (cells + 0.5) * 4 - 0.5
+    np.testing.assert_allclose(apply_affine(invert_affine(image_to_crop), crop_px),
+                               apply_affine(invert_affine(image_to_map), cells), atol=1e-9)
+    # PcmViews.peaks uses the same mapping: a one-hot map at cell (10, 20)
+    maps = np.zeros((1, 1, 64, 64), np.float32)
+    maps[0, 0, 20, 10] = 1.0
+    pv = PcmViews(maps, image_to_map[None], [0], [INDEX["nose"]], [[True]], [1.0])
+    uv, _ = pv.peaks()
+    s = side / N
+    R = np.array([[np.cos(rot), -np.sin(rot)], [np.sin(rot), np.cos(rot)]])
+    expect = c + s * R @ (np.array([41.5, 81.5]) - (N - 1) / 2)
+    np.testing.assert_allclose(uv[0, 0], expect, atol=1e-9)
+
+
+def test_letterbox_affine_maps_edges_to_edges() -> None:
+    A = letterbox_affine(1024, 768, 224, 224)
+    s = 224 / 1024
+    np.testing.assert_allclose(apply_affine(A, np.array([-0.5, -0.5])), [-0.5, -0.5 + (224 - 768 * s) / 2])
+    np.testing.assert_allclose(apply_affine(A, np.array([1023.5, 767.5])), [223.5, 223.5 - (224 - 768 * s) / 2])
+
+
+def _rig() -> Rig:
+    cams = []
+    for k, eye in enumerate([[4.0, 0.0, 1.2], [0.0, 4.0, 1.2], [0.0, 0.0, 6.0]]):
+        R, t = look_at(np.array(eye), np.array([0.0, 0.0, 1.0]), up=np.array([0.0, 0.0, 1.0]) if k < 2 else np.array([0.0, 1.0, 0.0]))
+        cams.append(Camera(f"c{k}", [[800, 0, 511.5], [0, 800, 383.5], [0, 0, 1]], np.zeros(5), R, t, 1024, 768))
+    return Rig(cams)
+
+
+def _standing(z0: float = 0.0, flip: bool = False) -> np.ndarray:
+    kp = np.zeros((len(KEYPOINTS), 3))
+    h = {"pelvis": 0.95, "neck": 1.45, "nose": 1.62, "left_ankle": 0.08, "right_ankle": 0.08, "left_wrist": 0.9, "right_wrist": 0.9}
+    for i, k in enumerate(KEYPOINTS):
+        kp[i, 2] = h.get(k, 1.1)
+        kp[i, 1] = 0.15 if k.startswith("left") else (-0.15 if k.startswith("right") else 0.0)
+    if flip:  # upside down (handstand), around z = 0.9
+        kp[:, 2] = 1.8 - kp[:, 2]
+    kp[:, 2] += z0
+    return kp
+
+
+def test_crops_from_skeleton_upright_inverted_and_behind() -> None:
+    rig = _rig()
+    kp = _standing()
+    centre, side, rot, ok = crops_from_skeleton(rig, kp)
+    assert ok.all()
+    uv, _ = rig.project(kp)
+    # side-view cameras: upright, square covers the projected height * 1.25
+    for c in (0, 1):
+        assert abs(rot[c]) < 1e-6
+        extent = uv[c, :, 1].max() - uv[c, :, 1].min()
+        assert side[c] == pytest.approx(1.25 * extent, rel=1e-6)
+        lo, hi = uv[c].min(axis=0), uv[c].max(axis=0)
+        np.testing.assert_allclose(centre[c], (lo + hi) / 2, atol=1e-6)
+    np.testing.assert_allclose(rot, trunk_tilt(rig, kp), atol=1e-9)  # same convention as the lead's
+    _, _, rot_inv, _ = crops_from_skeleton(rig, _standing(flip=True))
+    assert np.abs(np.abs(rot_inv[:2]) - np.pi).max() < 1e-6
+    # explicit rotation overrides; a body behind a camera gives usable=False
+    _, _, rot0, _ = crops_from_skeleton(rig, kp, rotation=np.zeros(3))
+    assert not rot0.any()
+    _, _, _, ok_behind = crops_from_skeleton(rig, _standing(z0=7.0))
+    assert not ok_behind[2]  # above the top camera: behind it
+    with pytest.raises(ModelError):
+        crops_from_skeleton(rig, kp[:10])
+
+
+def test_rotated_crops_variants() -> None:
+    cam = np.arange(3)
+    centre, side = np.zeros((3, 2)) + 100, np.full(3, 300.0)
+    tilt = np.array([0.05, np.pi, -1.0])
+    lower = np.isin(np.array(KEYPOINTS), LOWER_BODY)
+    c = rotated_crops(cam, centre, side, tilt, "lower_body")
+    # camera 0 is nearly upright: one view; cameras 1 and 2 get an upright + a rotated view
+    assert c.camera.tolist() == [0, 1, 2, 1, 2]
+    np.testing.assert_allclose(c.rotation, [0, 0, 0, np.pi, -1.0])
+    assert c.valid[0].all()
+    assert (c.valid[1] == ~lower).all() and (c.valid[3] == lower).all()
+    assert not (c.valid[1] & c.valid[3]).any() and (c.valid[1] | c.valid[3]).all()
+    a = rotated_crops(cam, centre, side, tilt, "all")
+    np.testing.assert_allclose(a.rotation, tilt)
+    assert len(rotated_crops(cam, centre, side, tilt, "none")) == 3
+    with pytest.raises(ModelError):
+        rotated_crops(cam, centre, side, tilt, "sideways")
+    with pytest.raises(ModelError):
+        Crops([0], [[np.nan, 0.0]], [100.0], [0.0])
