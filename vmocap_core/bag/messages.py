@@ -1,0 +1,296 @@
+"""Conversions between vmocap's data and ROS 2 message dicts (see `cdr`), without ROS.
+
+Both the rclpy nodes and the offline pipeline (`vmocap process`) use these functions, so the
+graph and the offline run see bit-identical inputs.
+
+PCM message (one per view and frame set), a pair with the same header:
+- `sensor_msgs/Image`, encoding `32FC<N>`, N = J + 1: row-major H x W cells, channels
+  interleaved (OpenCV layout). Channels 0..J-1 are the keypoints in the order of the graph
+  config's `pcm.keypoints`; a channel that is all NaN means "this view says nothing about
+  that keypoint" (`PcmViews.valid` False). Channel J is constant: the view's `presence`.
+  `header.frame_id` is the camera name (as in the rig), `header.stamp` the capture time.
+- `sensor_msgs/CameraInfo` of the heatmap as a camera: width W, height H, the camera's own D
+  and distortion model, K = A K_cam with A the 3x3 form of `image_to_map`
+  ([[a11 a12 a13] [a21 a22 a23] [0 0 1]]) and K_cam the camera's intrinsics from the rig,
+  P = [K | 0], R = I. So projecting a camera-frame point with this CameraInfo (distort, then
+  K) lands at heatmap map coordinates (cell (x, y) centred at (x, y)), and the receiver gets
+  back image_to_map = (K K_cam^-1)[:2]. Rotated crops make K a general affine (non-zero
+  K[1,0]), which is why the receiver inverts with the rig's K_cam rather than assuming
+  upper-triangular form.
+
+Point clouds (`sensor_msgs/PointCloud2`, markers and keypoints): one point per keypoint of
+KEYPOINTS, fields x, y, z, score (FLOAT64, metres, world frame) and id (UINT32, index in
+KEYPOINTS), point_step 40, NaN coordinates where a keypoint is unknown (is_dense False).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..camera import Camera, Rig
+from ..errors import BagError, HeatmapError
+from ..heatmaps import PcmViews
+from ..keypoints import INDEX, KEYPOINTS
+
+WORLD_FRAME = "world"
+CLOUD_DTYPE = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("score", "<f8"), ("id", "<u4"), ("kind", "<u4")])
+MARKER_KINDS = ("none", "triangulated", "lattice")
+_CLOUD_FIELDS = [
+    {"name": "x", "offset": 0, "datatype": 8, "count": 1},
+    {"name": "y", "offset": 8, "datatype": 8, "count": 1},
+    {"name": "z", "offset": 16, "datatype": 8, "count": 1},
+    {"name": "score", "offset": 24, "datatype": 8, "count": 1},
+    {"name": "id", "offset": 32, "datatype": 6, "count": 1},
+    {"name": "kind", "offset": 36, "datatype": 6, "count": 1},
+]
+
+
+# ------------------------------------------------------------------------------- stamps
+def stamp(ns: int) -> dict[str, int]:
+    ns = int(ns)
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+
+def stamp_ns(msg: dict) -> int:
+    """Capture time of a message with a header (or a Time dict)."""
+    t = msg["header"]["stamp"] if "header" in msg else msg
+    return int(t["sec"]) * 1_000_000_000 + int(t["nanosec"])
+
+
+def header(ns: int, frame_id: str = "") -> dict:
+    return {"stamp": stamp(ns), "frame_id": frame_id}
+
+
+def clock_msg(ns: int) -> dict:
+    return {"clock": stamp(ns)}
+
+
+# ------------------------------------------------------------------------------- images
+_IMAGE_ENC = {"mono8": (np.uint8, 1), "bgr8": (np.uint8, 3), "rgb8": (np.uint8, 3), "mono16": (np.uint16, 1)}
+
+
+def image_msg(image: np.ndarray, ns: int, frame_id: str, encoding: str | None = None) -> dict:
+    img = np.ascontiguousarray(image)
+    if encoding is None:
+        encoding = "bgr8" if img.ndim == 3 else "mono8"
+    h, w = img.shape[:2]
+    return {
+        "header": header(ns, frame_id),
+        "height": h,
+        "width": w,
+        "encoding": encoding,
+        "is_bigendian": 0,
+        "step": img.strides[0],
+        "data": img.tobytes(),
+    }
+
+
+def image_array(msg: dict) -> np.ndarray:
+    """Image message -> (H, W[, C]) array; rgb8 is converted to BGR; 32FC<N> -> (H, W, N) float32."""
+    enc, h, w, step = msg["encoding"], msg["height"], msg["width"], msg["step"]
+    if enc.startswith("32FC"):
+        dtype, ch = np.dtype("<f4"), int(enc[4:])
+    elif enc in _IMAGE_ENC:
+        dtype, ch = np.dtype(_IMAGE_ENC[enc][0]), _IMAGE_ENC[enc][1]
+    else:
+        raise BagError(f"unsupported image encoding {enc!r}")
+    if msg.get("is_bigendian"):
+        dtype = dtype.newbyteorder(">")
+    row = w * ch * dtype.itemsize
+    data = msg["data"]
+    if step < row or len(data) < step * h:
+        raise BagError(f"image {w}x{h} {enc}: step {step} / {len(data)} bytes do not fit")
+    arr = np.frombuffer(data, dtype=np.uint8, count=step * h).reshape(h, step)[:, :row]
+    arr = arr.view(dtype).reshape(h, w, ch) if ch > 1 or enc.startswith("32FC") else arr.view(dtype).reshape(h, w)
+    if enc == "rgb8":
+        arr = arr[..., ::-1]
+    return arr
+
+
+def camera_info_msg(camera: Camera, ns: int, K: np.ndarray | None = None, size: tuple[int, int] | None = None) -> dict:
+    """CameraInfo of a rig camera (or, with K/size, of a heatmap seen as a camera)."""
+    rational = bool(np.any(camera.dist[5:] != 0))
+    K = camera.K if K is None else np.asarray(K, dtype=np.float64)
+    w, h = (camera.width, camera.height) if size is None else size
+    return {
+        "header": header(ns, camera.name),
+        "height": int(h),
+        "width": int(w),
+        "distortion_model": "rational_polynomial" if rational else "plumb_bob",
+        "d": camera.dist if rational else camera.dist[:5],
+        "k": K.ravel(),
+        "r": np.eye(3).ravel(),
+        "p": np.hstack([K, np.zeros((3, 1))]).ravel(),
+    }
+
+
+def camera_info_mismatch(msg: dict, camera: Camera, rtol: float = 1e-6) -> str | None:
+    """Why a received CameraInfo disagrees with the rig (None when it agrees)."""
+    if (msg["width"], msg["height"]) != (camera.width, camera.height):
+        return f"{camera.name}: CameraInfo is {msg['width']}x{msg['height']}, rig says {camera.width}x{camera.height}"
+    K = np.asarray(msg["k"], dtype=np.float64).reshape(3, 3)
+    if not np.allclose(K, camera.K, rtol=rtol, atol=1e-9):
+        return f"{camera.name}: CameraInfo K differs from the rig's"
+    d = np.zeros(8)
+    given = np.asarray(msg["d"], dtype=np.float64)[:8]
+    d[: given.size] = given
+    if not np.allclose(d, camera.dist, rtol=rtol, atol=1e-12):
+        return f"{camera.name}: CameraInfo D differs from the rig's"
+    return None
+
+
+# ------------------------------------------------------------------------------- heatmaps
+def pcm_msgs(views: PcmViews, rig: Rig) -> list[tuple[dict, dict]]:
+    """One (Image, CameraInfo) pair per view (see the module docstring)."""
+    V, J, H, W = views.maps.shape
+    out = []
+    for v in range(V):
+        cam = rig[int(views.camera[v])]
+        stack = np.empty((H, W, J + 1), dtype=np.float32)
+        stack[..., :J] = views.maps[v].transpose(1, 2, 0)
+        stack[..., :J][..., ~views.valid[v]] = np.nan
+        stack[..., J] = views.presence[v]
+        img = image_msg(stack, views.stamp_ns, cam.name, encoding=f"32FC{J + 1}")
+        A = np.vstack([views.image_to_map[v], [0.0, 0.0, 1.0]])
+        info = camera_info_msg(cam, views.stamp_ns, K=A @ cam.K, size=(W, H))
+        out.append((img, info))
+    return out
+
+
+def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarray) -> PcmViews:
+    """Inverse of `pcm_msgs`: (Image, CameraInfo) pairs of one frame set -> PcmViews."""
+    if not pairs:
+        raise HeatmapError("no PCM views in the frame set")
+    J = len(keypoints)
+    maps, affines, cams, valid, presence = [], [], [], [], []
+    for img, info in pairs:
+        name = img["header"]["frame_id"]
+        if name not in rig.names:
+            raise HeatmapError(f"PCM view of unknown camera {name!r} (rig has {rig.names})")
+        arr = image_array(img)
+        if arr.ndim != 3 or arr.shape[2] != J + 1:
+            raise HeatmapError(f"PCM of {name}: {img['encoding']} but {J} keypoints + presence expected")
+        if (info["width"], info["height"]) != (img["width"], img["height"]):
+            raise HeatmapError(f"PCM of {name}: CameraInfo size differs from the heatmap's")
+        cam = rig[name]
+        Kmap = np.asarray(info["k"], dtype=np.float64).reshape(3, 3)
+        A = Kmap @ np.linalg.inv(cam.K)
+        m = arr[..., :J].transpose(2, 0, 1)
+        ok = ~np.isnan(m).all(axis=(1, 2))
+        maps.append(np.where(ok[:, None, None], m, 0.0))
+        affines.append(A[:2])
+        cams.append(rig.names.index(name))
+        valid.append(ok)
+        presence.append(float(arr[0, 0, J]) if arr.size else 0.0)
+    return PcmViews(
+        maps=np.stack(maps).astype(np.float32),
+        image_to_map=np.stack(affines),
+        camera=np.array(cams),
+        keypoints=np.asarray(keypoints),
+        valid=np.stack(valid),
+        presence=np.array(presence),
+        stamp_ns=stamp_ns(pairs[0][0]),
+    )
+
+
+# ------------------------------------------------------------------------------- clouds
+def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | None = None, kind: str = "none") -> dict:
+    """PointCloud2 of the 25 KEYPOINTS (positions None: an empty cloud, e.g. 'lost')."""
+    if positions is None:
+        pts = np.zeros(0, dtype=CLOUD_DTYPE)
+    else:
+        P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        pts = np.zeros(len(P), dtype=CLOUD_DTYPE)
+        pts["x"], pts["y"], pts["z"] = P[:, 0], P[:, 1], P[:, 2]
+        pts["score"] = 0.0 if scores is None else np.asarray(scores, dtype=np.float64)
+        pts["id"] = np.arange(len(P))
+        pts["kind"] = MARKER_KINDS.index(kind)
+    return {
+        "header": header(ns, WORLD_FRAME),
+        "height": 1,
+        "width": len(pts),
+        "fields": _CLOUD_FIELDS,
+        "is_bigendian": False,
+        "point_step": CLOUD_DTYPE.itemsize,
+        "row_step": CLOUD_DTYPE.itemsize * len(pts),
+        "data": pts.tobytes(),
+        "is_dense": bool(len(pts) == 0 or np.isfinite(np.stack([pts["x"], pts["y"], pts["z"]])).all()),
+    }
+
+
+def cloud_keypoints(msg: dict) -> tuple[np.ndarray | None, np.ndarray, str]:
+    """Inverse of `keypoint_cloud`: positions (25, 3) in KEYPOINTS order (None when empty),
+    scores (25,), kind."""
+    n = msg["width"] * msg["height"]
+    if n == 0:
+        return None, np.zeros(len(KEYPOINTS)), "none"
+    names = [f["name"] for f in msg["fields"]]
+    if names[:5] != ["x", "y", "z", "score", "id"] or msg["point_step"] != CLOUD_DTYPE.itemsize:
+        raise BagError(f"point cloud fields {names} are not vmocap's keypoint layout")
+    pts = np.frombuffer(msg["data"], dtype=CLOUD_DTYPE, count=n)
+    P = np.full((len(KEYPOINTS), 3), np.nan)
+    S = np.zeros(len(KEYPOINTS))
+    ids = pts["id"].astype(np.intp)
+    P[ids] = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
+    S[ids] = pts["score"]
+    return P, S, MARKER_KINDS[int(pts["kind"][0])]
+
+
+# ------------------------------------------------------------------------------- outputs
+def joint_state_msg(ns: int, names: Sequence[str], q: np.ndarray) -> dict:
+    return {"header": header(ns, ""), "name": list(names), "position": np.asarray(q, dtype=np.float64)}
+
+
+# Bones drawn in the MarkerArray skeleton (pairs of KEYPOINTS names).
+BONES: tuple[tuple[str, str], ...] = (
+    ("pelvis", "neck"), ("neck", "nose"), ("nose", "left_eye"), ("nose", "right_eye"),
+    ("left_eye", "left_ear"), ("right_eye", "right_ear"),
+    ("neck", "left_shoulder"), ("left_shoulder", "left_elbow"), ("left_elbow", "left_wrist"),
+    ("left_wrist", "left_hand"), ("neck", "right_shoulder"), ("right_shoulder", "right_elbow"),
+    ("right_elbow", "right_wrist"), ("right_wrist", "right_hand"),
+    ("pelvis", "left_hip"), ("left_hip", "left_knee"), ("left_knee", "left_ankle"),
+    ("left_ankle", "left_heel"), ("left_ankle", "left_toe"),
+    ("pelvis", "right_hip"), ("right_hip", "right_knee"), ("right_knee", "right_ankle"),
+    ("right_ankle", "right_heel"), ("right_ankle", "right_toe"),
+)
+_BONE_IDX = np.array([[INDEX[a], INDEX[b]] for a, b in BONES])
+
+
+def skeleton_markers(ns: int, keypoints: np.ndarray | None) -> dict:
+    """MarkerArray: bones as a LINE_LIST, keypoints as a SPHERE_LIST (DELETEALL when lost)."""
+    if keypoints is None or not np.isfinite(keypoints).any():
+        return {"markers": [{"header": header(ns, WORLD_FRAME), "ns": "vmocap", "action": 3}]}
+    K = np.asarray(keypoints, dtype=np.float64)
+    ok = np.isfinite(K).all(axis=1)
+    bones = _BONE_IDX[ok[_BONE_IDX].all(axis=1)].ravel()
+
+    def pts(idx: np.ndarray) -> list[dict]:
+        return [{"x": float(x), "y": float(y), "z": float(z)} for x, y, z in K[idx]]
+
+    common = {"header": header(ns, WORLD_FRAME), "ns": "vmocap", "pose": {"orientation": {"w": 1.0}}}
+    return {
+        "markers": [
+            dict(common, id=0, type=5, scale={"x": 0.02}, color={"r": 0.1, "g": 0.8, "b": 0.2, "a": 1.0}, points=pts(bones)),
+            dict(common, id=1, type=7, scale={"x": 0.04, "y": 0.04, "z": 0.04},
+                 color={"r": 0.9, "g": 0.3, "b": 0.1, "a": 1.0}, points=pts(np.flatnonzero(ok))),
+        ]
+    }
+
+
+def diagnostics_msg(ns: int, statuses: Sequence[tuple[int, str, str, dict[str, Any]]]) -> dict:
+    """DiagnosticArray from (level 0 OK/1 WARN/2 ERROR, name, message, key-values) tuples."""
+    return {
+        "header": header(ns, ""),
+        "status": [
+            {
+                "level": int(level),
+                "name": name,
+                "message": message,
+                "hardware_id": "vmocap",
+                "values": [{"key": str(k), "value": str(v)} for k, v in values.items()],
+            }
+            for level, name, message, values in statuses
+        ],
+    }

@@ -1,0 +1,277 @@
+"""The node graph's configuration: one ROS 2 parameter file (config/*.yaml) for all nodes.
+
+Layout (standard ROS 2 params-file syntax, so `ros2 run ... --params-file` and the launch
+file in launch/ read it too)::
+
+    /**:                      # shared by every node
+      ros__parameters: {rig: ..., cameras: [...], namespace: /vmocap, ...}
+    vmocap_markers:           # one section per node, named as the node
+      ros__parameters: {...}
+    vmocap_launch:            # read by `vmocap launch` only (not a node)
+      mode: processes         # or single_process
+      nodes: [vmocap_markers, vmocap_skeleton]
+
+Every parameter is declared here with a type (from its default), a description and a range;
+a key that is not declared is rejected with GraphConfigError naming the file and the key.
+Relative paths in values are resolved against the config file's directory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import VmocapError
+
+
+class GraphConfigError(VmocapError):
+    """A graph config file with a missing, unknown or out-of-range parameter."""
+
+    def __init__(self, path: object, key: str, problem: str) -> None:
+        self.path, self.key, self.problem = str(path), key, problem
+        super().__init__(f"{self.path}: parameter '{key}': {problem}")
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    default: Any
+    description: str
+    lo: float | None = None
+    hi: float | None = None
+    choices: tuple[str, ...] | None = None
+    path: bool = False  # resolve relative to the config file
+
+
+COMMON = [
+    Param("rig", "", "rig YAML (vmocap_core.rig_io format)", path=True),
+    Param("cameras", [""], "camera names (rig order subset); empty: all cameras of the rig"),
+    Param("namespace", "/vmocap", "topic prefix of the graph"),
+    Param("pcm_keypoints", [""], "KEYPOINTS names of the PCM channels, in channel order; empty: all 25"),
+    Param("use_sim_time", False, "take time from /clock (set when playing a bag)"),
+]
+
+NODE_PARAMS: dict[str, list[Param]] = {
+    "vmocap_camera": [
+        Param("source", "bag", "frame source kind", choices=("bag", "video", "aravis", "v4l2")),
+        Param("uri", "", "bag file, video files directory, or device/camera id", path=True),
+        Param("rate", 1.0, "playback speed of recorded sources (0: as fast as possible)", 0.0, 100.0),
+        Param("loop", False, "restart recorded sources at their end"),
+        Param("start_offset", 0.0, "skip this many seconds of a recording", 0.0, 1e6),
+    ],
+    "vmocap_pcm": [
+        Param("source", "model", "where heatmaps come from", choices=("model", "synthetic")),
+        Param("model", "", "PCM model name or ONNX path (source=model)"),
+        Param("sync_tolerance_ms", 8.0, "max stamp difference of frames in one frame set", 0.0, 1000.0),
+        Param("min_cameras", 2, "fewest cameras a frame set needs", 1, 64),
+        Param("silent_after_ms", 500.0, "a camera without frames this long is reported silent", 1.0, 1e6),
+        Param("use_feedback", True, "crop/rotate with the skeleton of the previous frame"),
+    ],
+    "vmocap_markers": [
+        Param("sync_tolerance_ms", 1.0, "max stamp difference of PCM views of one frame set", 0.0, 1000.0),
+        Param("min_cameras", 2, "fewest views a frame set needs", 1, 64),
+        Param("silent_after_ms", 500.0, "a view without heatmaps this long is reported silent", 1.0, 1e6),
+        Param("feedback_timeout_ms", 200.0, "wait this long for the previous frame's skeleton (0: never wait)", 0.0, 1e5),
+        Param("views", [""], "PCM view names (topics NS/pcm/VIEW/...); empty: one per camera, named as it"),
+    ],
+    "vmocap_skeleton": [],
+    "vmocap_recorder": [
+        Param("output", "", "MCAP file to write (renamed from .partial when closed)", path=True),
+        Param("topics", [""], "topics to record; empty: the graph outputs"),
+        Param("compression", "none", "MCAP chunk compression", choices=("none", "zstd", "lz4")),
+    ],
+}
+TRACKER_NODES = ("vmocap_markers", "vmocap_skeleton")  # these also take tracker.* parameters
+LAUNCH_KEYS = {"mode": "processes", "nodes": None, "env": {}, "fastdds_profile": "fastdds_shm.xml"}
+
+
+def tracker_params() -> list[Param]:
+    """tracker.* parameters from vmocap_core.tracker.TrackerConfig (the lead's dataclass)."""
+    try:
+        from .tracker import TrackerConfig
+    except ImportError:
+        return []
+    out = []
+    for f in dataclasses.fields(TrackerConfig):
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+            default = f.default_factory()  # type: ignore[misc]
+        else:
+            continue
+        if isinstance(default, tuple):
+            default = list(default)
+        if not isinstance(default, (bool, int, float, str, list)):
+            continue
+        out.append(Param("tracker." + f.name, default, f.metadata.get("help", f"TrackerConfig.{f.name}")))
+    return out
+
+
+def params_of(node: str) -> list[Param]:
+    if node not in NODE_PARAMS:
+        raise KeyError(f"unknown node {node!r}; nodes: {sorted(NODE_PARAMS)}")
+    extra = tracker_params() if node in TRACKER_NODES else []
+    return COMMON + NODE_PARAMS[node] + extra
+
+
+def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def _check(path: Path, p: Param, value: Any) -> Any:
+    d = p.default
+    if isinstance(d, bool):
+        if not isinstance(value, bool):
+            raise GraphConfigError(path, p.name, f"expected true/false, got {value!r}")
+    elif isinstance(d, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise GraphConfigError(path, p.name, f"expected an integer, got {value!r}")
+    elif isinstance(d, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise GraphConfigError(path, p.name, f"expected a number, got {value!r}")
+        value = float(value)
+    elif isinstance(d, str):
+        if not isinstance(value, str):
+            raise GraphConfigError(path, p.name, f"expected a string, got {value!r}")
+    elif isinstance(d, list):
+        if not isinstance(value, list):
+            raise GraphConfigError(path, p.name, f"expected a list, got {value!r}")
+    if p.lo is not None and not (p.lo <= value <= p.hi):  # type: ignore[operator]
+        raise GraphConfigError(path, p.name, f"{value} is outside [{p.lo}, {p.hi}]")
+    if p.choices is not None and value not in p.choices:
+        raise GraphConfigError(path, p.name, f"{value!r} is not one of {list(p.choices)}")
+    if p.path and isinstance(value, str) and value and not Path(value).is_absolute():
+        value = str((path.parent / value).resolve())
+    return value
+
+
+class Topics:
+    """Topic names of the graph under a namespace (see docs/graph.md)."""
+
+    def __init__(self, namespace: str = "/vmocap") -> None:
+        self.ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+
+    def image(self, cam: str) -> str:
+        return f"{self.ns}/{cam}/image_raw"
+
+    def camera_info(self, cam: str) -> str:
+        return f"{self.ns}/{cam}/camera_info"
+
+    def pcm(self, view: str) -> str:
+        return f"{self.ns}/pcm/{view}/heatmaps"
+
+    def pcm_info(self, view: str) -> str:
+        return f"{self.ns}/pcm/{view}/camera_info"
+
+    @property
+    def markers(self) -> str:
+        return f"{self.ns}/markers"
+
+    @property
+    def feedback(self) -> str:
+        return f"{self.ns}/feedback"
+
+    @property
+    def joint_states(self) -> str:
+        return f"{self.ns}/joint_states"
+
+    @property
+    def keypoints(self) -> str:
+        return f"{self.ns}/keypoints"
+
+    @property
+    def skeleton(self) -> str:
+        return f"{self.ns}/skeleton"
+
+    diagnostics = "/diagnostics"
+    clock = "/clock"
+
+    def outputs(self) -> dict[str, str]:
+        """The graph's output topics and their types (what the recorder takes by default)."""
+        return {
+            self.joint_states: "sensor_msgs/msg/JointState",
+            self.keypoints: "sensor_msgs/msg/PointCloud2",
+            self.markers: "sensor_msgs/msg/PointCloud2",
+            self.skeleton: "visualization_msgs/msg/MarkerArray",
+            self.diagnostics: "diagnostic_msgs/msg/DiagnosticArray",
+        }
+
+
+@dataclass
+class GraphConfig:
+    path: Path
+    raw: dict[str, Any]
+    launch: dict[str, Any] = field(default_factory=dict)
+
+    def node_names(self) -> list[str]:
+        nodes = self.launch.get("nodes")
+        if nodes is None:
+            return [n for n in NODE_PARAMS if n in self.raw]
+        return list(nodes)
+
+    def node_params(self, node: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Validated parameters of `node`: defaults < '/**' < the node's section < overrides."""
+        spec = {p.name: p for p in params_of(node)}
+        values = {n: p.default for n, p in spec.items()}
+        given: dict[str, Any] = {}
+        for section in ("/**", node):
+            given.update(_flatten(((self.raw.get(section) or {}).get("ros__parameters")) or {}))
+        given.update(overrides or {})
+        for key, value in given.items():
+            if key not in spec:
+                if section_is_common(key):
+                    continue
+                raise GraphConfigError(self.path, f"{node}.{key}", f"unknown parameter (known: {sorted(spec)})")
+            values[key] = _check(self.path, spec[key], value)
+        # ROS has no empty string arrays: [""] stands for "empty"
+        for n, v in values.items():
+            if isinstance(v, list) and v == [""]:
+                values[n] = []
+        return values
+
+    def tracker_dict(self, params: dict[str, Any]) -> dict[str, Any]:
+        return {k[len("tracker."):]: v for k, v in params.items() if k.startswith("tracker.")}
+
+
+def section_is_common(key: str) -> bool:
+    """Keys under '/**' meant for tracker nodes only may appear for every node."""
+    return key.startswith("tracker.")
+
+
+def load(path: str | Path) -> GraphConfig:
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except OSError as exc:
+        raise GraphConfigError(path, "-", f"cannot read ({exc})") from None
+    except yaml.YAMLError as exc:
+        raise GraphConfigError(path, "-", f"invalid YAML ({exc})") from None
+    if not isinstance(raw, dict):
+        raise GraphConfigError(path, "-", "top level must be a mapping")
+    launch = dict(LAUNCH_KEYS)
+    for key, value in (raw.get("vmocap_launch") or {}).items():
+        if key not in LAUNCH_KEYS:
+            raise GraphConfigError(path, f"vmocap_launch.{key}", f"unknown (known: {sorted(LAUNCH_KEYS)})")
+        launch[key] = value
+    if launch["mode"] not in ("processes", "single_process"):
+        raise GraphConfigError(path, "vmocap_launch.mode", "must be processes or single_process")
+    for section in raw:
+        if section not in ("/**", "vmocap_launch") and section not in NODE_PARAMS:
+            raise GraphConfigError(path, section, f"unknown section (nodes: {sorted(NODE_PARAMS)})")
+    cfg = GraphConfig(path=path, raw=raw, launch=launch)
+    for node in cfg.node_names():
+        if node not in NODE_PARAMS:
+            raise GraphConfigError(path, "vmocap_launch.nodes", f"unknown node {node!r}")
+        cfg.node_params(node)  # validate early: a bad file fails before anything starts
+    return cfg

@@ -1,0 +1,341 @@
+"""The graph's pipeline without DDS: `vmocap process IN.mcap -o OUT.mcap`.
+
+The pieces here are the ones the rclpy nodes call, so the graph and the offline run compute
+the same thing from the same bytes:
+- `PcmAssembler`: PCM (Image, CameraInfo) messages of the views -> frame sets -> PcmViews
+  (what vmocap_markers does with its subscriptions);
+- `TrackerPipeline`: MarkerStage then SkeletonStage, the skeleton of frame t-1 fed back to the
+  lattice search of frame t (vmocap_markers + vmocap_skeleton);
+- `result_messages`: TrackResult -> output message dicts (what vmocap_skeleton publishes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from .bag import BagReader, BagWriter
+from .bag import messages as M
+from .camera import Rig
+from .errors import BagError, HeatmapError
+from .graph_config import Topics
+from .heatmaps import PcmViews
+from .keypoints import KEYPOINTS, indices
+from .sync import ApproximateSync
+
+IMAGE = "sensor_msgs/msg/Image"
+INFO = "sensor_msgs/msg/CameraInfo"
+CLOUD = "sensor_msgs/msg/PointCloud2"
+JOINTS = "sensor_msgs/msg/JointState"
+MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+DIAG = "diagnostic_msgs/msg/DiagnosticArray"
+
+
+def channel_keypoints(names: Iterable[str]) -> np.ndarray:
+    names = list(names)
+    return indices(names) if names else np.arange(len(KEYPOINTS))
+
+
+class PcmAssembler:
+    """Pairs each view's heatmap Image with its CameraInfo (same stamp) and synchronizes the
+    views into frame sets. `add_*` return the PcmViews that became complete."""
+
+    def __init__(self, rig: Rig, views: list[str], keypoints: np.ndarray, tolerance_ns: int = 1_000_000,
+                 min_views: int = 2, silent_after_ns: int = 500_000_000) -> None:
+        self.rig = rig
+        self.views = list(views)
+        self.keypoints = np.asarray(keypoints)
+        self.sync: ApproximateSync[tuple[dict, dict]] = ApproximateSync(
+            self.views, tolerance_ns, min_cameras=min_views, silent_after_ns=silent_after_ns, max_queue=60)
+        self._half: dict[str, dict[int, tuple[str, dict]]] = {v: {} for v in self.views}
+        self.bad_views = 0
+        self.last_error = ""
+
+    def _add(self, view: str, kind: str, msg: dict) -> list[PcmViews]:
+        t = M.stamp_ns(msg)
+        pending = self._half[view]
+        other = pending.pop(t, None)
+        if other is None:
+            pending[t] = (kind, msg)
+            if len(pending) > 60:  # a partner that never comes: forget the oldest
+                pending.pop(min(pending))
+            return []
+        if other[0] == kind:  # duplicate of the same half: keep the newer one
+            pending[t] = (kind, msg)
+            return []
+        pair = (msg, other[1]) if kind == "image" else (other[1], msg)
+        return self._frame_sets(self.sync.add(view, t, pair))
+
+    def add_image(self, view: str, msg: dict) -> list[PcmViews]:
+        return self._add(view, "image", msg)
+
+    def add_info(self, view: str, msg: dict) -> list[PcmViews]:
+        return self._add(view, "info", msg)
+
+    def flush(self) -> list[PcmViews]:
+        return self._frame_sets(self.sync.flush())
+
+    def _frame_sets(self, sets: list) -> list[PcmViews]:
+        out = []
+        for fs in sets:
+            pairs = [fs.items[v] for v in self.views if v in fs.items]
+            try:
+                pcm = M.pcm_views(pairs, self.rig, self.keypoints)
+            except (HeatmapError, BagError) as exc:
+                self.bad_views += 1
+                self.last_error = str(exc)
+                continue
+            pcm.stamp_ns = fs.stamp_ns
+            out.append(pcm)
+        return out
+
+
+@dataclass
+class TrackerPipeline:
+    """MarkerStage + SkeletonStage with the deterministic feedback of frame t-1."""
+
+    rig: Rig
+    config: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        from .tracker import MarkerStage, SkeletonStage, TrackerConfig
+
+        cfg = TrackerConfig.from_dict(self.config)
+        self.markers = MarkerStage(self.rig, cfg)
+        self.skeleton = SkeletonStage(cfg)
+
+    def step(self, pcm: PcmViews):
+        m = self.markers.step(pcm)
+        r = self.skeleton.step(m)
+        self.markers.feedback(feedback_of(r))
+        return m, r
+
+
+def feedback_of(result: Any) -> np.ndarray | None:
+    """What the skeleton stage feeds back to the lattice search (None: re-initialize)."""
+    return result.raw_keypoints if result.status == "tracking" else None
+
+
+def markers_message(markers: Any) -> dict:
+    return M.keypoint_cloud(markers.stamp_ns, markers.positions, markers.weights, markers.kind)
+
+
+def markers_from_message(msg: dict) -> Any:
+    """Inverse of `markers_message` (the cloud carries positions, weights and kind)."""
+    from .tracker import Markers
+
+    P, S, kind = M.cloud_keypoints(msg)
+    if P is None:
+        P = np.full((len(KEYPOINTS), 3), np.nan)
+    return Markers(M.stamp_ns(msg), P, S, kind)
+
+
+def result_messages(topics: Topics, result: Any) -> list[tuple[str, str, dict]]:
+    """(topic, type, message) of one TrackResult, in publishing order (feedback first: the
+    lattice search of the next frame waits for it)."""
+    t = result.stamp_ns
+    tracking = result.status == "tracking"
+    out = [(topics.feedback, CLOUD, M.keypoint_cloud(t, feedback_of(result)))]
+    if tracking:
+        out.append((topics.joint_states, JOINTS, M.joint_state_msg(t, result.joint_names, result.q)))
+    out.append((topics.keypoints, CLOUD, M.keypoint_cloud(t, result.keypoints if tracking else None, result.scores)))
+    out.append((topics.skeleton, MARKER_ARRAY, M.skeleton_markers(t, result.keypoints if tracking else None)))
+    return out
+
+
+def pcm_topics(bag_topics: dict[str, str], topics: Topics, views: list[str] | None) -> list[str]:
+    """View names of the PCM topics present in a bag."""
+    prefix = f"{topics.ns}/pcm/"
+    found = sorted(
+        t[len(prefix): -len("/heatmaps")] for t, ty in bag_topics.items()
+        if t.startswith(prefix) and t.endswith("/heatmaps") and ty == IMAGE
+    )
+    if views:
+        missing = [v for v in views if v not in found]
+        if missing:
+            raise BagError(f"the bag has no PCM topics for views {missing} (found {found})")
+        return list(views)
+    return found
+
+
+# --------------------------------------------------------------------------------- offline
+def process_bag(
+    in_path: str | Path,
+    out_path: str | Path,
+    rig: Rig,
+    tracker: dict[str, Any] | None = None,
+    keypoints: Iterable[str] = (),
+    views: list[str] | None = None,
+    namespace: str = "/vmocap",
+    tolerance_ns: int = 1_000_000,
+    min_views: int = 2,
+    recover: bool = False,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run the pipeline over the PCM topics of a bag; write the graph's outputs to out_path
+    (log time = capture stamp). Returns counts and the time per frame."""
+    from tqdm import tqdm
+
+    topics = Topics(namespace)
+    kp = channel_keypoints(keypoints)
+    with BagReader(in_path, recover=recover) as reader:
+        view_names = pcm_topics(reader.topics, topics, views)
+        if not view_names:
+            raise BagError(f"{in_path}: no PCM topics under {topics.ns}/pcm/ (bags with camera images "
+                           "only need the PCM model: not supported offline yet)")
+        asm = PcmAssembler(rig, view_names, kp, tolerance_ns, min_views)
+        pipe = TrackerPipeline(rig, dict(tracker or {}))
+        by_topic = {}
+        for v in view_names:
+            by_topic[topics.pcm(v)] = (v, "image")
+            by_topic[topics.pcm_info(v)] = (v, "info")
+        total = sum(reader.message_counts.get(t, 0) for t in by_topic) // 2
+        stats = {"frames": 0, "tracking": 0, "seconds": 0.0}
+        with BagWriter(out_path, compression="zstd") as writer:
+            bar = tqdm(total=total, unit="frame", desc="process", disable=not progress, file=sys.stderr)
+
+            def handle(pcms: list[PcmViews]) -> None:
+                for pcm in pcms:
+                    t0 = time.perf_counter()
+                    markers, result = pipe.step(pcm)
+                    stats["seconds"] += time.perf_counter() - t0
+                    writer.write(topics.markers, CLOUD, markers_message(markers), pcm.stamp_ns)
+                    for topic, ty, msg in result_messages(topics, result):
+                        if topic != topics.feedback:
+                            writer.write(topic, ty, msg, pcm.stamp_ns)
+                    stats["frames"] += 1
+                    stats["tracking"] += result.status == "tracking"
+                bar.update(len(pcms))
+
+            for m in reader.messages(list(by_topic)):
+                view, kind = by_topic[m.topic]
+                msg = m.decode()
+                handle(asm.add_image(view, msg) if kind == "image" else asm.add_info(view, msg))
+            handle(asm.flush())
+            bar.close()
+            if asm.bad_views and stats["frames"] == 0:
+                raise HeatmapError(f"{in_path}: no usable PCM frame set ({asm.bad_views} rejected): {asm.last_error}")
+            st = asm.sync.stats().as_dict()
+            writer.write(Topics.diagnostics, DIAG, M.diagnostics_msg(reader.end_ns, [
+                (0, "vmocap_process: sync", "offline", {k: json.dumps(v) for k, v in st.items()}),
+            ]), reader.end_ns)
+    stats["sync"] = st
+    stats["rejected_frame_sets"] = asm.bad_views
+    stats["ms_per_frame"] = 1e3 * stats["seconds"] / max(stats["frames"], 1)
+    return stats
+
+
+def joint_trajectory(path: str | Path, topic: str = "/vmocap/joint_states") -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """(stamps (N,), q (N, 40), names) of the JointState messages of a bag, by capture stamp."""
+    stamps, qs, names = [], [], []
+    with BagReader(path) as r:
+        if topic not in r.topics:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 0)), []
+        for m in r.messages([topic]):
+            d = m.decode()
+            stamps.append(M.stamp_ns(d))
+            qs.append(np.asarray(d["position"]))
+            names = d["name"]
+    order = np.argsort(stamps, kind="stable")
+    return np.asarray(stamps)[order], (np.stack(qs)[order] if qs else np.zeros((0, 0))), names
+
+
+# --------------------------------------------------------------------------------- CLI
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("input", help="MCAP bag with PCM topics (NS/pcm/VIEW/heatmaps + camera_info)")
+    parser.add_argument("-o", "--output", required=True, help="MCAP file to write the graph outputs to")
+    parser.add_argument("--config", default=None, help="graph config (rig, keypoints, tracker.*); default config/graph.yaml")
+    parser.add_argument("--rig", default=None, help="rig YAML (overrides the config's)")
+    parser.add_argument("--recover", action="store_true", help="read a truncated bag up to the damage")
+    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--json", action="store_true", help="print the counts as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    from . import graph_config
+    from .rig_io import load_rig
+
+    cfg_path = Path(args.config) if args.config else Path(__file__).resolve().parent.parent / "config" / "graph.yaml"
+    cfg = graph_config.load(cfg_path)
+    p = cfg.node_params("vmocap_markers")
+    rig_path = args.rig or p["rig"]
+    if not rig_path:
+        print("vmocap process: no rig (give --rig or set 'rig' in the config)", file=sys.stderr)
+        return 2
+    rig = load_rig(rig_path)
+    if p["cameras"]:
+        rig = rig.subset(p["cameras"])
+    stats = process_bag(
+        args.input, args.output, rig, tracker=cfg.tracker_dict(p), keypoints=p["pcm_keypoints"],
+        views=p["views"] or None, namespace=p["namespace"], tolerance_ns=int(p["sync_tolerance_ms"] * 1e6),
+        min_views=p["min_cameras"], recover=args.recover, progress=not args.no_progress,
+    )
+    if args.json:
+        print(json.dumps(stats))
+    else:
+        print(f"{stats['frames']} frame sets, {stats['tracking']} tracked, "
+              f"{stats['ms_per_frame']:.2f} ms per frame -> {args.output}")
+    return 0
+
+
+# --------------------------------------------------------------------------------- PCM providers
+class BagPcmProvider:
+    """Heatmaps read from a bag's PCM topics, handed out in order, one frame set per call
+    (looping): stands in for the CNN while keeping the rest of the graph real."""
+
+    name = "bag"
+
+    def __init__(self, path: str | Path, rig: Rig, keypoints: np.ndarray, namespace: str = "/vmocap") -> None:
+        topics = Topics(namespace)
+        with BagReader(path) as reader:
+            views = pcm_topics(reader.topics, topics, None)
+            if not views:
+                raise BagError(f"{path}: no PCM topics under {topics.ns}/pcm/")
+            asm = PcmAssembler(rig, views, keypoints)
+            sel = {topics.pcm(v): (v, "image") for v in views} | {topics.pcm_info(v): (v, "info") for v in views}
+            self.frames: list[PcmViews] = []
+            for m in reader.messages(list(sel)):
+                v, kind = sel[m.topic]
+                self.frames += asm.add_image(v, m.decode()) if kind == "image" else asm.add_info(v, m.decode())
+            self.frames += asm.flush()
+        if not self.frames:
+            raise BagError(f"{path}: no complete PCM frame set")
+        self._k = 0
+
+    def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
+        src = self.frames[self._k % len(self.frames)]
+        self._k += 1
+        return PcmViews(src.maps, src.image_to_map, src.camera, src.keypoints, src.valid, src.presence, stamp_ns)
+
+
+class SyntheticPcmProvider:
+    """Heatmaps rendered from a motion clip's ground truth (vmocap_core.synthetic), frame k of
+    the clip for the k-th frame set; the input rotation follows the fed-back skeleton."""
+
+    name = "synthetic"
+
+    def __init__(self, rig: Rig, motion_path: str | Path, fps: float, seed: int = 0) -> None:
+        from .motion import extend, load_motion, resample
+        from .synthetic import SyntheticPcmSource
+
+        motion = extend(resample(load_motion(motion_path), fps), 2.0)
+        self.source = SyntheticPcmSource(rig, motion.positions, motion.present, seed=seed, fps=fps)
+        self.rig = rig
+        self._k = 0
+
+    def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
+        from .tracker import trunk_tilt
+
+        rot = trunk_tilt(self.rig, feedback) if feedback is not None else None
+        pcm = self.source.render(self._k % len(self.source), rotation=rot)
+        self._k += 1
+        keep = np.isin(pcm.camera, cameras)
+        return PcmViews(pcm.maps[keep], pcm.image_to_map[keep], pcm.camera[keep], pcm.keypoints,
+                        pcm.valid[keep], pcm.presence[keep], stamp_ns)
