@@ -86,7 +86,7 @@ def test_detector_onnx_matches_tflite_on_a_real_image() -> None:
         rel = (np.abs(got[name] - ref[name]) / (1.0 + np.abs(ref[name]))).max()
         print(f"detector {name} max relative diff {rel:.1e}")
         assert rel < 1e-3, name  # fp32 summation order (XNNPACK vs onnxruntime) differs
-    scores = 1 / (1 + np.exp(-ref["Identity_1"]))
+    scores = 1 / (1 + np.exp(-np.clip(ref["Identity_1"], -80, 80)))
     assert scores.max() > 0.8
 
 

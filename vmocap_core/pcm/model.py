@@ -25,6 +25,8 @@ from ..keypoints import KEYPOINTS
 from .crops import Crops, compose_affine
 
 DEFAULT_THREADS = 2
+MIN_IMAGE_PX = 16  # images smaller than this on either side cannot show a person: flagged
+MAX_UPSAMPLING = 8.0  # a view magnifying its image more than this sees only a few pixels: flagged
 
 
 @dataclass
@@ -189,8 +191,16 @@ class PcmModel(abc.ABC):
             views = self.views_from_crops(views)
         x = self.preprocess(images, views)
         maps, presence = self.decode(self.run(x))
-        image_to_map = compose_affine(stride_affine(self.stride)[None], np.asarray(views.image_to_input, dtype=np.float64))
+        A = np.asarray(views.image_to_input, dtype=np.float64)
+        image_to_map = compose_affine(stride_affine(self.stride)[None], A)
+        # Heatmaps look confident on anything; only the presence output (and these guards) flag
+        # views that cannot contain a usable person (e.g. a 3x2 image blown up to 256x256).
+        cam = np.asarray(views.camera, dtype=np.intp)
+        small = np.array([min(np.shape(images[c])[:2]) < MIN_IMAGE_PX for c in cam], dtype=bool)
+        magnified = np.sqrt(np.abs(np.linalg.det(A[:, :, :2]))) > MAX_UPSAMPLING
+        presence = np.where(small | magnified, 0.0, presence)
         valid = np.asarray(views.valid, dtype=bool)[:, self.keypoints] & self.channel_valid[None]
+        valid &= ~(small | magnified)[:, None]
         return PcmViews(
             maps=maps,
             image_to_map=image_to_map,
