@@ -68,6 +68,12 @@ def calibrate_rig(
     scene_n = {n: int(np.all(np.isfinite(scene.uv[n]), axis=1).sum()) if scene and n in scene.uv else 0 for n in names}
 
     intr: list[Intrinsics] = []
+    for v in views:
+        given = intrinsics.get(v.name)
+        if given is not None and (given.width, given.height) != v.size:
+            raise CalibrationError(
+                f"camera {v.name}: images are {v.size[0]}x{v.size[1]} but the given intrinsics are for "
+                f"{given.width}x{given.height}")
     for v, u in zip(views, usable):
         if not u and scene_n[v.name] < 4:
             raise CalibrationError(f"camera {v.name}: {explain_no_board(v, board)}")
@@ -75,10 +81,6 @@ def calibrate_rig(
             warnings.append(f"camera {v.name}: only {len(u)} board views (fewer than {min_views}); its calibration may be poor")
         given = intrinsics.get(v.name)
         if given is not None:
-            if (given.width, given.height) != v.size:
-                raise CalibrationError(
-                    f"camera {v.name}: images are {v.size[0]}x{v.size[1]} but the given intrinsics are for "
-                    f"{given.width}x{given.height}")
             intr.append(Intrinsics(given.K.copy(), given.dist[:5].copy(), float("nan"), 0))
         else:
             intr.append(calibrate_intrinsics(v.name, u, board, v.size, fix_k3=fix_k3, max_views=max_views))
