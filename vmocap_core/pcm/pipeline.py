@@ -1,0 +1,87 @@
+"""One call per frame set: images (+ the current skeleton) -> PcmViews, the BlazePose way.
+
+Initialization (no skeleton): the detector runs on every image and the best person per camera
+gives MediaPipe's crop. Tracking: crops come from the skeleton projected into each camera,
+rotated by the trunk tilt (paper III-B, `rotation` mode), and the detector is not run.
+Cameras where the body is not visible (or the detector finds nobody) get no view; when no
+camera has one, the result has zero views (MarkerStage sees "nothing observed").
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..camera import Rig
+from ..heatmaps import PcmViews
+from ..keypoints import KEYPOINTS
+from .blazepose import DEFAULT_ROTATION, MIN_TILT, BlazePoseLandmark, rotated_crops
+from .crops import Crops, crops_from_skeleton
+from .detector import PoseDetector
+from .model import DEFAULT_THREADS
+
+
+class BlazePosePcm:
+    """Detector + landmark model + crops for a rig.
+
+    rotation: "lower_body" (paper, default), "all" or "none" (see blazepose.rotated_crops).
+    margin: crop side / projected body extent while tracking.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        rotation: str = DEFAULT_ROTATION,
+        threads: int = DEFAULT_THREADS,
+        margin: float = 1.25,
+        min_tilt: float = MIN_TILT,
+        landmark_path: Path | str | None = None,
+        detector_path: Path | str | None = None,
+    ) -> None:
+        self.rig = rig
+        self.rotation = rotation
+        self.margin = float(margin)
+        self.min_tilt = float(min_tilt)
+        self.landmark = BlazePoseLandmark(landmark_path, threads)
+        self._detector_path = detector_path
+        self._threads = threads
+        self._detector: PoseDetector | None = None  # loaded on first use: tracking never needs it
+        rotated_crops([], np.zeros((0, 2)), [], [], rotation)  # validates the mode now
+
+    @property
+    def detector(self) -> PoseDetector:
+        if self._detector is None:
+            self._detector = PoseDetector(self._detector_path, self._threads)
+        return self._detector
+
+    def crops_from_detector(self, images: Sequence[np.ndarray]) -> Crops:
+        """The highest-scoring person per image (MediaPipe's crop rule, already rotated)."""
+        found = self.detector.detect(images)
+        cams = [c for c, d in enumerate(found) if d]
+        rects = [found[c][0].crop() for c in cams]
+        return Crops(cams, [r[0] for r in rects] or np.zeros((0, 2)), [r[1] for r in rects], [r[2] for r in rects])
+
+    def crops_from_skeleton(self, keypoints: np.ndarray, tilt: np.ndarray | None = None) -> Crops:
+        """Tracking crops from the skeleton (25, 3); tilt (C,) overrides the computed trunk tilt."""
+        centre, side, rot, usable = crops_from_skeleton(self.rig, keypoints, tilt, self.margin)
+        cams = np.flatnonzero(usable)
+        return rotated_crops(cams, centre[cams], side[cams], rot[cams], self.rotation, self.min_tilt)
+
+    def infer(
+        self,
+        images: Sequence[np.ndarray],
+        keypoints: np.ndarray | None = None,
+        tilt: np.ndarray | None = None,
+        stamp_ns: int = 0,
+    ) -> PcmViews:
+        """PCMs of one frame set: images in rig camera order (uint8 BGR or mono)."""
+        crops = self.crops_from_detector(images) if keypoints is None else self.crops_from_skeleton(keypoints, tilt)
+        if len(crops) == 0:
+            J = len(KEYPOINTS)
+            return PcmViews(np.zeros((0, J, 64, 64)), np.zeros((0, 2, 3)), np.zeros(0), np.arange(J),
+                            np.zeros((0, J), bool), np.zeros(0), stamp_ns)
+        return self.landmark.infer(images, crops, stamp_ns)
+
+    __call__ = infer
