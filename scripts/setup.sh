@@ -8,3 +8,6 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.lock
 .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+# PCM test photo (messi5.jpg from opencv-doc); needs root, the tests skip without it
+if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then apt-get install -y -q opencv-doc >/dev/null || echo "setup.sh: opencv-doc not installed (PCM photo test will skip)"; fi
+.venv/bin/vmocap models fetch
