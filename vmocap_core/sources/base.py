@@ -45,6 +45,25 @@ class FrameSource(abc.ABC):
         """True for a recording that has no more frames; live sources never are."""
         return False
 
+    # Optional capabilities (additive; defaults describe a plain free-running source).
+    live: bool = False  # frames arrive on their own clock (camera), not on demand (recording)
+    software_trigger: bool = False  # True when `trigger()` fires one exposure
+
+    def trigger(self) -> None:
+        """Fire one exposure (software trigger mode). Sources without it raise SourceError."""
+        from ..errors import SourceError
+
+        raise SourceError(f"camera {getattr(self, 'name', '?')}: no software trigger")
+
+    @property
+    def size(self) -> tuple[int, int] | None:
+        """(width, height) of the images once open, when known."""
+        return None
+
+    def stats(self) -> dict[str, int | float]:
+        """Counters of the source (frames, dropped, incomplete...), for diagnostics."""
+        return {}
+
     def __enter__(self) -> "FrameSource":
         self.open()
         return self
