@@ -55,20 +55,26 @@ def _onnx_all_outputs(path: Path, x: np.ndarray) -> dict[str, np.ndarray]:
     return dict(zip(names, sess.run(names, {sess.get_inputs()[0].name: x})))
 
 
-def test_landmark_onnx_matches_tflite_on_a_real_image() -> None:
+@pytest.mark.parametrize("variant", ["full", "lite"])
+def test_landmark_onnx_matches_tflite_on_a_real_image(variant: str) -> None:
     require_models()
+    if variant == "lite":
+        try:
+            fetch.model_path("pose_landmark_lite")
+        except ModelError as exc:
+            pytest.skip(f"optional lite model not fetched: {exc}")
     img = real_image()
-    model = BlazePoseLandmark()
+    model = BlazePoseLandmark(variant=variant)
     det = PoseDetector().detect([img])[0]
     assert det, "the detector must find the person in the real image"
     centre, side, rot = det[0].crop()
     x = model.preprocess([img], model.views_from_crops(Crops([0], centre, side, rot)))
-    ref = _reference(fetch.model_path("pose_landmark_full", "tflite"), x)
-    got = _onnx_all_outputs(fetch.model_path("pose_landmark_full"), x)
+    ref = _reference(fetch.model_path(f"pose_landmark_{variant}", "tflite"), x)
+    got = _onnx_all_outputs(fetch.model_path(f"pose_landmark_{variant}"), x)
     heat_ref = 1 / (1 + np.exp(-ref["Identity_3"]))
     heat_got = 1 / (1 + np.exp(-got["Identity_3"]))
     diff = np.abs(heat_got - heat_ref).max()
-    print(f"landmark heatmap max abs diff {diff:.2e}, logits {np.abs(got['Identity_3'] - ref['Identity_3']).max():.2e}")
+    print(f"{variant}: landmark heatmap max abs diff {diff:.2e}, logits {np.abs(got['Identity_3'] - ref['Identity_3']).max():.2e}")
     assert diff < 1e-3
     assert np.abs(got["Identity_1"] - ref["Identity_1"]).max() < 1e-3  # presence
     assert ref["Identity_1"].item() > 0.9  # a person really is in the crop

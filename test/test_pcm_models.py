@@ -199,3 +199,20 @@ def test_openpose_family_whole_image_at_stride_8(tmp_path: Path) -> None:
     assert np.linalg.norm(uv[1] - spot, axis=1).max() <= 4.0 / scale * np.sqrt(2) + 1e-6
     with pytest.raises(ModelError):
         OpenPoseModel(tmp_path / "op.onnx", OpenPoseConfig(input_size=(320, 240)))  # wrong input shape
+
+
+def test_lite_variant_when_fetched(models, messi) -> None:
+    """pose_landmark_lite (optional, `vmocap models fetch --lite`): same interface, same parts."""
+    det, _ = models
+    try:
+        lite = BlazePoseLandmark(variant="lite", threads=2)
+    except ModelError as exc:
+        pytest.skip(f"lite model not fetched: {exc}")
+    pv = lite.infer([messi], _crops_from_detector(det, [messi]))
+    assert pv.presence[0] > 0.9
+    uv, _ = pv.peaks()
+    errs = {k: float(np.linalg.norm(uv[0, INDEX[k]] - p)) for k, p in MESSI_PARTS.items()}
+    print(f"lite model on messi, px from the parts: { {k: round(e, 1) for k, e in errs.items()} }")
+    assert max(errs.values()) < 40
+    with pytest.raises(ModelError):
+        BlazePoseLandmark(variant="heavy")

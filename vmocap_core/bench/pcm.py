@@ -110,6 +110,12 @@ def measure(repeat: int = 30, threads: int = DEFAULT_THREADS, quiet: bool = Fals
             "frame_set_ms": _time(lambda: det.detect(images), repeat, f"detector 4 images, {t} thr", quiet),
         }
     result["per_image_ms"] = result["landmark"][f"threads_{threads}"]["per_image_ms"] if threads in (1, 2) else {}
+    # the lite landmark model, when fetched (`vmocap models fetch --lite`)
+    try:
+        lite = BlazePosePcm(rig, threads=threads, variant="lite")
+        result["lite_frame_set_ms"] = _time(lambda: lite.infer(images, standing), repeat, "tracking frame set, lite", quiet)
+    except ModelError:
+        result["lite_frame_set_ms"] = None
     # the paper's rotation on an inverted person: an upright and a rotated view per camera
     result["inverted_lower_body"] = {
         "views": len(pcm.crops_from_skeleton(inverted)),
@@ -140,6 +146,8 @@ def run(args: argparse.Namespace) -> int:
     for t in ("threads_1", "threads_2"):
         print(f"landmark {t}: per image {f(r['landmark'][t]['per_image_ms'])}; 4 views {f(r['landmark'][t]['frame_set_ms'])}")
         print(f"detector {t}: per image {f(r['detector'][t]['per_image_ms'])}; 4 images {f(r['detector'][t]['frame_set_ms'])}")
+    if r["lite_frame_set_ms"]:
+        print(f"tracking frame set with the lite landmark model: {f(r['lite_frame_set_ms'])}")
     inv = r["inverted_lower_body"]
     print(f"inverted person, lower_body rotation ({inv['views']} views): {f(inv['frame_set_ms'])}")
     target = r["frame_set_ms"]["median"] <= 33.0

