@@ -2,9 +2,11 @@
 
 Each frame gives a pair (device stamp, host arrival time). Arrival = exposure + transfer and
 scheduling latency >= 0, so the host/device relation is the lower envelope of the pairs.
-Over a sliding window we fit host - device = offset + drift * device by least squares, then
-lower the line to the smallest residual: the mapped stamps carry the minimal latency seen,
-not the jitter of each arrival. Drift (ppm) is the clock-rate difference.
+Over a sliding window, host - device = offset + drift * (device - ref): the drift is the
+least-squares slope through the minimum of each of ~10 time slices (the least delayed
+frames), estimated once the window spans `min_span_s`; the line is then lowered to the
+smallest residual, so mapped stamps carry the minimal latency seen, not each arrival's
+jitter. Drift (ppm) is the clock-rate difference.
 """
 
 from __future__ import annotations
@@ -15,11 +17,13 @@ import numpy as np
 
 
 class ClockMapper:
-    def __init__(self, window: int = 200, min_pairs_for_drift: int = 20) -> None:
+    def __init__(self, window: int = 2000, min_span_s: float = 10.0, slices: int = 10) -> None:
         self._pairs: collections.deque = collections.deque(maxlen=window)
-        self.min_pairs_for_drift = min_pairs_for_drift
+        self.min_span_ns = min_span_s * 1e9
+        self.slices = slices
         self._ref_dev = 0
-        self._offset = 0.0  # ns, host - device at device == _ref_dev
+        self._y0 = 0  # ns, host - device of the oldest pair (integer reference)
+        self._offset = 0.0  # ns, host - device - _y0 at device == _ref_dev
         self._drift = 0.0  # ns per ns
         self.resets = 0
 
@@ -33,29 +37,32 @@ class ClockMapper:
         if self._pairs and device_ns <= self._pairs[-1][0]:
             self.reset()  # the device clock went backwards: camera restarted
         self._pairs.append((int(device_ns), int(host_ns)))
-        d = np.array([p[0] for p in self._pairs], dtype=np.float64)
-        h = np.array([p[1] for p in self._pairs], dtype=np.float64)
+        d = np.array([p[0] for p in self._pairs], dtype=np.int64)
+        h = np.array([p[1] for p in self._pairs], dtype=np.int64)
+        # integer differences first: host stamps (~1e18 ns) would lose ~256 ns in float64
         self._ref_dev = int(d[0])
-        x = d - self._ref_dev
-        y = h - d
-        if len(d) >= self.min_pairs_for_drift and x[-1] > 0:
-            A = np.stack([np.ones_like(x), x], axis=1)
-            (b, a), *_ = np.linalg.lstsq(A, y, rcond=None)
+        self._y0 = int(h[0] - d[0])
+        x = (d - d[0]).astype(np.float64)
+        y = ((h - d) - self._y0).astype(np.float64)
+        if x[-1] >= self.min_span_ns and len(x) >= 2 * self.slices:
+            edges = np.linspace(0, len(x), self.slices + 1).astype(int)
+            idx = np.array([lo + int(np.argmin(y[lo:hi])) for lo, hi in zip(edges[:-1], edges[1:])])
+            a, b = np.polyfit(x[idx], y[idx], 1)
         else:
-            b, a = float(np.median(y)), 0.0
+            b, a = float(np.min(y)), 0.0
         self._offset = b + float(np.min(y - (b + a * x)))
         self._drift = float(a)
         return self.map(device_ns)
 
     def map(self, device_ns: int) -> int:
-        return int(round(device_ns + self._offset + self._drift * (device_ns - self._ref_dev)))
+        return int(device_ns) + self._y0 + int(round(self._offset + self._drift * (device_ns - self._ref_dev)))
 
     @property
     def offset_ns(self) -> float:
         """Current host - device offset (ns) at the newest pair."""
         if not self._pairs:
             return 0.0
-        return self._offset + self._drift * (self._pairs[-1][0] - self._ref_dev)
+        return self._y0 + self._offset + self._drift * (self._pairs[-1][0] - self._ref_dev)
 
     @property
     def drift_ppm(self) -> float:
