@@ -143,3 +143,28 @@ def test_rotated_crops_variants() -> None:
         rotated_crops(cam, centre, side, tilt, "sideways")
     with pytest.raises(ModelError):
         Crops([0], [[np.nan, 0.0]], [100.0], [0.0])
+
+
+def test_camera_keypoints_merges_views_per_camera() -> None:
+    """Two views of camera 1 (upper body upright, lower body rotated) give one row per camera."""
+    from vmocap_core.pcm.peaks import camera_keypoints
+
+    J = len(KEYPOINTS)
+    lower = np.isin(np.array(KEYPOINTS), LOWER_BODY)
+    maps = np.zeros((3, J, 64, 64), np.float32)
+    maps[0, :, 10, 10] = 0.9  # camera 0: everything at cell (10, 10)
+    maps[1, :, 20, 20] = 0.8  # camera 1 upright view
+    maps[2, :, 30, 30] = 0.7  # camera 1 rotated view
+    A = np.repeat(stride_affine(4.0)[None], 3, axis=0)
+    valid = np.stack([np.ones(J, bool), ~lower, lower])
+    pv = PcmViews(maps, A, [0, 1, 1], np.arange(J), valid, [0.99, 0.99, 0.99])
+    uv, w = camera_keypoints(pv, 3)
+    assert uv.shape == (3, J, 2) and w.shape == (3, J)
+    np.testing.assert_allclose(uv[0], 41.5)
+    np.testing.assert_allclose(uv[1, ~lower], 81.5)
+    np.testing.assert_allclose(uv[1, lower], 121.5)
+    np.testing.assert_allclose(w[1], np.where(lower, 0.7, 0.8), rtol=1e-6)
+    assert not w[2].any() and np.isnan(uv[2]).all()  # camera 2 has no view
+    pv.presence[:] = [0.99, 0.01, 0.99]  # a view without a person says nothing
+    _, w = camera_keypoints(pv, 3)
+    assert not w[1, ~lower].any() and w[1, lower].all()

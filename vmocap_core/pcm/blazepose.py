@@ -70,7 +70,11 @@ TO_BLAZEPOSE: dict[str, str] = {
 CHANNEL: np.ndarray = np.array([BLAZEPOSE_NAMES.index(TO_BLAZEPOSE[k]) if k in TO_BLAZEPOSE else -1 for k in KEYPOINTS])
 
 ROTATION_MODES = ("none", "all", "lower_body")
-DEFAULT_ROTATION = "lower_body"  # the paper's III-B variant; see `rotated_crops`
+# Measured on real frames (test_pcm_panoptic: 5 Panoptic views turned upside down): BlazePose's
+# presence drops to ~0 and its upper-body heatmaps are ~44 cm off on an unrotated inverted person,
+# so the paper's variant (upper body from the unrotated view) loses the upper body, while "all"
+# reproduces the upright result exactly and costs one view per camera. Hence "all" by default.
+DEFAULT_ROTATION = "all"
 MIN_TILT = np.deg2rad(20.0)  # below this, the upright and rotated crops nearly coincide: one view
 
 
