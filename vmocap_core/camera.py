@@ -71,13 +71,13 @@ class Camera:
         flat = uv.reshape(-1, 1, 2)
         if flat.shape[0] == 0:
             return uv.copy()
-        out = cv2.undistortPointsIter(
+        out = cv2.undistortPoints(
             flat,
             self.K,
             self.dist,
-            None,
-            None,
-            (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10),
+            R=None,
+            P=None,
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10),
         )
         return out.reshape(uv.shape)
 

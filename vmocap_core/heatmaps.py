@@ -76,9 +76,10 @@ class PcmViews:
     def sanitized(self) -> "PcmViews":
         """Replace NaN/inf by 0 and clip to [0, 1]; views that had non-finite values are
         marked invalid for the affected keypoints (a broken CNN output must not steer)."""
-        finite = np.isfinite(self.maps)
-        if finite.all() and self.maps.min(initial=0.0) >= 0.0 and self.maps.max(initial=0.0) <= 1.0:
+        # min/max propagate NaN, so two reductions tell whether anything needs fixing.
+        if self.maps.size == 0 or (self.maps.min() >= 0.0 and self.maps.max() <= 1.0):
             return self
+        finite = np.isfinite(self.maps)
         bad = ~finite.all(axis=(2, 3))  # (V, J)
         maps = np.clip(np.where(finite, self.maps, 0.0), 0.0, 1.0).astype(np.float32)
         return PcmViews(

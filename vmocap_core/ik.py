@@ -1,0 +1,85 @@
+"""Weighted inverse kinematics of the skeletal model (paper II-E, eq. 3-4).
+
+    min_q  sum_k W_k || p_k(q) - m_k ||^2
+
+solved by Levenberg-Marquardt steps dq = (J^T W J + lambda diag(J^T W J) + mu I)^-1 J^T W r on
+the model's tangent space. The mu I term is a Tikhonov regularizer: a keypoint with weight 0
+(not seen by two cameras) leaves its DOF at the warm-start value instead of making the normal
+equations singular.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .skeleton import Skeleton
+
+
+@dataclass
+class IkResult:
+    q: np.ndarray  # (nq,) solution
+    keypoints: np.ndarray  # (25, 3) forward kinematics of q
+    cost: float  # weighted mean squared residual (m^2)
+    iterations: int
+
+
+def solve_ik(
+    skeleton: Skeleton,
+    q0: np.ndarray,
+    targets: np.ndarray,
+    weights: np.ndarray,
+    max_iterations: int = 10,
+    tolerance: float = 1e-6,
+    damping: float = 1e-3,
+    regularization: float = 1e-6,
+    line_search: bool = False,
+) -> IkResult:
+    """Fit the skeleton to weighted 3D targets (25, 3) starting from q0.
+
+    Targets with weight 0 or non-finite coordinates are ignored. `line_search` accepts a step
+    only if it lowers the cost (and raises the damping otherwise): use it far from the solution,
+    e.g. at initialization; warm-started tracking converges in a few plain steps.
+    """
+    w = np.asarray(weights, dtype=np.float64).copy()
+    x = np.asarray(targets, dtype=np.float64)
+    finite = np.isfinite(x).all(axis=1)
+    w[~finite | ~np.isfinite(w)] = 0.0
+    w = np.clip(w, 0.0, None)
+    x = np.where(finite[:, None], x, 0.0)
+    wsum = w.sum()
+    if wsum <= 0.0:
+        p = skeleton.keypoint_positions(q0)
+        return IkResult(q0.copy(), p, float("nan"), 0)
+    w = w / wsum  # scale-free damping
+    w3 = np.repeat(w, 3)
+    q = np.asarray(q0, dtype=np.float64).copy()
+    lam = damping
+    eye = np.eye(skeleton.nv)
+    p, J = skeleton.keypoint_jacobians(q)
+    r = x - p
+    cost = float(w @ (r * r).sum(axis=1))
+    it = 0
+    for it in range(1, max_iterations + 1):
+        Jf = J.reshape(-1, J.shape[2])  # (3K, nv)
+        Jw = Jf * w3[:, None]
+        H = Jw.T @ Jf
+        g = Jw.T @ r.reshape(-1)
+        dq = np.linalg.solve(H + lam * np.diag(np.diag(H)) + regularization * eye, g)
+        q_new = skeleton.integrate(q, dq)
+        p_new, J_new = skeleton.keypoint_jacobians(q_new)
+        r_new = x - p_new
+        cost_new = float(w @ (r_new * r_new).sum(axis=1))
+        if line_search and cost_new > cost:
+            lam *= 10.0
+            if lam > 1e6:
+                break
+            continue
+        if line_search:
+            lam = max(lam / 3.0, 1e-9)
+        converged = cost - cost_new < tolerance * max(cost, 1e-12) or float(np.abs(dq).max()) < 1e-7
+        q, p, J, r, cost = q_new, p_new, J_new, r_new, cost_new
+        if converged:
+            break
+    return IkResult(q, p, cost, it)

@@ -1,0 +1,176 @@
+"""Lattice search for virtual markers (paper II-D, eq. 1-2 and the weight of eq. 5).
+
+For every keypoint j, the (2k+1)^3 lattice of spacing s around a centre c_j is projected into
+every view, the views' PCMs are sampled bilinearly at the projections, and the lattice point
+with the largest sum over views is the virtual marker; that sum is its weight W_j. A
+projection outside a map, or a point behind the camera, contributes 0.
+
+All keypoints, lattice points and views are evaluated in one vectorized pass.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import Rig
+from .heatmaps import PcmViews
+
+
+def lattice_offsets(k: int, spacing: float) -> np.ndarray:
+    """(L, 3) offsets of the (2k+1)^3 lattice of spacing `spacing`, centre first."""
+    r = np.arange(-k, k + 1, dtype=np.float64) * spacing
+    g = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
+    # Centre first so that ties (e.g. all zeros) keep the marker where it was.
+    centre = len(g) // 2
+    order = np.r_[centre, np.arange(centre), np.arange(centre + 1, len(g))]
+    return g[order]
+
+
+@dataclass
+class LatticeResult:
+    markers: np.ndarray  # (J, 3) in the channel order of the PCMs
+    weights: np.ndarray  # (J,) summed PCM score at the marker (eq. 5)
+    n_views: np.ndarray  # (J,) number of views that saw a nonzero PCM value at the marker
+
+
+class PcmSampler:
+    """Samples the PCMs of one frame set at 3D points: the sum over views of eq. 1."""
+
+    def __init__(self, rig: Rig, pcm: PcmViews) -> None:
+        self.rig = rig
+        self.pcm = pcm
+        V, J, H, W = pcm.maps.shape
+        self._flat = pcm.maps.reshape(-1)
+        self._shape = (V, J, H, W)
+        self._R = rig._R[pcm.camera]  # (V, 3, 3)
+        self._t = rig._t[pcm.camera]
+        self._valid = pcm.valid.astype(np.float32)  # (V, J)
+        # Fold the view's image->map affine into one per-view map: pixel = K x'' -> map.
+        A = pcm.image_to_map  # (V, 2, 3)
+        K = rig._K[pcm.camera]  # (V, 3, 3)
+        self._M = np.einsum("vij,vjk->vik", A[:, :, :2], K[:, :2, :]) + np.concatenate(
+            [np.zeros((V, 2, 2)), A[:, :, 2:]], axis=2
+        )  # (V, 2, 3): map = M @ (x'', y'', 1)
+        self._dist = rig._dist[pcm.camera]  # (V, 8)
+        self._distorted = bool(rig._distorted[pcm.camera].any())
+        self._R32 = self._R.astype(np.float32)
+        self._t32 = self._t.astype(np.float32)
+        self._d32 = self._dist.astype(np.float32)[:, :, None, None]
+        self._M32 = self._M.astype(np.float32)[:, :, :, None, None]
+        self._rational = bool(rig._rational[pcm.camera].any())
+
+    def sample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """points (J, L, 3) in world -> (summed score (J, L), views with nonzero score (J, L))."""
+        J, L, _ = points.shape
+        return self.sample_camera_frame(
+            np.matmul(self._R32, points.reshape(1, J * L, 3).transpose(0, 2, 1).astype(np.float32)).reshape(-1, 3, J, L)
+            + self._t32[:, :, None, None]
+        )
+
+    def sample_lattice(self, centres: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Scores of centres (J, 3) + offsets (L, 3): the rotation is applied to centres and
+        offsets separately (R (c + o) + t = (R c + t) + R o), then broadcast."""
+        c = np.matmul(self._R, centres.T) + self._t[:, :, None]  # (V, 3, J)
+        o = np.matmul(self._R, offsets.T)  # (V, 3, L)
+        return self.sample_camera_frame(c.astype(np.float32)[:, :, :, None] + o.astype(np.float32)[:, :, None, :])
+
+    def sample_camera_frame(self, pc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Camera-frame points of every view (V, 3, J, L) -> (score (J, L), views (J, L))."""
+        z = pc[:, 2]
+        front = z > 1e-6
+        inv_z = np.float32(1.0) / np.where(front, z, np.float32(1.0))
+        x = pc[:, 0] * inv_z
+        y = pc[:, 1] * inv_z
+        if self._distorted:
+            d = self._d32
+            r2 = x * x + y * y
+            radial = 1 + r2 * (d[:, 0] + r2 * (d[:, 1] + r2 * d[:, 4]))
+            if self._rational:
+                radial = radial / (1 + r2 * (d[:, 5] + r2 * (d[:, 6] + r2 * d[:, 7])))
+            xy2 = 2 * x * y
+            x, y = (
+                x * radial + d[:, 2] * xy2 + d[:, 3] * (r2 + 2 * x * x),
+                y * radial + d[:, 2] * (r2 + 2 * y * y) + d[:, 3] * xy2,
+            )
+        M = self._M32
+        mx = M[:, 0, 0] * x + M[:, 0, 1] * y + M[:, 0, 2]
+        my = M[:, 1, 0] * x + M[:, 1, 1] * y + M[:, 1, 2]
+        vals = self._bilinear(mx, my)
+        vals *= front
+        vals *= self._valid[:, :, None]
+        return vals.sum(axis=0), (vals > 0).sum(axis=0)
+
+    def _bilinear(self, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
+        """Bilinear PCM values at map coordinates (V, J, L); 0 outside the map."""
+        V, J, H, W = self._shape
+        x0f = np.floor(mx)
+        y0f = np.floor(my)
+        fx = mx - x0f
+        fy = my - y0f
+        # Clip into a safe range first so the int conversion cannot overflow.
+        x0 = np.clip(x0f, -1, W).astype(np.int32)
+        y0 = np.clip(y0f, -1, H).astype(np.int32)
+        base = ((np.arange(V, dtype=np.int32)[:, None] * J + np.arange(J, dtype=np.int32)[None, :]) * (H * W))[:, :, None]
+        out = np.zeros(mx.shape, dtype=np.float32)
+        for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+            xi = x0 + dx
+            yi = y0 + dy
+            inside = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
+            idx = base + np.clip(yi, 0, H - 1) * W + np.clip(xi, 0, W - 1)
+            out += np.where(inside, self._flat[idx], 0.0) * wgt
+        # A NaN or out-of-range PCM value must not steer the search: sanitize what was read.
+        np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+        return np.clip(out, 0.0, 1.0, out=out)
+
+
+def lattice_search(
+    rig: Rig,
+    pcm: PcmViews,
+    centres: np.ndarray,
+    k: int = 5,
+    spacing: float = 0.01,
+    coarse_to_fine: bool = False,
+    subcell: bool = True,
+) -> LatticeResult:
+    """Virtual markers of all PCM channels around `centres` (J, 3) (channel order of `pcm`).
+
+    coarse_to_fine: search the same volume (+-k*s) first on a lattice of spacing ~2.5 s,
+    then the full resolution s around the coarse winner (about 5x fewer samples).
+    subcell: refine the argmax along each axis by a parabola through it and its two lattice
+    neighbours (at most s/2), which removes most of the lattice quantization error.
+    """
+    sampler = PcmSampler(rig, pcm)
+    centres = np.asarray(centres, dtype=np.float64)
+    if coarse_to_fine and k > 2:
+        kc = 2
+        sc = k * spacing / kc
+        best, _, _ = _search(sampler, centres, lattice_offsets(kc, sc))
+        centres = best
+        k = min(k, int(np.ceil(sc / spacing / 2.0)) + 1)
+    offsets = lattice_offsets(k, spacing)
+    best, score, nviews = _search(sampler, centres, offsets)
+    if subcell:
+        best = _refine(sampler, best, score, spacing)
+    return LatticeResult(best, score, nviews)
+
+
+def _search(sampler: PcmSampler, centres: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    score, nviews = sampler.sample_lattice(centres, offsets)
+    arg = score.argmax(axis=1)
+    j = np.arange(len(centres))
+    return centres + offsets[arg], score[j, arg].astype(np.float64), nviews[j, arg]
+
+
+def _refine(sampler: PcmSampler, best: np.ndarray, score: np.ndarray, spacing: float) -> np.ndarray:
+    """Parabolic sub-lattice interpolation along x, y and z around each marker."""
+    steps = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float) * spacing
+    s, _ = sampler.sample(best[:, None, :] + steps[None])  # (J, 6)
+    minus, plus = s[:, 0::2].astype(np.float64), s[:, 1::2].astype(np.float64)
+    c = score[:, None]
+    denom = minus - 2 * c + plus
+    with np.errstate(divide="ignore", invalid="ignore"):
+        delta = np.where(denom < -1e-9, 0.5 * (minus - plus) / denom, 0.0)
+    delta = np.clip(delta, -0.5, 0.5) * spacing
+    return best + np.where(c > 0, delta, 0.0)

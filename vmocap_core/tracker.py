@@ -1,0 +1,432 @@
+"""The spatiotemporal filter of the paper, split in the two stages the node graph runs.
+
+MarkerStage   (II-C, II-D): PCMs -> virtual markers. Initialization triangulates PCM
+              centroids; tracking runs the lattice search around the skeleton of the previous
+              frame. Detects a lost person (score below a threshold for N frames).
+SkeletonStage (II-C, II-E, II-F): markers -> skeleton. Identifies the subject's link lengths
+              and initial pose once the views agree in 3D, then per frame: weighted IK to the
+              virtual markers, IIR low-pass of the keypoint positions, second IK to the
+              filtered positions (smooth output with constant link lengths).
+SpatiotemporalFilter wires both with the feedback of the first IK's keypoints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .camera import Rig
+from .heatmaps import PcmViews
+from .ik import solve_ik
+from .iir import LowPassFilter
+from .keypoints import INDEX, KEYPOINTS
+from .lattice import lattice_search
+from .skeleton import JOINTS, BodyDimensions, Skeleton
+from .triangulation import triangulate_robust
+
+N_KP = len(KEYPOINTS)
+
+
+@dataclass
+class TrackerConfig:
+    """Every tunable of the filter; `from_dict` rejects unknown keys."""
+
+    fps: float = 60.0
+    # Lattice search (II-D)
+    lattice_k: int = 5
+    lattice_spacing: float = 0.01  # metres
+    coarse_to_fine: bool = False
+    subcell: bool = True
+    prediction: str = "constant_velocity"  # lattice centre: "previous" (paper) or "constant_velocity"
+    min_views: int = 2  # a marker seen by fewer views gets weight 0
+    # IK (II-E)
+    ik_iterations: int = 4
+    ik_damping: float = 1e-3
+    ik_regularization: float = 1e-5
+    second_ik_restart_m: float = 0.005  # RMS fit error of the second IK that triggers a restart
+    # Low-pass filter (II-F)
+    filter_order: int = 2
+    filter_cutoff_hz: float = 8.0
+    filter_lag_compensation: bool = False
+    # Initialization (II-C)
+    init_frames: int = 5  # consecutive agreeing frames needed
+    init_max_reprojection_px: float = 12.0  # views agree: triangulation residual below this
+    init_max_fit_error_m: float = 0.04  # skeleton fit residual (RMS) to confirm
+    init_min_peak: float = 0.3  # a centroid counts when its PCM peak is at least this
+    # Lost person
+    lost_score: float = 0.15  # mean marker weight per view below this ...
+    lost_frames: int = 10  # ... for this many frames -> re-initialize
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> "TrackerConfig":
+        d = dict(d or {})
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown tracker parameters: {', '.join(unknown)}")
+        cfg = cls(**d)
+        cfg.validate()
+        return cfg
+
+    def validate(self) -> None:
+        if self.fps <= 0 or self.lattice_k < 0 or self.lattice_spacing <= 0:
+            raise ValueError("fps, lattice_k and lattice_spacing must be positive")
+        if self.prediction not in ("previous", "constant_velocity"):
+            raise ValueError(f"prediction must be 'previous' or 'constant_velocity', not {self.prediction!r}")
+        if not 0 < self.filter_cutoff_hz < self.fps / 2:
+            raise ValueError("filter_cutoff_hz must be below half the frame rate")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class Markers:
+    """Virtual markers of one frame set, in KEYPOINTS order."""
+
+    stamp_ns: int
+    positions: np.ndarray  # (25, 3), NaN where unknown
+    weights: np.ndarray  # (25,), 0 where unknown
+    kind: str  # "triangulated" | "lattice" | "none"
+    score: float = 0.0  # mean weight per view over the observed keypoints (0..1)
+
+
+@dataclass
+class TrackResult:
+    stamp_ns: int
+    status: str  # "initializing" | "tracking" | "lost"
+    q: np.ndarray  # (40,) published DOF after the second IK (see Skeleton.to_angles)
+    joint_names: list[str]
+    keypoints: np.ndarray  # (25, 3) filtered output
+    raw_keypoints: np.ndarray  # (25, 3) first IK (fed back to the lattice search)
+    scores: np.ndarray  # (25,) marker weights
+    markers: np.ndarray  # (25, 3) virtual markers
+    link_lengths: dict[str, float] = field(default_factory=dict)
+
+
+def trunk_tilt(rig: Rig, keypoints: np.ndarray) -> np.ndarray:
+    """Per camera, the angle (radians, in (-pi, pi]) of the projected pelvis->neck vector from
+    image-up: 0 upright, pi upside down. Rotating the input image by this angle makes the person
+    upright for the CNN (paper III-B)."""
+    pts = np.asarray(keypoints)[[INDEX["pelvis"], INDEX["neck"]]]
+    uv, _ = rig.project(pts)  # (C, 2, 2)
+    d = uv[:, 1] - uv[:, 0]
+    return np.arctan2(d[:, 0], -d[:, 1])
+
+
+def _nan_markers(stamp_ns: int, kind: str = "none") -> Markers:
+    return Markers(stamp_ns, np.full((N_KP, 3), np.nan), np.zeros(N_KP), kind, 0.0)
+
+
+class MarkerStage:
+    """PCMs -> virtual markers (triangulated centroids while initializing, lattice search while
+    tracking)."""
+
+    def __init__(self, rig: Rig, config: TrackerConfig | None = None) -> None:
+        self.rig = rig
+        self.config = config or TrackerConfig()
+        self.centres: np.ndarray | None = None  # skeleton keypoints of the previous frame
+        self.velocity = np.zeros((N_KP, 3))
+        self._low = 0
+
+    @property
+    def tracking(self) -> bool:
+        return self.centres is not None
+
+    def feedback(self, keypoints: np.ndarray | None) -> None:
+        """The first-IK keypoints of the frame just processed, or None when not tracking."""
+        if keypoints is None:
+            self.centres = None
+            self.velocity[:] = 0.0
+            return
+        kp = np.asarray(keypoints, dtype=np.float64)
+        if self.centres is not None:
+            self.velocity = kp - self.centres
+        else:
+            self.velocity[:] = 0.0
+        self.centres = kp.copy()
+
+    def step(self, pcm: PcmViews) -> Markers:
+        if pcm.n_views == 0:
+            return _nan_markers(pcm.stamp_ns)
+        if self.centres is None:
+            return self._triangulate(pcm.sanitized())
+        return self._lattice(pcm)  # the lattice search sanitizes the values it reads
+
+    def _triangulate(self, pcm: PcmViews) -> Markers:
+        cfg = self.config
+        uv, peak = pcm.centroids(threshold=cfg.init_min_peak)  # (V, J, 2), (V, J)
+        C = len(self.rig)
+        # One observation per camera: where a camera has several views of a channel, the
+        # strongest one.
+        cam_uv = np.zeros((C, pcm.keypoints.size, 2))
+        cam_w = np.zeros((C, pcm.keypoints.size))
+        for v in np.argsort(peak.max(axis=1)):
+            c = pcm.camera[v]
+            better = peak[v] > cam_w[c]
+            cam_uv[c, better] = uv[v, better]
+            cam_w[c, better] = peak[v, better]
+        pts, resid = triangulate_robust(self.rig, cam_uv, cam_w, cfg.init_max_reprojection_px, cfg.min_views)
+        agree = np.isfinite(resid) & (resid <= cfg.init_max_reprojection_px)
+        out = _nan_markers(pcm.stamp_ns, "triangulated")
+        out.positions[pcm.keypoints[agree]] = pts[agree]
+        w = np.where(agree, cam_w.sum(axis=0), 0.0)
+        out.weights[pcm.keypoints] = w
+        n_cam = max(len(np.unique(pcm.camera)), 1)
+        out.score = float(w.sum() / (n_cam * max(pcm.keypoints.size, 1)))
+        return out
+
+    def _lattice(self, pcm: PcmViews) -> Markers:
+        cfg = self.config
+        centres = self.centres
+        if cfg.prediction == "constant_velocity":
+            centres = centres + self.velocity
+        res = lattice_search(
+            self.rig,
+            pcm,
+            centres[pcm.keypoints],
+            k=cfg.lattice_k,
+            spacing=cfg.lattice_spacing,
+            coarse_to_fine=cfg.coarse_to_fine,
+            subcell=cfg.subcell,
+        )
+        seen = res.n_views >= cfg.min_views
+        out = _nan_markers(pcm.stamp_ns, "lattice")
+        out.positions[pcm.keypoints] = res.markers
+        out.weights[pcm.keypoints] = np.where(seen, res.weights, 0.0)
+        n_cam = max(len(np.unique(pcm.camera[pcm.valid.any(axis=1)])), 1)
+        observed = max(int(pcm.valid.any(axis=0).sum()), 1)
+        out.score = float(out.weights.sum() / (n_cam * observed))
+        self._low = self._low + 1 if out.score < cfg.lost_score else 0
+        if self._low >= cfg.lost_frames:
+            # Lost: start over from triangulation with this very frame.
+            self._low = 0
+            self.feedback(None)
+            return self._triangulate(pcm.sanitized())
+        return out
+
+
+# Keypoints that must be seen to identify a body (II-C).
+CORE = ("left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+        "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle")
+
+
+def _with_midpoints(p: np.ndarray) -> np.ndarray:
+    """Fill neck/pelvis from the shoulder/hip midpoints where a PCM model lacks them."""
+    p = p.copy()
+    for mid, (a, b) in (("neck", ("left_shoulder", "right_shoulder")), ("pelvis", ("left_hip", "right_hip"))):
+        miss = ~np.isfinite(p[..., INDEX[mid], 0])
+        p[..., INDEX[mid], :] = np.where(miss[..., None], 0.5 * (p[..., INDEX[a], :] + p[..., INDEX[b], :]), p[..., INDEX[mid], :])
+    return p
+
+
+def _shoulder_offsets(p: np.ndarray) -> tuple[float, float]:
+    """Shoulder centre relative to the neck in the trunk frame (x forward, z from the pelvis
+    to the neck): (forward, drop), medians over frames."""
+    neck, pel = p[:, INDEX["neck"]], p[:, INDEX["pelvis"]]
+    ls, rs = p[:, INDEX["left_shoulder"]], p[:, INDEX["right_shoulder"]]
+    y = ls - rs
+    y /= np.linalg.norm(y, axis=1, keepdims=True)
+    z = neck - pel
+    z -= y * np.sum(z * y, axis=1, keepdims=True)
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    x = np.cross(y, z)
+    d = 0.5 * (ls + rs) - neck
+    fwd = np.sum(d * x, axis=1)
+    up = np.sum(d * z, axis=1)
+    ok = np.isfinite(fwd) & np.isfinite(up)
+    if not ok.any():
+        return 0.0, BodyDimensions().shoulder_drop
+    return float(np.median(fwd[ok])), float(-np.median(up[ok]))
+
+
+def identify_dimensions(frames: np.ndarray) -> BodyDimensions:
+    """Link lengths from triangulated keypoints (N, 25, 3): medians over frames (II-C)."""
+    p = _with_midpoints(frames)
+
+    def dist(a: str, b: str) -> float:
+        d = np.linalg.norm(p[:, INDEX[a]] - p[:, INDEX[b]], axis=1)
+        d = d[np.isfinite(d)]
+        return float(np.median(d)) if d.size else float("nan")
+
+    def both(a: str, b: str) -> float:
+        vals = np.array([dist(f"left_{a}", f"left_{b}"), dist(f"right_{a}", f"right_{b}")])
+        vals = vals[np.isfinite(vals)]
+        return float(vals.mean()) if vals.size else float("nan")
+
+    base = BodyDimensions()
+    sw = dist("left_shoulder", "right_shoulder")
+    fwd, drop = _shoulder_offsets(p)
+    trunk = dist("pelvis", "neck")
+    scale = trunk / base.trunk if np.isfinite(trunk) else 1.0
+    dims = dataclasses.replace(
+        base,
+        hip_width=dist("left_hip", "right_hip"),
+        thigh=both("hip", "knee"),
+        shank=both("knee", "ankle"),
+        trunk=trunk,
+        shoulder_width=sw,
+        shoulder_drop=drop,
+        shoulder_forward=fwd,
+        upper_arm=both("shoulder", "elbow"),
+        forearm=both("elbow", "wrist"),
+        nose=tuple(np.array(base.nose) * scale),
+        eye=tuple(np.array(base.eye) * scale),
+        ear=tuple(np.array(base.ear) * scale),
+    )
+    hand = both("wrist", "hand")
+    if np.isfinite(hand):
+        dims = dataclasses.replace(dims, hand=hand)
+    for name in ("heel", "toe"):
+        length = both("ankle", name)
+        if np.isfinite(length):
+            v = np.array(getattr(base, name))
+            dims = dataclasses.replace(dims, **{name: tuple(v / np.linalg.norm(v) * length)})
+    return dims
+
+
+def initial_pose(skeleton: Skeleton, keypoints: np.ndarray) -> np.ndarray:
+    """A configuration with the root at the pelvis, oriented by the hips and trunk, limbs
+    neutral: the starting point of the initial IK."""
+    p = _with_midpoints(keypoints[None])[0]
+    q = skeleton.neutral()
+    y = p[INDEX["left_hip"]] - p[INDEX["right_hip"]]
+    z = p[INDEX["neck"]] - p[INDEX["pelvis"]]
+    if np.all(np.isfinite(y)) and np.all(np.isfinite(z)):
+        y /= np.linalg.norm(y)
+        z -= y * (z @ y)
+        z /= np.linalg.norm(z)
+        R = np.stack([np.cross(y, z), y, z], axis=1)
+        from pinocchio import Quaternion
+
+        q[3:7] = Quaternion(R).coeffs()
+    if np.all(np.isfinite(p[INDEX["pelvis"]])):
+        q[:3] = p[INDEX["pelvis"]]
+    return q
+
+
+class SkeletonStage:
+    """Markers -> skeleton: identification, IK, IIR low-pass, second IK."""
+
+    def __init__(self, config: TrackerConfig | None = None) -> None:
+        self.config = config or TrackerConfig()
+        self.skeleton: Skeleton | None = None
+        self._buffer: deque[np.ndarray] = deque(maxlen=self.config.init_frames)
+        self._q_raw: np.ndarray | None = None
+        self._q_out: np.ndarray | None = None
+        self._filter = LowPassFilter(self.config.filter_order, self.config.filter_cutoff_hz, self.config.fps,
+                                     self.config.filter_lag_compensation)
+        self.status = "initializing"
+        self._joint_names = Skeleton().joint_names
+
+    @property
+    def joint_names(self) -> list[str]:
+        return self._joint_names
+
+    def reset(self) -> None:
+        self.skeleton = None
+        self._buffer.clear()
+        self._q_raw = self._q_out = None
+        self._filter.reset()
+        self.status = "initializing"
+
+    def step(self, markers: Markers) -> TrackResult:
+        cfg = self.config
+        if markers.kind == "triangulated" and self.skeleton is not None:
+            self.reset()
+            self.status = "lost"
+        if self.skeleton is None:
+            return self._initialize(markers)
+        if markers.kind != "lattice":
+            return self._empty(markers, "lost")
+        sk = self.skeleton
+        first = solve_ik(sk, self._q_raw, markers.positions, markers.weights, cfg.ik_iterations,
+                         damping=cfg.ik_damping, regularization=cfg.ik_regularization)
+        self._q_raw = first.q
+        smooth = self._filter(first.keypoints)
+        second = solve_ik(sk, self._q_out, smooth, np.ones(N_KP), cfg.ik_iterations,
+                          damping=cfg.ik_damping, regularization=cfg.ik_regularization)
+        if second.cost > cfg.second_ik_restart_m**2:
+            # The smoothed targets lie near the first IK's pose: restart from it when the
+            # warm start is caught in another branch (e.g. an arm twisted at a joint limit).
+            retry = solve_ik(sk, first.q, smooth, np.ones(N_KP), cfg.ik_iterations,
+                             damping=cfg.ik_damping, regularization=cfg.ik_regularization)
+            if retry.cost < second.cost:
+                second = retry
+        self._q_out = second.q
+        self.status = "tracking"
+        return TrackResult(markers.stamp_ns, "tracking", sk.to_angles(second.q), self._joint_names,
+                           second.keypoints, first.keypoints, markers.weights.copy(),
+                           markers.positions.copy(), sk.dims.bone_lengths())
+
+    def _empty(self, markers: Markers, status: str) -> TrackResult:
+        nan = np.full((N_KP, 3), np.nan)
+        return TrackResult(markers.stamp_ns, status, np.full(40, np.nan), self._joint_names, nan, nan.copy(),
+                           markers.weights.copy(), markers.positions.copy(), {})
+
+    def _initialize(self, markers: Markers) -> TrackResult:
+        cfg = self.config
+        status = "lost" if self.status == "lost" else "initializing"
+        self.status = "initializing"
+        if markers.kind != "triangulated":
+            return self._empty(markers, status)
+        p = _with_midpoints(markers.positions[None])[0]
+        if not all(np.isfinite(p[INDEX[n]]).all() for n in CORE + ("neck", "pelvis")):
+            self._buffer.clear()  # the views must agree on consecutive frames
+            return self._empty(markers, status)
+        self._buffer.append(markers.positions.copy())
+        if len(self._buffer) < cfg.init_frames:
+            return self._empty(markers, status)
+        frames = np.array(self._buffer)
+        dims = identify_dimensions(frames)
+        best = None
+        # The waist joint is not a keypoint: choose its height by the fit it gives.
+        for ratio in (0.2, 0.35, 0.5, 0.65):
+            sk = Skeleton(dataclasses.replace(dims, waist_ratio=ratio))
+            q = initial_pose(sk, frames[-1])
+            w = np.where(np.isfinite(frames[-1]).all(axis=1), 1.0, 0.0)
+            fit = solve_ik(sk, q, frames[-1], w, 60, damping=1e-2, regularization=1e-6, line_search=True)
+            rms = float(np.sqrt(fit.cost))
+            if best is None or rms < best[0]:
+                best = (rms, sk, fit)
+        rms, sk, fit = best
+        if rms > cfg.init_max_fit_error_m:
+            self._buffer.popleft()
+            return self._empty(markers, status)
+        self.skeleton = sk
+        self._q_raw = fit.q.copy()
+        self._q_out = fit.q.copy()
+        self._filter.reset()
+        self._filter(fit.keypoints)
+        self.status = "tracking"
+        return TrackResult(markers.stamp_ns, "tracking", sk.to_angles(fit.q), self._joint_names, fit.keypoints,
+                           fit.keypoints.copy(), markers.weights.copy(), markers.positions.copy(),
+                           sk.dims.bone_lengths())
+
+
+class SpatiotemporalFilter:
+    """The whole method for one person: PCMs in, skeleton out (both stages, feedback wired)."""
+
+    def __init__(self, rig: Rig, config: TrackerConfig | None = None) -> None:
+        self.config = config or TrackerConfig()
+        self.rig = rig
+        self.markers = MarkerStage(rig, self.config)
+        self.skeleton = SkeletonStage(self.config)
+        self.last: TrackResult | None = None
+
+    def step(self, pcm: PcmViews) -> TrackResult:
+        m = self.markers.step(pcm)
+        r = self.skeleton.step(m)
+        self.markers.feedback(r.raw_keypoints if r.status == "tracking" else None)
+        self.last = r
+        return r
+
+    def tilt(self) -> np.ndarray:
+        """Per-camera trunk tilt of the current skeleton (zeros while not tracking)."""
+        if self.last is None or self.last.status != "tracking":
+            return np.zeros(len(self.rig))
+        return trunk_tilt(self.rig, self.last.keypoints)
