@@ -305,7 +305,9 @@ class Track:
     born: int
     unseen: int = 0
     members: dict[int, list[int]] = field(default_factory=dict)  # camera -> 2D people indices
-    result: object = None
+    result: object = None  # the filter's last TrackResult (None when not stepped)
+    output: np.ndarray | None = None  # (25, 3) this frame's reconstruction, None when unseen
+    source: str = "none"  # "tracker" | "triangulated" (while initializing) | "unseen"
 
 
 _TORSO = np.array([INDEX[n] for n in ("neck", "left_shoulder", "right_shoulder", "left_hip", "right_hip")])
@@ -432,16 +434,21 @@ class MultiPersonTracker:
                     self._end(t)
                 else:
                     t.result = None  # not stepped: the filter keeps its state for a return
+                t.output, t.source = None, "unseen"
                 continue
             t.unseen = 0
             pcm = self.renderer.render(uv, w, w.max(axis=1) > 0, stamp_ns)
             res = t.filter.step(pcm)
             t.result = res
-            kp = np.asarray(getattr(res, "raw_keypoints", res.keypoints), dtype=np.float64)
-            if getattr(res, "status", "tracking") == "lost" or not np.isfinite(kp).any():
-                t.keypoints = np.full((N_KP, 3), np.nan)
+            out = np.asarray(getattr(res, "keypoints", np.full((N_KP, 3), np.nan)), dtype=np.float64)
+            raw = np.asarray(getattr(res, "raw_keypoints", out), dtype=np.float64)
+            if getattr(res, "status", "tracking") == "tracking" and np.isfinite(out).all():
+                t.output, t.source, t.keypoints = out.copy(), "tracker", raw.copy()
             else:
-                t.keypoints = kp.copy()
+                # Initializing (the filter needs a few agreeing frames) or re-initializing:
+                # report and gate with the triangulation of the person's own detections.
+                pts, _ = triangulate_robust(self.rig, uv, w)
+                t.output, t.source, t.keypoints = pts, "triangulated", pts.copy()
         # Two filters that converged onto one person: keep the older.
         for a in list(self.tracks):
             for b in list(self.tracks):

@@ -33,20 +33,20 @@ from ..multiperson import (
     assemble_people,
     to_keypoints,
 )
-from ..triangulation import triangulate_robust
 from .pcp import PART_GROUPS, ShelfScore, to_shelf15
 from .shelf_data import BODY25_LIMBS, BODY25_TO_KEYPOINT, ShelfData, load_shelf
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "shelf"
 FPS = 25.0  # Shelf's frame rate (approximately)
 STRIDE = 8  # OpenPose's output stride
+SIGMA_CELLS = 2.0  # Gaussian of a rendered candidate, in map cells (a wide basin for the lattice)
 
 # Tracker settings for Shelf (25 fps, people 3-6 m from the cameras).
 TRACKER_SETTINGS = {
     "fps": FPS,
-    "lattice_k": 4,
-    "lattice_spacing": 0.015,
-    "filter_cutoff_hz": 6.0,
+    "lattice_k": 5,  # +-10 cm around the constant-velocity prediction
+    "lattice_spacing": 0.02,
+    "filter_cutoff_hz": 10.0,  # 25 fps: a lower cutoff lags behind fast wrists
     "init_frames": 3,
     "init_max_reprojection_px": 15.0,
     "lost_frames": 8,
@@ -69,13 +69,14 @@ def people_per_view(data: ShelfData, frame: int) -> list[np.ndarray]:
     return out
 
 
-def make_renderer(data: ShelfData) -> PcmRenderer:
+def make_renderer(data: ShelfData, sigma_cells: float = SIGMA_CELLS) -> PcmRenderer:
     keypoints = np.unique(BODY25_TO_KEYPOINT[BODY25_TO_KEYPOINT >= 0])
-    return PcmRenderer([(c.width, c.height) for c in data.rig], keypoints, stride=STRIDE)
+    return PcmRenderer([(c.width, c.height) for c in data.rig], keypoints, stride=STRIDE,
+                       sigma_cells=sigma_cells, radius=int(np.ceil(3 * sigma_cells)))
 
 
 def evaluate(data: ShelfData, progress: bool = True, tracker_settings: dict | None = None,
-             mp_config: MultiPersonConfig | None = None) -> dict:
+             mp_config: MultiPersonConfig | None = None, sigma_cells: float | None = None) -> dict:
     """Run ours and the baseline over all frames; returns the results dictionary."""
     from tqdm import tqdm
 
@@ -83,9 +84,9 @@ def evaluate(data: ShelfData, progress: bool = True, tracker_settings: dict | No
 
     rig = data.rig
     cfg = TrackerConfig.from_dict(tracker_settings or TRACKER_SETTINGS)
-    mpt = MultiPersonTracker(rig, make_renderer(data), lambda: SpatiotemporalFilter(rig, cfg), mp_config)
+    mpt = MultiPersonTracker(rig, make_renderer(data, sigma_cells or SIGMA_CELLS), lambda: SpatiotemporalFilter(rig, cfg), mp_config)
     ours, base = ShelfScore(), ShelfScore()
-    sources = {"tracking": 0, "triangulated": 0}
+    sources = {"tracker": 0, "triangulated": 0}
     t_front = t_track = 0.0
     for f in tqdm(range(data.n_frames), desc="shelf", unit="frame", disable=not progress, file=sys.stderr):
         gt = data.gt[f]
@@ -100,19 +101,9 @@ def evaluate(data: ShelfData, progress: bool = True, tracker_settings: dict | No
         tracks = mpt.step(people, stamp_ns=int(f * 1e9 / FPS))
         preds = []
         for t in tracks:
-            res = t.result
-            if res is not None and res.status == "tracking" and np.isfinite(res.keypoints).all():
-                preds.append(res.keypoints)
-                sources["tracking"] += 1
-            elif t.members:
-                # Initializing (or just re-initialized): its own detections, triangulated.
-                uv, w = mpt._observations(people, t.members)
-                pts, _ = triangulate_robust(rig, uv, w)
-                if np.isfinite(pts).any():
-                    preds.append(pts)
-                    sources["triangulated"] += 1
-                    if not np.isfinite(t.keypoints).any():
-                        t.keypoints = pts  # gates next frame's assignment
+            if t.output is not None and np.isfinite(t.output).any():
+                preds.append(t.output)
+                sources[t.source] += 1
         ours.add_frame(to_shelf15(np.array(preds).reshape(-1, N_KP, 3)), gt.ids, gt.joints, gt.valid)
         t3 = time.perf_counter()
         t_front += t1 - t0
@@ -153,7 +144,7 @@ def format_table(res: dict) -> str:
         lines.append(f"  {'frames (missed)':22s}" + "".join(f"{str(r['frames'][i]) + '(' + str(r['missed_frames'][i]) + ')':>9s}" for i in ids))
         lines.append("")
     lines.append(f"tracks started {res['tracks_started']}, ended {res['tracks_ended']}; person-frames from "
-                 f"trackers {res['person_frames']['tracking']}, triangulated while initializing "
+                 f"trackers {res['person_frames']['tracker']}, triangulated while initializing "
                  f"{res['person_frames']['triangulated']}")
     t = res["time_ms_per_frame"]
     lines.append(f"time per frame: 2D grouping {t['grouping']:.1f} ms, trackers {t['trackers']:.1f} ms")

@@ -117,15 +117,16 @@ class _Lines:
         return self._lines[self._pos][0] if self._pos < len(self._lines) else self.last_line + 1
 
 
-def read_detections(path: str | Path, width: int, height: int) -> list[ViewFrame]:
-    """Parse one view's detection file. Pixel = normalised * (size - 1) (README)."""
+def read_detections(path: str | Path, width: int, height: int, max_frames: int | None = None) -> list[ViewFrame]:
+    """Parse one view's detection file. Pixel = normalised * (size - 1) (README).
+    With `max_frames`, only the first frames are read (and the rest is not checked)."""
     path = Path(path)
     lines = _Lines(path)
     _, (skel, n_frames) = lines.ints("header 'skelType frameCount'", 2)
     if skel != SKEL_BODY25:
         raise DetectionFileError(f"{path}: line 1: skelType {skel} is not BODY_25 ({SKEL_BODY25})")
     frames: list[ViewFrame] = []
-    for f in range(n_frames):
+    for f in range(n_frames if max_frames is None else min(n_frames, max_frames)):
         cands: list[np.ndarray] = []
         for j in range(N_BODY25):
             what = f"frame {f} of {n_frames}: candidate count of joint {j} ({BODY25_NAMES[j]})"
@@ -148,7 +149,7 @@ def read_detections(path: str | Path, width: int, height: int) -> list[ViewFrame
                 continue
             pafs.append(np.stack([lines.floats(f"frame {f}: PAF row {r} of limb {li} {a}-{b}", nb) for r in range(na)]))
         frames.append(ViewFrame(cands, pafs))
-    if not lines.at_end():
+    if max_frames is None and not lines.at_end():
         raise DetectionFileError(f"{path}: line {lines.peek_line()}: unexpected data after the {n_frames} frames of the header")
     return frames
 
@@ -197,7 +198,7 @@ def load_shelf(root: str | Path, max_frames: int | None = None) -> ShelfData:
 
     root = Path(root)
     rig = load_shelf_calibration(root / "calibration.json")
-    views = [read_detections(root / "detection" / f"{cam.name}.txt", cam.width, cam.height) for cam in rig]
+    views = [read_detections(root / "detection" / f"{cam.name}.txt", cam.width, cam.height, max_frames) for cam in rig]
     gt = read_gt(root / "gt.txt")
     n = min(min(len(v) for v in views), len(gt))
     if max_frames is not None:
