@@ -102,3 +102,17 @@ def test_pose2sim_demo_videos_against_their_calibration():
     calib = load_qualisys_intrinsics(demo / "calibration" / "Calib.qca.txt")
     with pytest.raises(SourceError, match="camera cam01: image is 1080x1920 but the rig was calibrated at 1088x1920"):
         SourceRig(open_videos(vids), check_sizes=calib).start()
+
+
+def test_loop_and_realtime_pacing(tmp_path):
+    import time
+
+    p = write_video(tmp_path / "l.avi", 4)
+    with VideoFrameSource(p, loop=True, realtime=True, offset_frames=1) as s:
+        t0 = time.monotonic()
+        frames = [s.read() for _ in range(7)]  # 3 frames per pass after the offset
+        elapsed = time.monotonic() - t0
+    assert [f.seq for f in frames] == list(range(7))
+    assert [level(f.image) for f in frames] == [1, 2, 3, 1, 2, 3, 1]
+    assert frames[6].stamp_ns - frames[0].stamp_ns == int(round(6e9 / FPS))
+    assert elapsed >= 6 / FPS - 0.01  # paced like a live camera

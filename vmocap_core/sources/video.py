@@ -45,6 +45,8 @@ class VideoFrameSource(FrameSource):
         self._cap: cv2.VideoCapture | None = None
         self._file_index = 0
         self._loops = 0
+        self._loop_base = 0
+        self._pass_frames = 0
         self._done = False
         self._pending = 0
         self._t0: float | None = None
@@ -67,6 +69,7 @@ class VideoFrameSource(FrameSource):
         self.frame_count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         self._size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
         self._file_index = 0
+        self._loops = self._loop_base = self._pass_frames = 0
         self._done = False
         self._skip_to(max(0, self.offset_frames))
 
@@ -115,20 +118,21 @@ class VideoFrameSource(FrameSource):
         if self._done:
             return None
         ok, img = self._cap.read()
+        if not ok and self.loop and self._pass_frames > 0:
+            # start over; logical indices (and stamps) keep increasing across passes
+            self._loop_base += self._pass_frames
+            self._pass_frames = 0
+            self._loops += 1
+            self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+            self._file_index = 0
+            self._skip_to(max(0, self.offset_frames))
+            ok, img = self._cap.read()
         if not ok:
-            if self.loop and self._file_index > max(0, self.offset_frames):
-                self._loops += 1
-                self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
-                self._file_index = 0
-                self._skip_to(max(0, self.offset_frames))
-                ok, img = self._cap.read()
-            if not ok:
-                self._done = True
-                return None
-        logical = self._file_index - self.offset_frames
-        span = self._file_index_span()
-        logical += self._loops * span
+            self._done = True
+            return None
+        logical = self._loop_base + self._file_index - self.offset_frames
         self._file_index += 1
+        self._pass_frames += 1
         if self.realtime:
             self._pace(logical)
         if self.flip:
@@ -137,9 +141,6 @@ class VideoFrameSource(FrameSource):
             img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         self._delivered += 1
         return Frame(self.name, self.stamp_of(logical), img, seq=logical)
-
-    def _file_index_span(self) -> int:
-        return max(1, self.frame_count - max(0, self.offset_frames))
 
     def _pace(self, logical: int) -> None:
         now = time.monotonic()
