@@ -101,7 +101,7 @@ def test_batched_conversion_equals_single(tmp_path: Path) -> None:
     require_models()
     model = BlazePoseLandmark()
     rng = np.random.default_rng(1)
-    x = rng.random((3, 256, 256, 3), dtype=np.float32)
+    x = rng.integers(0, 256, (3, 256, 256, 3), dtype=np.uint8)
     batch = model.run(x)
     for k in range(3):
         one = model.run(x[k : k + 1])

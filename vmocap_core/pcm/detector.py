@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import ModelError
 from . import fetch
 from .crops import tilt_from_points
-from .model import DEFAULT_THREADS, check_image, letterbox_affine, load_session
+from .model import DEFAULT_THREADS, U8_INPUT, check_image, letterbox_affine, make_session, read_model, with_uint8_input
 from ..heatmaps import invert_affine
 
 INPUT = 224
@@ -87,14 +87,16 @@ class PoseDetector:
     def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS,
                  min_score: float = 0.5, iou_threshold: float = 0.3) -> None:
         self.path = Path(path or fetch.model_path("pose_detection"))
-        self.session = load_session(self.path, threads)
-        self.input_name = self.session.get_inputs()[0].name
+        model = read_model(self.path)
+        self.batched = not model.graph.input[0].type.tensor_type.shape.dim[0].dim_value
+        self.session = make_session(with_uint8_input(model, True, 2.0 / 255.0, -1.0, True), threads, self.path)
+        self.input_name = U8_INPUT
         self.min_score = float(min_score)
         self.iou_threshold = float(iou_threshold)
         self.anchors = ssd_anchors()
-        self.batched = not isinstance(self.session.get_inputs()[0].shape[0], int)
 
-    def preprocess(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    def sample(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Letterboxed (N, 224, 224, 3) uint8 BGR batch and the (N, 2, 3) image -> input affines."""
         import cv2
 
         checked = [check_image(im, i) for i, im in enumerate(images)]
@@ -103,14 +105,18 @@ class PoseDetector:
         for k, im in enumerate(checked):
             cv2.warpAffine(im, A[k], (INPUT, INPUT), dst=batch[k], flags=cv2.INTER_LINEAR,
                            borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
-        x = batch[..., ::-1].astype(np.float32) * np.float32(2.0 / 255.0) - np.float32(1.0)
-        return np.ascontiguousarray(x), A
+        return batch, A
+
+    def preprocess(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Float input of the original network (RGB in [-1, 1]), for reference implementations."""
+        batch, A = self.sample(images)
+        return np.ascontiguousarray(batch[..., ::-1].astype(np.float32) * np.float32(2.0 / 255.0) - np.float32(1.0)), A
 
     def detect(self, images: Sequence[np.ndarray]) -> list[list[Detection]]:
         """Per image (H, W, 3) uint8 BGR / (H, W) mono: people found, best first (maybe none)."""
         if len(images) == 0:
             return []
-        x, A = self.preprocess(images)
+        x, A = self.sample(images)
         if self.batched:
             raw, logits = self.session.run(["Identity", "Identity_1"], {self.input_name: x})
         else:
