@@ -69,3 +69,14 @@ def test_pose2sim_checkerboard_focal_within_1_percent(capsys):
     errs = {k: v["focal_err_pct"] for k, v in out["reference"]["intrinsics"].items()}
     assert len(errs) == 4 and max(errs.values()) < 1.0, errs
     assert rc == 0
+
+
+@pytest.mark.skipif(not (CHARUCO / "camera_array.toml").is_file(), reason="../shared/data/calib_charuco absent")
+def test_camera_that_never_sees_the_board_is_named(capsys):
+    # camera 3 only sees the board from frame 24 on: with the first 12 frames it never does
+    cams = [f"--camera={i}={CHARUCO / 'calibration/extrinsic' / f'cam_{i}.mp4'}" for i in (0, 3)]
+    rc = main(["calibrate", f"--board={CHARUCO / 'charuco.toml'}", *cams, "--max-frames=12", "--every=2",
+               f"--intrinsics={CHARUCO / 'camera_array.toml'}", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "camera 3: the board (charuco 4x5 squares" in err and "was never detected in 12 frames" in err
