@@ -10,7 +10,7 @@ from vmocap_core.camera import Camera, Rig, look_at
 from vmocap_core.errors import ModelError
 from vmocap_core.heatmaps import PcmViews, apply_affine, invert_affine, stride_affine
 from vmocap_core.keypoints import INDEX, KEYPOINTS, LOWER_BODY
-from vmocap_core.pcm.blazepose import rotated_crops
+from vmocap_core.pcm.blazepose import CROP_TO_MAP, rotated_crops
 from vmocap_core.pcm.crops import Crops, compose_affine, crop_affine, crops_from_skeleton, tilt_from_points
 from vmocap_core.pcm.model import letterbox_affine
 from vmocap_core.tracker import trunk_tilt
@@ -53,14 +53,15 @@ def test_warp_affine_agrees_with_the_affine(rotation: float, side: float) -> Non
 
 
 def test_blazepose_half_cell_convention() -> None:
-    """Map cell (x, y) is centred on crop pixel ((x+0.5)*4-0.5, (y+0.5)*4-0.5)."""
+    """Map cell (x, y) is centred on crop pixel (4x - 0.5, 4y - 0.5) (measured, see blazepose.py)."""
     c, side, rot = np.array([500.0, 400.0]), 600.0, 0.3
     image_to_crop = crop_affine(c, side, rot, N)[0]
-    image_to_map = compose_affine(stride_affine(4.0), image_to_crop)
+    image_to_map = compose_affine(CROP_TO_MAP, image_to_crop)
     cells = np.array([[0, 0], [10, 20], [63, 63]], dtype=np.float64)
-    crop_px = (cells + 0.5) * 4 - 0.5
+    crop_px = cells * 4 - 0.5
     np.testing.assert_allclose(apply_affine(invert_affine(image_to_crop), crop_px),
                                apply_affine(invert_affine(image_to_map), cells), atol=1e-9)
+    np.testing.assert_allclose(apply_affine(CROP_TO_MAP, np.array([N / 2 - 0.5, N / 2 - 0.5])), [32, 32])
     # PcmViews.peaks uses the same mapping: a one-hot map at cell (10, 20)
     maps = np.zeros((1, 1, 64, 64), np.float32)
     maps[0, 0, 20, 10] = 1.0
@@ -68,7 +69,7 @@ def test_blazepose_half_cell_convention() -> None:
     uv, _ = pv.peaks()
     s = side / N
     R = np.array([[np.cos(rot), -np.sin(rot)], [np.sin(rot), np.cos(rot)]])
-    expect = c + s * R @ (np.array([41.5, 81.5]) - (N - 1) / 2)
+    expect = c + s * R @ (np.array([39.5, 79.5]) - (N - 1) / 2)
     np.testing.assert_allclose(uv[0, 0], expect, atol=1e-9)
 
 
@@ -155,7 +156,7 @@ def test_camera_keypoints_merges_views_per_camera() -> None:
     maps[0, :, 10, 10] = 0.9  # camera 0: everything at cell (10, 10)
     maps[1, :, 20, 20] = 0.8  # camera 1 upright view
     maps[2, :, 30, 30] = 0.7  # camera 1 rotated view
-    A = np.repeat(stride_affine(4.0)[None], 3, axis=0)
+    A = np.repeat(stride_affine(4.0)[None], 3, axis=0)  # cell x at pixel 4x + 1.5
     valid = np.stack([np.ones(J, bool), ~lower, lower])
     pv = PcmViews(maps, A, [0, 1, 1], np.arange(J), valid, [0.99, 0.99, 0.99])
     uv, w = camera_keypoints(pv, 3)

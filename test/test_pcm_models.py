@@ -13,12 +13,12 @@ from onnx import TensorProto, helper, numpy_helper
 
 from vmocap_core.errors import ModelError
 from vmocap_core.heatmaps import stride_affine
-from vmocap_core.keypoints import INDEX, KEYPOINTS
+from vmocap_core.keypoints import INDEX, KEYPOINTS, MIRROR
 from vmocap_core.pcm import fetch
 from vmocap_core.pcm.blazepose import BlazePoseLandmark, rotated_crops
 from vmocap_core.pcm.crops import Crops, compose_affine
 from vmocap_core.pcm.detector import PoseDetector
-from vmocap_core.pcm.model import letterbox_affine
+from vmocap_core.pcm.model import InputViews, letterbox_affine
 from vmocap_core.pcm.openpose import COCO18, OpenPoseConfig, OpenPoseModel
 
 MESSI = Path("/usr/share/doc/opencv-doc/examples/data/messi5.jpg")
@@ -216,3 +216,37 @@ def test_lite_variant_when_fetched(models, messi) -> None:
     assert max(errs.values()) < 40
     with pytest.raises(ModelError):
         BlazePoseLandmark(variant="heavy")
+
+
+PANOPTIC = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "panoptic_demo"
+
+
+def test_heatmap_cell_centres_by_mirror_symmetry(models, messi) -> None:
+    """The half-cell convention, measured on the real model: a crop and its exact mirror image
+    (crop pixel p -> 255 - p) must give the same peaks once mapped back. If our cell centres
+    were off by d crop pixels, the two would differ by 2d along x (and not at all along y)."""
+    det, lm = models
+    images = [messi] + [cv2.imread(str(p)) for p in sorted(PANOPTIC.glob("*/*_00004500.jpg"))]
+    mirror = np.array([[-1.0, 0.0, 255.0], [0.0, 1.0, 0.0]])
+    diffs = []
+    for img in images:
+        found = det.detect([img])[0]
+        if not found:
+            continue
+        A = Crops([0], *found[0].crop()).image_to_crop(256)[0]
+        views = InputViews(np.array([0, 0]), np.stack([A, compose_affine(mirror, A)]), np.ones((2, len(KEYPOINTS)), bool))
+        pv = lm.infer([img], views)
+        if pv.presence.min() < 0.9:
+            continue
+        uv, w = pv.centroids(0.3)
+        a = uv[0] @ A[:, :2].T + A[:, 2]  # crop pixels of the plain view
+        b = uv[1][MIRROR] @ A[:, :2].T + A[:, 2]  # mirrored view: its left is our right
+        ok = (w[0] > 0.5) & (w[1][MIRROR] > 0.5) & pv.valid[0]
+        d = (b - a)[ok]
+        diffs.append(d[np.linalg.norm(d, axis=1) < 8])  # drop keypoints the two views disagree on
+    d = np.concatenate(diffs)
+    mean, sem = d.mean(axis=0), d.std(axis=0) / np.sqrt(len(d))
+    print(f"mirror test on {len(d)} keypoints of {len(diffs)} crops: mean difference {mean.round(2)} +- {sem.round(2)} crop px")
+    assert len(d) >= 15
+    assert abs(mean[1]) < 0.75  # control: y is not mirrored
+    assert abs(mean[0]) < 0.75  # the block-average convention (cell at 4x + 1.5) gives about -4

@@ -3,9 +3,15 @@
 Input: a 256 x 256 RGB crop in [0, 1], rotated so the person is upright (crops.py).
 Outputs used: `Identity_3` (1 x 64 x 64 x 39 heatmap logits: 33 landmarks + 6 auxiliary
 channels; sigmoid -> our PCM) and `Identity_1` (pose presence, already a probability in the
-converted graph: ~1 with a person, ~0 on blank or noise images). Heatmap cell (x, y) is centred
-on crop pixel ((x + 0.5) * 4 - 0.5, (y + 0.5) * 4 - 0.5) in the OpenCV convention (cell x covers
-crop pixels [4x, 4x + 4) edge to edge), i.e. crop -> map is `heatmaps.stride_affine(4)`.
+converted graph: ~1 with a person, ~0 on blank or noise images).
+
+Heatmap cell (x, y) is centred on crop pixel (4x - 0.5, 4y - 0.5) in the OpenCV centre
+convention, i.e. at (x / 64, y / 64) of the crop edge to edge (MediaPipe's own heatmap
+refinement uses col / width too) -- NOT at ((x + 0.5) * 4 - 0.5) as a stride-4 block average
+would be. Measured, not assumed (test_pcm_models::test_heatmap_cell_centres_by_mirror_symmetry):
+feeding a crop and its exact horizontal mirror, the peaks mapped back disagree by 2 * delta where
+delta is the convention's error; with the block-average convention delta = 1.94 +- 0.07 crop px
+(414 keypoints, 26 real crops), with this one ~0; the model's regressed landmarks agree too.
 
 Mapping of BlazePose's 33 landmark names to vmocap's vocabulary (`keypoints.KEYPOINTS`):
   nose 0 -> nose;  left/right_eye 2/5 -> left/right_eye (the eye centres; the inner and outer
@@ -71,6 +77,9 @@ TO_BLAZEPOSE: dict[str, str] = {
 # for each of our 25 channels, the BlazePose heatmap channel (-1: none)
 CHANNEL: np.ndarray = np.array([BLAZEPOSE_NAMES.index(TO_BLAZEPOSE[k]) if k in TO_BLAZEPOSE else -1 for k in KEYPOINTS])
 
+# crop pixel (centre convention) -> heatmap cell coordinates: x = (p + 0.5) / 4
+CROP_TO_MAP = np.array([[0.25, 0.0, 0.125], [0.0, 0.25, 0.125]])
+
 ROTATION_MODES = ("none", "all", "lower_body")
 # Measured on real frames (test_pcm_panoptic: 5 Panoptic views turned upside down): BlazePose's
 # presence drops to ~0 and its upper-body heatmaps are ~44 cm off on an unrotated inverted person,
@@ -101,6 +110,9 @@ class BlazePoseLandmark(PcmModel):
             raise ModelError(f"BlazePose variant must be one of {VARIANTS}, got {variant!r}")
         self.variant = variant
         super().__init__(path or fetch.model_path(f"pose_landmark_{variant}"), threads)
+
+    def input_to_map(self) -> np.ndarray:
+        return CROP_TO_MAP.copy()
 
     def extend_graph(self, model: onnx.ModelProto) -> onnx.ModelProto:
         """Output "pcm" (V, 25, 64, 64): our channels gathered from Identity_3, NCHW, sigmoid,

@@ -188,6 +188,11 @@ class PcmModel(abc.ABC):
         self.session = make_session(model, self.threads, self.path)
         self.input_name = U8_INPUT
 
+    def input_to_map(self) -> np.ndarray:
+        """(2, 3) affine network-input pixel -> map coordinates. Default: cell x covers input
+        pixels [s x, s (x + 1)) edge to edge (`heatmaps.stride_affine`)."""
+        return stride_affine(self.stride)
+
     def extend_graph(self, model: onnx.ModelProto) -> onnx.ModelProto:
         """Hook: append output post-processing to the graph (runs inside onnxruntime)."""
         return model
@@ -255,7 +260,7 @@ class PcmModel(abc.ABC):
             views = self.views_from_crops(views)
         maps, presence = self.decode(self.run(self.sample(images, views)))
         A = np.asarray(views.image_to_input, dtype=np.float64)
-        image_to_map = compose_affine(stride_affine(self.stride)[None], A)
+        image_to_map = compose_affine(self.input_to_map()[None], A)
         # Heatmaps look confident on anything; only the presence output (and these guards) flag
         # views that cannot contain a usable person (e.g. a 3x2 image blown up to 256x256).
         cam = np.asarray(views.camera, dtype=np.intp)
