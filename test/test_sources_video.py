@@ -116,3 +116,25 @@ def test_loop_and_realtime_pacing(tmp_path):
     assert [level(f.image) for f in frames] == [1, 2, 3, 1, 2, 3, 1]
     assert frames[6].stamp_ns - frames[0].stamp_ns == int(round(6e9 / FPS))
     assert elapsed >= 6 / FPS - 0.01  # paced like a live camera
+
+
+def test_make_source_from_uri(tmp_path):
+    from vmocap_core.sources import make_source
+    from vmocap_core.sources.v4l2 import V4L2FrameSource
+
+    write_video(tmp_path / "cam0.avi", 5, first=0)
+    write_video(tmp_path / "cam1.avi", 5, first=0)
+    s0 = make_source("video", f"{tmp_path}?fps=10&offset.cam1=2&mono=true", "cam0")
+    s1 = make_source("video", f"{tmp_path}/{{camera}}.avi?fps=10&offset.cam1=2", "cam1")
+    with s0, s1:
+        f0, f1 = s0.read(), s1.read()
+    assert f0.image.ndim == 2 and s0.fps == 10 and f0.seq == 0 and level(f0.image) == 0
+    assert f1.seq == 0 and level(f1.image) == 2  # cam1's offset
+    v = make_source("v4l2", "cam0=/dev/video4,cam1=/dev/video6?width=1280&height=720&fourcc=MJPG", "cam1")
+    assert isinstance(v, V4L2FrameSource) and v.device == "/dev/video6" and v.req["width"] == 1280
+    with pytest.raises(SourceError, match="camera cam2: source uri .* names no target"):
+        make_source("v4l2", "cam0=/dev/video4", "cam2")
+    with pytest.raises(SourceError, match="bad video source option"):
+        make_source("video", f"{tmp_path}?colour=red", "cam0")
+    with pytest.raises(SourceError, match="unknown source kind 'ndi'"):
+        make_source("ndi", "x", "cam0")
