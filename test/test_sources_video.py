@@ -72,7 +72,7 @@ def test_size_mismatch_with_calibration_is_clear(tmp_path):
     p = write_video(tmp_path / "cam0.avi", 3, size=(64, 48))
     calib = Rig([Camera("cam0", np.diag([50.0, 50.0, 1.0]), np.zeros(5), np.eye(3), np.zeros(3), 80, 60)])
     with pytest.raises(SourceError, match="camera cam0: image is 64x48 but the rig was calibrated at 80x60"):
-        SourceRig([VideoFrameSource(p)], check_sizes=calib).start()
+        SourceRig([VideoFrameSource(p)], calibration=calib).start()
 
 
 def test_missing_file_and_mono(tmp_path):
@@ -101,7 +101,7 @@ def test_pose2sim_demo_videos_against_their_calibration():
     # the demo's cam01/cam02 videos are 1080 wide, the Qualisys calibration 1088: refused
     calib = load_qualisys_intrinsics(demo / "calibration" / "Calib.qca.txt")
     with pytest.raises(SourceError, match="camera cam01: image is 1080x1920 but the rig was calibrated at 1088x1920"):
-        SourceRig(open_videos(vids), check_sizes=calib).start()
+        SourceRig(open_videos(vids), calibration=calib).start()
 
 
 def test_loop_and_realtime_pacing(tmp_path):

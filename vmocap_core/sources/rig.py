@@ -57,11 +57,13 @@ class SourceRig:
     tolerance_ns: frames of one set lie within this of each other (default: half the
     expected period `period_ns`, else 5 ms). trigger_mode: `read_set` fires `trigger()` on
     every source at once (all threads released by one barrier) before collecting a set.
+    calibration: a vmocap Rig; `start` raises SourceError when a camera's image size differs
+    from the size it was calibrated at.
     """
 
     def __init__(self, sources: list[FrameSource], period_ns: int | None = None, tolerance_ns: int | None = None,
                  trigger_mode: bool = False, reconnect_s: float = 1.0, queue_len: int = 8,
-                 on_event: Callable[[str, str], None] | None = None, check_sizes=None) -> None:
+                 on_event: Callable[[str, str], None] | None = None, calibration=None) -> None:
         names = [s.name for s in sources]
         if len(set(names)) != len(names):
             raise SourceError(f"camera names must be unique: {names}")
@@ -77,7 +79,7 @@ class SourceRig:
         self.trigger_mode = trigger_mode
         self.reconnect_s = reconnect_s
         self.on_event = on_event
-        self.check_sizes = check_sizes  # a vmocap Rig: image sizes must match its calibration
+        self.calibration = calibration  # a vmocap Rig: image sizes must match its calibration
         self.events: list[tuple[float, str, str]] = []
         self._state = {s.name: _CamState(s, collections.deque(maxlen=queue_len)) for s in sources}
         self._live = any(s.live for s in sources)
@@ -105,7 +107,7 @@ class SourceRig:
         if errors:
             self.stop()
             raise SourceError("; ".join(errors))
-        if self.check_sizes is not None:
+        if self.calibration is not None:
             self._check_sizes()
         self._running = True
         self._t_start = time.monotonic()
@@ -117,7 +119,7 @@ class SourceRig:
         return self
 
     def _check_sizes(self) -> None:
-        rig = self.check_sizes
+        rig = self.calibration
         known = [(n, st.source.size) for n, st in self._state.items() if st.source.size is not None and n in rig.names]
         try:
             rig.subset([n for n, _ in known]).check_sizes([s for _, s in known])

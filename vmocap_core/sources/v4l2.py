@@ -50,7 +50,7 @@ class V4L2FrameSource(FrameSource):
     def __init__(self, device: str | int = "/dev/video0", camera: str | None = None, width: int | None = None,
                  height: int | None = None, fps: float | None = None, fourcc: str | None = "MJPG",
                  mono: bool = False, buffers: int | None = None, strict: bool = False,
-                 backend: Any = None) -> None:
+                 read_timeout_ms: int = 2000, backend: Any = None) -> None:
         self.device = f"/dev/video{device}" if isinstance(device, int) else str(device)
         self.name = camera or os.path.basename(self.device)
         self.req = {"width": width, "height": height, "fps": fps, "fourcc": fourcc}
@@ -59,6 +59,7 @@ class V4L2FrameSource(FrameSource):
         self.mono = mono
         self.buffers = buffers
         self.strict = strict
+        self.read_timeout_ms = int(read_timeout_ms)
         self.backend = backend or OpenCVV4L2Backend()
         self.clock = ClockMapper()
         self.negotiated: dict[str, Any] = {}
@@ -86,6 +87,8 @@ class V4L2FrameSource(FrameSource):
             cap.set(cv2.CAP_PROP_FPS, r["fps"])
         if self.buffers:
             cap.set(cv2.CAP_PROP_BUFFERSIZE, self.buffers)
+        # bound the driver wait (V4L2 select) so an unplugged camera is noticed promptly
+        cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, self.read_timeout_ms)
         self.negotiated = {
             "fourcc": fourcc_str(cap.get(cv2.CAP_PROP_FOURCC)),
             "width": int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
