@@ -137,3 +137,16 @@ def test_bad_tflite_input_is_a_model_error() -> None:
     data = fetch.model_path("pose_detection", "tflite").read_bytes()
     with pytest.raises(ModelError):
         tflite2onnx.convert(data[: len(data) // 3], "truncated")
+
+
+def test_fetch_reports_a_bad_wheel_clearly(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    bad = tmp_path / "mediapipe-0.10.14-cp311-none-any.whl"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(ModelError, match="not a readable wheel"):
+        fetch.fetch(tmp_path / "cache", wheel=bad, quiet=True)
+    from vmocap_core.cli import main
+
+    assert main(["models", "fetch", "--dir", str(tmp_path / "cache"), "--wheel", str(bad)]) == 1
+    assert "not a readable wheel" in capsys.readouterr().err
+    with pytest.raises(ModelError, match="vmocap models fetch"):
+        fetch.model_path("pose_landmark_full", directory=tmp_path / "cache")

@@ -180,6 +180,13 @@ def test_pipeline_initializes_with_the_detector_then_tracks(scene) -> None:
     pcm = BlazePosePcm(rig, threads=2)
     first = pcm.infer(images, stamp_ns=1)
     assert first.n_views >= 4 and (first.presence > 0.9).all() and first.stamp_ns == 1
+    # with a seed, every camera's crop is on the seed person: their peaks triangulate together
+    seeded = pcm.infer(images, seed=SEED)
+    uv, w = camera_keypoints(seeded, len(rig))
+    X, resid = triangulate(rig, uv, w)
+    print(f"detector crops, seeded: {seeded.n_views} views, median triangulation residual {np.nanmedian(resid):.1f} px")
+    assert seeded.n_views >= 4 and np.nanmedian(resid) < 25.0
+    assert np.linalg.norm(X[INDEX["left_hip"], [0, 2]] - SEED[[0, 2]]) < 0.4
     body = _standing_body(SEED)
     tracked = pcm.infer(images, body, stamp_ns=2)
     assert tracked.camera.tolist() == [0, 1, 2, 3, 4]  # "all": one view per camera

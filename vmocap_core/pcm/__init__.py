@@ -5,8 +5,8 @@ ONNX translator in tflite2onnx.py, checksummed cache in <repo>/models or $VMOCAP
 
 Public API (images are per camera, in rig order, uint8 BGR (H, W, 3) or mono (H, W)):
 - `pipeline.BlazePosePcm(rig, rotation="all", threads=2, margin=1.25, variant="full")`
-  `.infer(images, keypoints=None, tilt=None, stamp_ns=0) -> PcmViews`: keypoints=None runs the
-  detector (initialization); keypoints (25, 3) = the current skeleton gives crops by projection
+  `.infer(images, keypoints=None, tilt=None, stamp_ns=0, seed=None) -> PcmViews`: keypoints=None
+  runs the detector (initialization; seed (3,) picks the person nearest to it in every camera); keypoints (25, 3) = the current skeleton gives crops by projection
   (tracking, no detector); tilt (C,) overrides the trunk tilt (e.g. tracker.trunk_tilt).
 - `blazepose.BlazePoseLandmark(path=None, threads=2, variant="full")`, `openpose.OpenPoseModel(path,
   OpenPoseConfig(...), threads)`: both `PcmModel`s, `.infer(images, crops_or_views=None, stamp_ns)`.

@@ -58,9 +58,17 @@ class BlazePosePcm:
             self._detector = PoseDetector(self._detector_path, self._threads)
         return self._detector
 
-    def crops_from_detector(self, images: Sequence[np.ndarray]) -> Crops:
-        """The highest-scoring person per image (MediaPipe's crop rule, already rotated)."""
+    def crops_from_detector(self, images: Sequence[np.ndarray], seed: np.ndarray | None = None) -> Crops:
+        """One person per image with MediaPipe's crop rule (already rotated): the highest-scoring
+        detection, or with `seed` (3,) (a world point on the wanted person, e.g. from another
+        tracker) the detection whose hip centre is nearest to the seed's projection, so that all
+        cameras look at the same person when several are in view."""
         found = self.detector.detect(images)
+        if seed is not None:
+            hip, front = self.rig.project(np.asarray(seed, dtype=np.float64).reshape(3))  # (C, 2), (C,)
+            for c, dets in enumerate(found):
+                if dets and front[c]:
+                    dets.sort(key=lambda d: float(np.linalg.norm(d.keypoints[0] - hip[c])))
         cams = [c for c, d in enumerate(found) if d]
         rects = [found[c][0].crop() for c in cams]
         return Crops(cams, [r[0] for r in rects] or np.zeros((0, 2)), [r[1] for r in rects], [r[2] for r in rects])
@@ -77,9 +85,14 @@ class BlazePosePcm:
         keypoints: np.ndarray | None = None,
         tilt: np.ndarray | None = None,
         stamp_ns: int = 0,
+        seed: np.ndarray | None = None,
     ) -> PcmViews:
-        """PCMs of one frame set: images in rig camera order (uint8 BGR or mono)."""
-        crops = self.crops_from_detector(images) if keypoints is None else self.crops_from_skeleton(keypoints, tilt)
+        """PCMs of one frame set: images in rig camera order (uint8 BGR or mono).
+        keypoints None: detector crops (seed picks the person, see crops_from_detector)."""
+        if keypoints is None:
+            crops = self.crops_from_detector(images, seed)
+        else:
+            crops = self.crops_from_skeleton(keypoints, tilt)
         if len(crops) == 0:
             J = len(KEYPOINTS)
             return PcmViews(np.zeros((0, J, 64, 64)), np.zeros((0, 2, 3)), np.zeros(0), np.arange(J),
