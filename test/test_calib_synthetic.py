@@ -123,3 +123,26 @@ def test_detect_rendered_board_front_and_back(board):
     expect = front.uv[order_f].copy()
     expect[:, 0] = 959 - expect[:, 0]
     assert np.abs(back.uv[order_b] - expect).max() < 0.5
+
+
+def test_chessboard_numbered_from_either_end():
+    # a chessboard has no marked origin: detectors number it from either end per view
+    from vmocap_core.calibration import CheckerBoard
+
+    board = CheckerBoard(7, 5, 0.08)
+    rig = true_rig()
+    views = synthetic_views(rig, board, 30, seed=4)
+    rng = np.random.default_rng(5)
+    flipped = 0
+    for v in views:
+        for f, det in v.views.items():
+            if len(det.ids) < len(board.object_points):
+                continue
+            if rng.random() < 0.4:
+                v.views[f] = Detection(board.flip_ids(det.ids), det.uv)
+                flipped += 1
+    assert flipped > 10
+    res = calibrate_rig(views, board, intrinsics={c.name: c for c in rig})
+    cmp = compare_extrinsics(res.rig, rig)
+    assert cmp["max_position_err_m"] < 0.005 and cmp["max_rotation_err_deg"] < 0.2, cmp
+    assert all(r.rms < 0.6 for r in res.cameras)

@@ -34,6 +34,12 @@ class Board:
     kind = "board"
     object_points: np.ndarray
     min_corners = 6  # fewer corners make PnP / Zhang ill-conditioned
+    # A board whose detector may number its corners from either end (a chessboard has no
+    # marked origin): `flip` is the board-frame transform of that renumbering, else None.
+    flip: tuple[np.ndarray, np.ndarray] | None = None
+
+    def flip_ids(self, ids: np.ndarray) -> np.ndarray:
+        return len(self.object_points) - 1 - np.asarray(ids)
 
     def detect(self, gray: np.ndarray) -> Detection | None:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -54,6 +60,9 @@ class CheckerBoard(Board):
         grid = np.mgrid[0:self.cols, 0:self.rows].T.reshape(-1, 2)  # row-major, x fastest
         self.object_points = np.hstack([grid * self.square, np.zeros((len(grid), 1))])
         self.min_corners = len(grid)  # a chessboard is found whole or not at all
+        # corner k <-> corner N-1-k: a half turn about the board normal through its centre
+        size = np.array([(self.cols - 1) * self.square, (self.rows - 1) * self.square, 0.0])
+        self.flip = (np.diag([-1.0, -1.0, 1.0]), size)
 
     def describe(self) -> str:
         return f"checkerboard {self.cols}x{self.rows} inner corners, square {self.square * 100:.2f} cm"

@@ -164,17 +164,30 @@ def board_poses(views: dict[int, Detection], board: Board, K: np.ndarray, dist: 
     return out
 
 
-def relative_pose(pa: dict[int, BoardPose], pb: dict[int, BoardPose]) -> tuple[np.ndarray, np.ndarray, int] | None:
-    """Robust camera a -> camera b pose from the frames both saw the board in."""
+def relative_pose(pa: dict[int, BoardPose], pb: dict[int, BoardPose],
+                  flip: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """Robust camera a -> camera b pose from the frames both saw the board in.
+
+    With `flip` (a board numbered from either end), each frame offers two candidates; the
+    rotation most frames agree with (within 5 degrees) picks one per frame."""
     shared = sorted(set(pa) & set(pb))
     if not shared:
         return None
-    Rs, ts = [], []
+    cands = []
     for f in shared:
-        R, t = compose((pb[f].R, pb[f].t), invert((pa[f].R, pa[f].t)))
-        Rs.append(R)
-        ts.append(t)
-    Rs, ts = np.array(Rs), np.array(ts)
+        Ta = invert((pa[f].R, pa[f].t))
+        opts = [compose((pb[f].R, pb[f].t), Ta)]
+        if flip is not None:
+            opts.append(compose(compose((pb[f].R, pb[f].t), flip), Ta))
+        cands.append(opts)
+    if flip is not None:
+        allR = [o[0] for opts in cands for o in opts]
+        support = [sum(min(rotation_angle_deg(R, o[0]) for o in opts) < 5.0 for opts in cands) for R in allR]
+        best = allR[int(np.argmax(support))]
+        chosen = [min(opts, key=lambda o: rotation_angle_deg(best, o[0])) for opts in cands]
+    else:
+        chosen = [opts[0] for opts in cands]
+    Rs, ts = np.array([c[0] for c in chosen]), np.array([c[1] for c in chosen])
     R = mean_rotation(Rs)
     ang = np.array([rotation_angle_deg(R, r) for r in Rs])
     keep = ang <= max(3.0 * float(np.median(ang)), 2.0)  # single-view PnP flips are outliers
@@ -182,14 +195,15 @@ def relative_pose(pa: dict[int, BoardPose], pb: dict[int, BoardPose]) -> tuple[n
     return R, np.median(ts[keep], axis=0), int(keep.sum())
 
 
-def initial_rig(poses: list[dict[int, BoardPose]], names: list[str], ref: int) -> list[tuple[np.ndarray, np.ndarray] | None]:
+def initial_rig(poses: list[dict[int, BoardPose]], names: list[str], ref: int,
+                flip: tuple[np.ndarray, np.ndarray] | None = None) -> list[tuple[np.ndarray, np.ndarray] | None]:
     """World (= camera `ref`) -> camera poses along the spanning tree of most shared frames."""
     C = len(poses)
     rel: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, int]] = {}
     for a in range(C):
         for b in range(C):
             if a != b:
-                r = relative_pose(poses[a], poses[b])
+                r = relative_pose(poses[a], poses[b], flip)
                 if r is not None:
                     rel[(a, b)] = r
     cams: list[tuple[np.ndarray, np.ndarray] | None] = [None] * C

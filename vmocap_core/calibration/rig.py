@@ -10,9 +10,10 @@ import numpy as np
 
 from ..camera import Camera, Rig
 from ..errors import CalibrationError
-from .boards import Board
+from .boards import Board, Detection
 from .geometry import (BoardPose, Intrinsics, SceneObservations, board_poses, build_problem, bundle_adjust,
-                       calibrate_intrinsics, compose, initial_rig, intr_matrices, intr_vector, invert, rigid_align)
+                       calibrate_intrinsics, compose, initial_rig, intr_matrices, intr_vector, invert, rigid_align,
+                       rotation_angle_deg)
 from .observe import CameraViews, explain_no_board
 
 
@@ -105,7 +106,9 @@ def calibrate_rig(
         raise CalibrationError(f"origin camera '{origin}' is not one of {names}")
     poses = [board_poses(u, board, it.K, it.dist) for u, it in zip(usable, intr)]
     pnp_rms = [float(np.median([p.rms for p in ps.values()])) if ps else None for ps in poses]
-    cams = initial_rig(poses, names, ref) if poses[ref] else [None] * len(views)
+    cams = initial_rig(poses, names, ref, board.flip) if poses[ref] else [None] * len(views)
+    if board.flip is not None:
+        usable = _unify_numbering(usable, poses, cams, board)
 
     if scene is not None:
         cams = _place_with_scene(cams, poses, intr, views, scene)
@@ -134,6 +137,28 @@ def calibrate_rig(
         intr[c].K, intr[c].dist = intr_matrices(ba.intr[c])
     reports = [report(c, float(ba.rms[c]), int(ba.n_obs[c]), pnp_rms[c]) for c in range(len(views))]
     return CalibrationResult(make_rig(ba.cameras), reports, warnings, ba.frames, ba.cost_before, ba.cost_after)
+
+
+def _unify_numbering(usable, poses, cams, board: Board):
+    """Renumber chessboard views so that every camera numbers a frame's corners like the
+    frame's first placed camera does (the detector may start from either end)."""
+    F = board.flip
+    usable = [dict(u) for u in usable]
+    for f in sorted(set().union(*[set(p) for p in poses])):
+        seen = [c for c in range(len(poses)) if f in poses[c] and cams[c] is not None]
+        if len(seen) < 2:
+            continue
+        c0 = seen[0]
+        board_w = compose(invert(cams[c0]), (poses[c0][f].R, poses[c0][f].t))  # board -> world
+        for c in seen[1:]:
+            pred = compose(cams[c], board_w)
+            p = poses[c][f]
+            alt = compose((p.R, p.t), F)
+            if rotation_angle_deg(pred[0], alt[0]) < rotation_angle_deg(pred[0], p.R):
+                poses[c][f] = BoardPose(alt[0], alt[1], p.rms, p.n)
+                det = usable[c][f]
+                usable[c][f] = Detection(board.flip_ids(det.ids), det.uv, det.markers, det.mirrored)
+    return usable
 
 
 def _place_with_scene(cams, poses, intr, views, scene: SceneObservations):
