@@ -119,6 +119,8 @@ def test_crops_from_skeleton_upright_inverted_and_behind() -> None:
     # explicit rotation overrides; a body behind a camera gives usable=False
     _, _, rot0, _ = crops_from_skeleton(rig, kp, rotation=np.zeros(3))
     assert not rot0.any()
+    _, _, rot_nan, _ = crops_from_skeleton(rig, kp, rotation=np.array([np.nan, 0.5, 0.0]))
+    np.testing.assert_allclose(rot_nan, [0.0, 0.5, 0.0])  # unknown tilt -> upright crop
     _, _, _, ok_behind = crops_from_skeleton(rig, _standing(z0=7.0))
     assert not ok_behind[2]  # above the top camera: behind it
     with pytest.raises(ModelError):

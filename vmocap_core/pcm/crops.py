@@ -98,9 +98,9 @@ def crops_from_keypoints_2d(
     uv = np.asarray(uv, dtype=np.float64)
     if rotation is None:
         rot = tilt_from_points(uv[:, INDEX["pelvis"]], uv[:, INDEX["neck"]])
-        rot = np.where(np.isfinite(rot), rot, 0.0)
     else:
         rot = np.asarray(rotation, dtype=np.float64).reshape(uv.shape[0])
+    rot = np.where(np.isfinite(rot), rot, 0.0)  # unknown tilt (trunk not visible): upright
     c, s = np.cos(rot), np.sin(rot)
     # coordinates in the crop frame (x along (c, s), y along (-s, c)), rotation about the origin
     x = uv[..., 0] * c[:, None] + uv[..., 1] * s[:, None]
