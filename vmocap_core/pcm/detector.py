@@ -18,10 +18,10 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ModelError
+from ..heatmaps import invert_affine
 from . import fetch
 from .crops import tilt_from_points
 from .model import DEFAULT_THREADS, U8_INPUT, check_image, letterbox_affine, make_session, read_model, with_uint8_input
-from ..heatmaps import invert_affine
 
 INPUT = 224
 STRIDES = (8, 16, 32, 32, 32)

@@ -22,7 +22,6 @@ from onnx import TensorProto, helper, numpy_helper
 
 from ..errors import ModelError
 from ..heatmaps import PcmViews, stride_affine
-from ..keypoints import KEYPOINTS
 from .crops import Crops, compose_affine
 
 DEFAULT_THREADS = 2
@@ -84,15 +83,6 @@ def make_session(model: onnx.ModelProto, threads: int = DEFAULT_THREADS, name: o
         return ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
     except Exception as exc:
         raise ModelError(f"{name}: onnxruntime cannot load it ({exc})") from exc
-
-
-def load_session(path: Path | str, threads: int = DEFAULT_THREADS, outputs: Sequence[str] | None = None) -> ort.InferenceSession:
-    """Session of an ONNX file; `outputs` prunes the graph to what we use (BlazePose's
-    segmentation decoder would otherwise cost time on every call)."""
-    model = read_model(path)
-    if outputs is not None:
-        model = prune(model, outputs)
-    return make_session(model, threads, path)
 
 
 U8_INPUT = "image_bgr8"
@@ -281,6 +271,3 @@ class PcmModel(abc.ABC):
 
     __call__ = infer
 
-
-def all_keypoints_valid(n_views: int) -> np.ndarray:
-    return np.ones((n_views, len(KEYPOINTS)), dtype=bool)
