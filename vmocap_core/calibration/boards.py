@@ -67,22 +67,34 @@ class CheckerBoard(Board):
     def describe(self) -> str:
         return f"checkerboard {self.cols}x{self.rows} inner corners, square {self.square * 100:.2f} cm"
 
-    def detect(self, gray: np.ndarray) -> Detection | None:
-        # Detect on a reduced image for speed, then refine at full resolution.
+    def _find(self, gray: np.ndarray) -> tuple[np.ndarray, tuple[int, int]] | None:
+        """Corners and the pattern size they were found with, on an image reduced to ~1000 px
+        (refined at full resolution afterwards): the classic detector, then the sector-based
+        one (more robust to blur and uneven light), then the classic one at full size."""
         scale = min(1.0, 1000.0 / max(gray.shape))
         small = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else gray
         flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-        for pattern in ((self.cols, self.rows), (self.rows, self.cols)):
-            ok, corners = cv2.findChessboardCorners(small, pattern, flags=flags)
-            if ok:
-                break
-        if not ok:
+        patterns = ((self.cols, self.rows), (self.rows, self.cols))
+        tries = [(lambda p: cv2.findChessboardCorners(small, p, flags=flags), scale),
+                 (lambda p: cv2.findChessboardCornersSB(small, p, flags=cv2.CALIB_CB_NORMALIZE_IMAGE), scale)]
+        if scale < 1:  # last resort: full resolution (slow on large images)
+            tries.append((lambda p: cv2.findChessboardCorners(gray, p, flags=flags | cv2.CALIB_CB_FAST_CHECK), 1.0))
+        for find, sc in tries:
+            for pattern in patterns:
+                ok, corners = find(pattern)
+                if ok:
+                    return corners.reshape(-1, 2) / sc, pattern
+        return None
+
+    def detect(self, gray: np.ndarray) -> Detection | None:
+        found = self._find(gray)
+        if found is None:
             return None
-        corners = corners.reshape(-1, 2) / scale
+        corners, pattern = found
         if pattern != (self.cols, self.rows):
             # Found transposed (board seen rotated by 90 degrees): reorder to our row-major ids.
             corners = corners.reshape(self.cols, self.rows, 2).transpose(1, 0, 2).reshape(-1, 2)
-        win = max(3, int(round(4 / scale)))
+        win = max(3, int(round(max(gray.shape) / 250)))
         corners = cv2.cornerSubPix(
             gray, corners.astype(np.float32).reshape(-1, 1, 2), (win, win), (-1, -1),
             (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 0.01),
