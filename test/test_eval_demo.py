@@ -1,0 +1,90 @@
+"""Demo (Pose2Sim videos -> bag -> CNN + tracker -> report) and the paper-style report."""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vmocap_core.calibration.datasets import pose2sim_demo
+
+DEMO = pose2sim_demo(fetch=False)
+needs_demo = pytest.mark.skipif(DEMO is None, reason="pose2sim wheel not cached (vmocap demo fetches it)")
+SHELF = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "shelf"
+
+
+def _models_present() -> bool:
+    try:
+        from vmocap_core.pcm.blazepose import BlazePoseLandmark
+
+        BlazePoseLandmark()
+        return True
+    except Exception:  # noqa: BLE001 - any failure to load means: models not fetched
+        return False
+
+
+@needs_demo
+def test_qualisys_rig_matches_the_file_and_sees_the_scene() -> None:
+    from vmocap_core.demo import load_qualisys_rig, video_paths, video_sizes
+
+    qca = DEMO / "calibration" / "Calib.qca.txt"
+    sizes = video_sizes(video_paths(DEMO))
+    rig = load_qualisys_rig(qca, sizes)
+    assert rig.names == ["cam01", "cam02", "cam03", "cam04"]
+    for cam, el in zip(rig, ET.parse(qca).getroot().iter("camera")):
+        tr = el.find("transform")
+        pos = np.array([float(tr.get(a)) for a in "xyz"]) / 1000
+        np.testing.assert_allclose(cam.center, pos, atol=1e-9)
+        np.testing.assert_allclose(cam.R @ cam.R.T, np.eye(3), atol=1e-6)
+        assert np.linalg.det(cam.R) > 0
+        assert (cam.width, cam.height) == sizes[cam.name]
+    # The capture volume (around the origin, up to 2 m high) is in front of every camera and
+    # inside its image.
+    uv, front = rig.project(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
+    assert front.all()
+    for c, cam in enumerate(rig):
+        assert (uv[c, :, 0] > 0).all() and (uv[c, :, 0] < cam.width).all()
+        assert (uv[c, :, 1] > 0).all() and (uv[c, :, 1] < cam.height).all()
+
+
+@needs_demo
+@pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
+def test_demo_pipeline_tracks_the_walker(tmp_path: Path) -> None:
+    from vmocap_core.demo import load_qualisys_rig, reprojection_errors, run_pipeline, video_paths, video_sizes, videos_to_bag
+    from vmocap_core.bag import BagReader
+
+    videos = video_paths(DEMO)
+    rig = load_qualisys_rig(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    bag = tmp_path / "demo.mcap"
+    assert videos_to_bag(videos, rig, bag, max_frames=8) == 8
+    with BagReader(bag) as r:
+        assert r.message_counts["/vmocap/cam01/image_raw/compressed"] == 8
+        assert r.topics["/vmocap/cam03/camera_info"] == "sensor_msgs/msg/CameraInfo"
+    rec = run_pipeline(bag, rig, tmp_path / "out.mcap", 8)
+    tracking = np.array([s == "tracking" for s in rec["status"]])
+    assert tracking[-3:].all(), rec["status"]
+    err = reprojection_errors(rig, rec)[tracking]
+    assert np.nanmedian(err) < 25.0
+    with BagReader(tmp_path / "out.mcap") as r:
+        assert r.message_counts.get("/vmocap/joint_states", 0) == int(tracking.sum())
+
+
+@pytest.mark.skipif(not (SHELF / "gt.txt").exists(), reason="../shared/data/shelf not present")
+def test_report_markdown_from_a_real_shelf_run(tmp_path: Path) -> None:
+    from vmocap_core.cli import main
+    from vmocap_core.evaluation.shelf import evaluate
+    from vmocap_core.evaluation.shelf_data import load_shelf
+
+    res = evaluate(load_shelf(SHELF, max_frames=10), progress=False)
+    shelf_json = tmp_path / "shelf.json"
+    shelf_json.write_text(json.dumps(res))
+    out = tmp_path / "report.md"
+    assert main(["report", "--no-run", "--shelf-json", str(shelf_json), "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "| regular | 26.1 | 99.8 | not run" in text and "| inverted | 38.8 | 96.4 |" in text
+    ours = f"{res['pcp']['mean']:.1f}"
+    assert any(line.startswith("| **vmocap**") and ours in line for line in text.splitlines())
+    assert "4D Association" in text
