@@ -5,7 +5,6 @@ only where /dev/video* exists."""
 from __future__ import annotations
 
 import glob
-import threading
 import time
 
 import cv2

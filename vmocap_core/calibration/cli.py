@@ -30,7 +30,9 @@ from .rig import CalibrationResult, calibrate_rig
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = __doc__.splitlines()[0]
+    p.description = __doc__.split("\n\n")[0]
+    p.epilog = __doc__.split("\n\n", 1)[1]
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("--board", required=True,
                    help="checkerboard:COLSxROWS:SQUARE_M (inner corners) | charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT[:inverted] | charuco .toml")
     p.add_argument("--camera", action="append", default=[], metavar="NAME=PATH",
