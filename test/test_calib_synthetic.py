@@ -146,3 +146,18 @@ def test_chessboard_numbered_from_either_end():
     cmp = compare_extrinsics(res.rig, rig)
     assert cmp["max_position_err_m"] < 0.005 and cmp["max_rotation_err_deg"] < 0.2, cmp
     assert all(r.rms < 0.6 for r in res.cameras)
+
+
+def test_scene_points_file(tmp_path):
+    from vmocap_core.calibration.cli import load_scene
+    from vmocap_core.errors import RigFileError
+
+    f = tmp_path / "scene.yaml"
+    f.write_text("points: [[0, 0, 0], [1, 0, 0], [0, 1, 0]]\npixels:\n  c0: [[10, 20], null, [30, 40]]\n")
+    sc = load_scene(str(f), ["c0", "c1"])
+    assert sc.points.shape == (3, 3) and np.isnan(sc.uv["c0"][1]).all() and sc.uv["c0"][2].tolist() == [30, 40]
+    with pytest.raises(RigFileError, match="cameras \\['c0'\\] are not calibrated here"):
+        load_scene(str(f), ["c5"])
+    f.write_text("points: [[0, 0, 0], [1, 0, 0]]\npixels:\n  c0: [[10, 20]]\n")
+    with pytest.raises(RigFileError, match="pixels.c0.*1 entries for 2 points"):
+        load_scene(str(f), ["c0"])
