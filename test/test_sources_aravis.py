@@ -113,3 +113,44 @@ def test_rig_with_lost_and_returning_camera():
         assert fs is not None and set(fs.frames) == {"a", "b"}
         rep = rig.report()
     assert rep["cameras"]["b"]["disconnects"] == 1 and rep["cameras"]["a"]["disconnects"] == 0
+
+
+def _loopback_only() -> bool:
+    import socket
+
+    try:
+        return [n for _, n in socket.if_nameindex()] == ["lo"]
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _loopback_only(), reason="GigE Vision discovery only inside a loopback-only network namespace (scripts/test.sh)")
+def test_gige_fake_camera_trigger_and_loss():
+    # Aravis' GigE Vision fake camera served in process on 'lo': the real GVCP/GVSP path,
+    # which honours the software trigger and loses control when the camera goes away.
+    Ar = arv.setup_interfaces(("GigEVision",))
+    try:
+        fake = Ar.GvFakeCamera.new("lo", "GV01")
+        assert arv.list_cameras(("GigEVision",)) == ["Aravis-Fake-GV01"]
+        src = arv.AravisFrameSource("Aravis-Fake-GV01", "gv", trigger="software", pixel_format="BayerGR8",
+                                    interfaces=("GigEVision",))
+        src.open()
+        assert src.read(timeout=0.5) is None  # no trigger, no frame
+        src.trigger()
+        f = src.read(timeout=2.0)
+        assert f is not None and f.image.shape == (512, 512, 3)
+        assert 0 <= time.time_ns() - f.stamp_ns < 1e9
+        fake.run_dispose()  # the camera disappears
+        del fake
+        t0 = time.monotonic()
+        with pytest.raises(SourceError, match="camera gv: connection lost"):
+            while time.monotonic() - t0 < 30:
+                src.read(timeout=0.5)
+        fake = Ar.GvFakeCamera.new("lo", "GV01")  # it comes back: reopening works
+        src.open()
+        src.trigger()
+        assert src.read(timeout=2.0) is not None
+        src.close()
+        fake.run_dispose()
+    finally:
+        arv.setup_interfaces(FAKE)

@@ -249,9 +249,10 @@ class AravisFrameSource(FrameSource):
 
     def _stream_stats(self) -> tuple[int, int, int]:
         try:
-            return tuple(int(v) for v in self._stream.get_statistics())  # completed, failures, underruns
-        except Exception:  # noqa: BLE001
-            return (0, 0, 0)
+            vals = [int(v) for v in (self._stream.get_statistics() or ())]  # completed, failures, underruns
+        except Exception:  # noqa: BLE001 - statistics are diagnostics only
+            vals = []
+        return tuple((vals + [0, 0, 0])[:3])  # type: ignore[return-value]
 
     def read(self, timeout: float = 1.0) -> Frame | None:
         if self._lost.is_set():
