@@ -161,3 +161,17 @@ def test_scene_points_file(tmp_path):
     f.write_text("points: [[0, 0, 0], [1, 0, 0]]\npixels:\n  c0: [[10, 20]]\n")
     with pytest.raises(RigFileError, match="pixels.c0.*1 entries for 2 points"):
         load_scene(str(f), ["c0"])
+
+
+def test_scene_points_only(board):
+    # no board at all (Pose2Sim's 'scene' method): every camera placed from known points
+    rig = true_rig()
+    views = [CameraViews(c.name, (W, H), frames_read=1) for c in rig]
+    rng = np.random.default_rng(6)
+    pts = rng.uniform([-0.8, -0.8, 0.0], [0.8, 0.8, 1.8], (10, 3))
+    uv, _ = rig.project(pts)
+    scene = SceneObservations(pts, {c.name: uv[i] + rng.normal(0, 0.3, uv[i].shape) for i, c in enumerate(rig)})
+    res = calibrate_rig(views, board, intrinsics={c.name: c for c in rig}, scene=scene)
+    for est, ref in zip(res.rig, rig):
+        assert np.linalg.norm(est.center - ref.center) < 0.02
+    assert res.frames == 0 and all(r.rms < 1.0 for r in res.cameras)
