@@ -32,7 +32,10 @@ class Camera:
     height: int
 
     def __post_init__(self) -> None:
-        self.K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)
+        self.K = np.asarray(self.K, dtype=np.float64).reshape(3, 3).copy()
+        # OpenCV's camera model (and ROS camera_info) has no skew: drop it so that every
+        # projection in vmocap equals cv2.projectPoints.
+        self.K[0, 1] = 0.0
         dist = np.zeros(N_DIST)
         given = np.asarray(self.dist, dtype=np.float64).ravel()
         if given.size > N_DIST:

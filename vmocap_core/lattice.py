@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _kernels
 from .camera import Rig
 from .heatmaps import PcmViews
 
@@ -47,6 +48,8 @@ class PcmSampler:
         self._R = rig._R[pcm.camera]  # (V, 3, 3)
         self._t = rig._t[pcm.camera]
         self._valid = pcm.valid.astype(np.float32)  # (V, J)
+        self._valid_b = np.ascontiguousarray(pcm.valid)
+        self._maps = np.ascontiguousarray(pcm.maps, dtype=np.float32)
         # Fold the view's image->map affine into one per-view map: pixel = K x'' -> map.
         A = pcm.image_to_map  # (V, 2, 3)
         K = rig._K[pcm.camera]  # (V, 3, 3)
@@ -61,17 +64,23 @@ class PcmSampler:
         self._M32 = self._M.astype(np.float32)[:, :, :, None, None]
         self._rational = bool(rig._rational[pcm.camera].any())
 
-    def sample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """points (J, L, 3) in world -> (summed score (J, L), views with nonzero score (J, L))."""
-        J, L, _ = points.shape
-        return self.sample_camera_frame(
-            np.matmul(self._R32, points.reshape(1, J * L, 3).transpose(0, 2, 1).astype(np.float32)).reshape(-1, 3, J, L)
-            + self._t32[:, :, None, None]
+    def sample_lattice(self, centres: np.ndarray, offsets: np.ndarray, cubic: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Scores (J, L) and view counts (J, L) of the points centres (J, 3) + offsets (L, 3):
+        the compiled kernel when numba is there, else the numpy reference (bilinear only)."""
+        if not _kernels.AVAILABLE:
+            return self.sample_lattice_numpy(centres, offsets)
+        J, L = centres.shape[0], offsets.shape[0]
+        scores = np.zeros((J, L), dtype=np.float32)
+        nviews = np.zeros((J, L), dtype=np.int32)
+        _kernels.score_lattice(
+            np.ascontiguousarray(centres, dtype=np.float64), np.ascontiguousarray(np.matmul(offsets, self._R.transpose(0, 2, 1))),
+            self._R, self._t, self._dist, self._M, self._maps, self._valid_b, scores, nviews, cubic,
         )
+        return scores, nviews
 
-    def sample_lattice(self, centres: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Scores of centres (J, 3) + offsets (L, 3): the rotation is applied to centres and
-        offsets separately (R (c + o) + t = (R c + t) + R o), then broadcast."""
+    def sample_lattice_numpy(self, centres: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """numpy reference of sample_lattice: the rotation is applied to centres and offsets
+        separately (R (c + o) + t = (R c + t) + R o), then broadcast."""
         c = np.matmul(self._R, centres.T) + self._t[:, :, None]  # (V, 3, J)
         o = np.matmul(self._R, offsets.T)  # (V, 3, L)
         return self.sample_camera_frame(c.astype(np.float32)[:, :, :, None] + o.astype(np.float32)[:, :, None, :])
@@ -119,10 +128,11 @@ class PcmSampler:
             yi = y0 + dy
             inside = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
             idx = base + np.clip(yi, 0, H - 1) * W + np.clip(xi, 0, W - 1)
-            out += np.where(inside, self._flat[idx], 0.0) * wgt
-        # A NaN or out-of-range PCM value must not steer the search: sanitize what was read.
-        np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-        return np.clip(out, 0.0, 1.0, out=out)
+            cell = np.where(inside, self._flat[idx], 0.0)
+            # A NaN or out-of-range PCM value must not steer the search: sanitize what is read.
+            cell = np.clip(np.nan_to_num(cell, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+            out += cell * wgt
+        return out
 
 
 def lattice_search(
@@ -148,7 +158,7 @@ def lattice_search(
         sc = k * spacing / kc
         best, _, _ = _search(sampler, centres, lattice_offsets(kc, sc))
         centres = best
-        k = min(k, int(np.ceil(sc / spacing / 2.0)) + 1)
+        k = min(k, int(np.ceil(sc / spacing / 2.0 - 1e-9)))  # the coarse winner lies within +-sc/2
     offsets = lattice_offsets(k, spacing)
     best, score, nviews = _search(sampler, centres, offsets)
     if subcell:
@@ -164,13 +174,14 @@ def _search(sampler: PcmSampler, centres: np.ndarray, offsets: np.ndarray) -> tu
 
 
 def _refine(sampler: PcmSampler, best: np.ndarray, score: np.ndarray, spacing: float) -> np.ndarray:
-    """Parabolic sub-lattice interpolation along x, y and z around each marker."""
-    steps = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float) * spacing
-    s, _ = sampler.sample(best[:, None, :] + steps[None])  # (J, 6)
-    minus, plus = s[:, 0::2].astype(np.float64), s[:, 1::2].astype(np.float64)
-    c = score[:, None]
+    """Sub-lattice refinement: a parabola along x, y and z through the marker and its two
+    lattice neighbours, on bicubic samples of the PCMs (bilinear samples peak on cell centres)."""
+    steps = np.array([[0, 0, 0], [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float) * spacing
+    s, _ = sampler.sample_lattice(best, steps, cubic=_kernels.AVAILABLE)  # (J, 7)
+    s = s.astype(np.float64)
+    c, minus, plus = s[:, :1], s[:, 1::2], s[:, 2::2]
     denom = minus - 2 * c + plus
     with np.errstate(divide="ignore", invalid="ignore"):
         delta = np.where(denom < -1e-9, 0.5 * (minus - plus) / denom, 0.0)
-    delta = np.clip(delta, -0.5, 0.5) * spacing
-    return best + np.where(c > 0, delta, 0.0)
+    delta = np.clip(delta, -1.0, 1.0) * spacing  # the bilinear argmax can be a step off
+    return best + np.where(score[:, None] > 0, delta, 0.0)

@@ -127,6 +127,10 @@ class BodyDimensions:
         }
 
 
+# Rotation by pi about the local z axis (the long axis of upper arms and thighs).
+_TWIST_PI = pin.Quaternion(0.0, 0.0, 0.0, 1.0)
+
+
 def _mirror(v: tuple[float, float, float], side: str) -> np.ndarray:
     x, y, z = v
     return np.array([x, y if side == "left" else -y, z])
@@ -158,6 +162,12 @@ class Skeleton:
         self._rev_q = np.array([self.model.joints[self.model.getJointId(n)].idx_q for n in REVOLUTE])
         self._rev_lo = np.array([LIMITS[n][0] for n in REVOLUTE])
         self._rev_hi = np.array([LIMITS[n][1] for n in REVOLUTE])
+        # Extension side of each hinge (elbows extend towards +, knees towards -) and the
+        # configuration index of the spherical joint above it.
+        self._rev_ext_hi = np.array([abs(LIMITS[n][1]) < abs(LIMITS[n][0]) for n in REVOLUTE])
+        self._rev_parent_q = np.array(
+            [self.model.joints[self.model.parents[self.model.getJointId(n)]].idx_q for n in REVOLUTE]
+        )
         self.joint_names = self._dof_names()
 
     # ---- model construction -------------------------------------------------------------
@@ -221,8 +231,21 @@ class Skeleton:
         return pin.neutral(self.model)
 
     def integrate(self, q: np.ndarray, dv: np.ndarray) -> np.ndarray:
-        """q (+) dv, with the 1-DOF joints clamped to their limits."""
+        """q (+) dv, keeping the 1-DOF joints within their limits.
+
+        A hinge pushed past its extension limit is mirrored instead of clamped: bending by -a
+        with the parent segment twisted by pi about its long axis puts the distal keypoint where
+        bending by +a would. Clamping would leave a straight limb with the wrong twist, a local
+        minimum the IK cannot leave (the twist does not move a keypoint on the twist axis).
+        """
         q = pin.integrate(self.model, q, dv)
+        a = q[self._rev_q]
+        over = np.where(self._rev_ext_hi, a > self._rev_hi, a < self._rev_lo)
+        for i in np.flatnonzero(over):
+            qi, pq = self._rev_q[i], self._rev_parent_q[i]
+            q[qi] = -q[qi]
+            quat = pin.Quaternion(q[pq + 3], q[pq], q[pq + 1], q[pq + 2]) * _TWIST_PI
+            q[pq : pq + 4] = quat.coeffs()
         q[self._rev_q] = np.clip(q[self._rev_q], self._rev_lo, self._rev_hi)
         return q
 

@@ -40,18 +40,28 @@ class NoiseModel:
     inverted_amplitude: tuple[float, float] = (0.2, 0.6)
 
 
-def benchmark_rig(centre: np.ndarray = np.zeros(3), width: int = 1024, height: int = 768) -> Rig:
-    """4 cameras at the corners of a ~7 m square, 2.2 m high, aimed at the volume centre,
-    70 degree horizontal field of view, mild barrel distortion (a lab rig like the paper's)."""
-    f = (width / 2) / np.tan(np.radians(35.0))
-    K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
-    cams = []
-    target = np.array([centre[0], centre[1], 0.9])
-    for i, ang in enumerate(np.radians([45.0, 135.0, 225.0, 315.0])):
-        eye = np.array([centre[0] + 3.5 * np.cos(ang), centre[1] + 3.5 * np.sin(ang), 2.2])
+def benchmark_rig(centre: np.ndarray = np.zeros(3), width: int = 1024, height: int = 768,
+                  volume_radius: float = 1.9, volume_height: float = 2.2, camera_radius: float = 5.0,
+                  camera_height: float = 2.5) -> Rig:
+    """4 cameras on the diagonals of a lab around a cylindrical capture volume (radius 1.9 m,
+    2.2 m high, centred on `centre`), 2.5 m high, aimed at the volume's centre at 1 m height,
+    with the longest focal length that keeps the whole volume inside every image (2 % margin)
+    and mild barrel distortion: a lab rig like the paper's 4-camera, 1024x768 setup."""
+    target = np.array([centre[0], centre[1], 1.0])
+    ang = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+    ring = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], axis=1) * volume_radius
+    hull = np.concatenate([ring + [centre[0], centre[1], 0.0], ring + [centre[0], centre[1], volume_height]])
+    poses = []
+    f = np.inf
+    for a in np.radians([45.0, 135.0, 225.0, 315.0]):
+        eye = np.array([centre[0] + camera_radius * np.cos(a), centre[1] + camera_radius * np.sin(a), camera_height])
         R, t = look_at(eye, target)
-        cams.append(Camera(f"cam{i}", K, [-0.05, 0.01, 0, 0, 0], R, t, width, height))
-    return Rig(cams)
+        pc = hull @ R.T + t
+        xn, yn = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
+        f = min(f, 0.98 * (width / 2) / np.abs(xn).max(), 0.98 * (height / 2) / np.abs(yn).max())
+        poses.append((R, t))
+    K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
+    return Rig([Camera(f"cam{i}", K, [-0.05, 0.01, 0, 0, 0], R, t, width, height) for i, (R, t) in enumerate(poses)])
 
 
 class SyntheticPcmSource:

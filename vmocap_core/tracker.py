@@ -13,6 +13,7 @@ SpatiotemporalFilter wires both with the feedback of the first IK's keypoints.
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -38,11 +39,13 @@ class TrackerConfig:
     fps: float = 60.0
     # Lattice search (II-D)
     lattice_k: int = 5
-    lattice_spacing: float = 0.01  # metres
+    lattice_spacing: float = 0.02  # metres; sub-lattice refinement recovers the precision
     coarse_to_fine: bool = False
     subcell: bool = True
-    prediction: str = "constant_velocity"  # lattice centre: "previous" (paper) or "constant_velocity"
+    prediction: str = "previous"  # lattice centre: "previous" (paper) or "constant_velocity"
     min_views: int = 2  # a marker seen by fewer views gets weight 0
+    reacquire_weight: float = 1.0  # a marker weaker than this triggers a search at its PCM peaks
+    reacquire_radius: float = 0.6  # metres from the previous keypoint a re-acquired one may lie
     # IK (II-E)
     ik_iterations: int = 4
     ik_damping: float = 1e-3
@@ -50,8 +53,8 @@ class TrackerConfig:
     second_ik_restart_m: float = 0.005  # RMS fit error of the second IK that triggers a restart
     # Low-pass filter (II-F)
     filter_order: int = 2
-    filter_cutoff_hz: float = 8.0
-    filter_lag_compensation: bool = False
+    filter_cutoff_hz: float = 6.0
+    filter_lag_compensation: bool = True
     # Initialization (II-C)
     init_frames: int = 5  # consecutive agreeing frames needed
     init_max_reprojection_px: float = 12.0  # views agree: triangulation residual below this
@@ -132,6 +135,7 @@ class MarkerStage:
         self.centres: np.ndarray | None = None  # skeleton keypoints of the previous frame
         self.velocity = np.zeros((N_KP, 3))
         self._low = 0
+        self.timings: dict[str, float] = {}  # seconds spent in the last step, per stage
 
     @property
     def tracking(self) -> bool:
@@ -151,11 +155,15 @@ class MarkerStage:
         self.centres = kp.copy()
 
     def step(self, pcm: PcmViews) -> Markers:
+        t0 = time.perf_counter()
         if pcm.n_views == 0:
-            return _nan_markers(pcm.stamp_ns)
-        if self.centres is None:
-            return self._triangulate(pcm.sanitized())
-        return self._lattice(pcm)  # the lattice search sanitizes the values it reads
+            out = _nan_markers(pcm.stamp_ns)
+        elif self.centres is None:
+            out = self._triangulate(pcm.sanitized())
+        else:
+            out = self._lattice(pcm)  # the lattice search sanitizes the values it reads
+        self.timings = {"lattice": time.perf_counter() - t0}
+        return out
 
     def _triangulate(self, pcm: PcmViews) -> Markers:
         cfg = self.config
@@ -194,10 +202,14 @@ class MarkerStage:
             coarse_to_fine=cfg.coarse_to_fine,
             subcell=cfg.subcell,
         )
-        seen = res.n_views >= cfg.min_views
+        markers, weights, n_views = res.markers, res.weights, res.n_views
+        weak = weights < cfg.reacquire_weight
+        if weak.any():
+            markers, weights, n_views = self._reacquire(pcm, weak, markers, weights, n_views)
+        seen = n_views >= cfg.min_views
         out = _nan_markers(pcm.stamp_ns, "lattice")
-        out.positions[pcm.keypoints] = res.markers
-        out.weights[pcm.keypoints] = np.where(seen, res.weights, 0.0)
+        out.positions[pcm.keypoints] = markers
+        out.weights[pcm.keypoints] = np.where(seen, weights, 0.0)
         n_cam = max(len(np.unique(pcm.camera[pcm.valid.any(axis=1)])), 1)
         observed = max(int(pcm.valid.any(axis=0).sum()), 1)
         out.score = float(out.weights.sum() / (n_cam * observed))
@@ -208,6 +220,39 @@ class MarkerStage:
             self.feedback(None)
             return self._triangulate(pcm.sanitized())
         return out
+
+
+    def _reacquire(self, pcm: PcmViews, weak: np.ndarray, markers: np.ndarray, weights: np.ndarray,
+                   n_views: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-keypoint recovery (our addition to the paper): a keypoint whose lattice optimum
+        is weak may have left the lattice (a fast limb). Triangulate its PCM peaks and search a
+        lattice there too; keep whichever optimum has the higher summed score (eq. 1), and only
+        within `reacquire_radius` of the previous skeleton, so another person cannot take it."""
+        cfg = self.config
+        sub = np.flatnonzero(weak)
+        uv, val = pcm.peaks()
+        cam_uv = np.zeros((len(self.rig), sub.size, 2))
+        cam_w = np.zeros((len(self.rig), sub.size))
+        for v in range(pcm.n_views):  # a few views: merge them per camera (strongest wins)
+            c = pcm.camera[v]
+            better = val[v, sub] > cam_w[c]
+            cam_uv[c, better] = uv[v, sub][better]
+            cam_w[c, better] = val[v, sub][better]
+        pts, resid = triangulate_robust(self.rig, cam_uv, cam_w, cfg.init_max_reprojection_px, cfg.min_views)
+        near = np.linalg.norm(pts - self.centres[pcm.keypoints[sub]], axis=1) < cfg.reacquire_radius
+        ok = np.isfinite(resid) & (resid <= cfg.init_max_reprojection_px) & near
+        if not ok.any():
+            return markers, weights, n_views
+        cand = sub[ok]
+        sub_pcm = PcmViews(pcm.maps[:, cand], pcm.image_to_map, pcm.camera, pcm.keypoints[cand],
+                           pcm.valid[:, cand], pcm.presence, pcm.stamp_ns)
+        alt = lattice_search(self.rig, sub_pcm, pts[ok], k=2, spacing=cfg.lattice_spacing, subcell=cfg.subcell)
+        better = alt.weights > weights[cand]
+        markers, weights, n_views = markers.copy(), weights.copy(), n_views.copy()
+        markers[cand[better]] = alt.markers[better]
+        weights[cand[better]] = alt.weights[better]
+        n_views[cand[better]] = alt.n_views[better]
+        return markers, weights, n_views
 
 
 # Keypoints that must be seen to identify a body (II-C).
@@ -322,6 +367,7 @@ class SkeletonStage:
                                      self.config.filter_lag_compensation)
         self.status = "initializing"
         self._joint_names = Skeleton().joint_names
+        self.timings: dict[str, float] = {}
 
     @property
     def joint_names(self) -> list[str]:
@@ -344,10 +390,13 @@ class SkeletonStage:
         if markers.kind != "lattice":
             return self._empty(markers, "lost")
         sk = self.skeleton
+        t0 = time.perf_counter()
         first = solve_ik(sk, self._q_raw, markers.positions, markers.weights, cfg.ik_iterations,
                          damping=cfg.ik_damping, regularization=cfg.ik_regularization)
         self._q_raw = first.q
+        t1 = time.perf_counter()
         smooth = self._filter(first.keypoints)
+        t2 = time.perf_counter()
         second = solve_ik(sk, self._q_out, smooth, np.ones(N_KP), cfg.ik_iterations,
                           damping=cfg.ik_damping, regularization=cfg.ik_regularization)
         if second.cost > cfg.second_ik_restart_m**2:
@@ -359,7 +408,10 @@ class SkeletonStage:
                 second = retry
         self._q_out = second.q
         self.status = "tracking"
-        return TrackResult(markers.stamp_ns, "tracking", sk.to_angles(second.q), self._joint_names,
+        angles = sk.to_angles(second.q)
+        t3 = time.perf_counter()
+        self.timings = {"ik": t1 - t0, "filter": t2 - t1, "ik2": t3 - t2}
+        return TrackResult(markers.stamp_ns, "tracking", angles, self._joint_names,
                            second.keypoints, first.keypoints, markers.weights.copy(),
                            markers.positions.copy(), sk.dims.bone_lengths())
 

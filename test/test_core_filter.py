@@ -1,0 +1,95 @@
+"""The IIR low-pass filter, metrics, motions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vmocap_core.errors import MotionFileError
+from vmocap_core.iir import LowPassFilter
+from vmocap_core.keypoints import INDEX
+from vmocap_core.metrics import bone_length_std, jitter, summarize, table_one
+from vmocap_core.motion import extend, load_motion, resample
+
+
+def test_butterworth_frequency_response():
+    f = LowPassFilter(2, 6.0, 60.0)
+    h = f.frequency_response(np.array([0.1, 6.0, 20.0]))
+    assert h[0] == pytest.approx(1.0, abs=1e-3)
+    assert h[1] == pytest.approx(1 / np.sqrt(2), abs=1e-3)  # -3 dB at the cutoff
+    assert h[2] < 0.1
+    # The per-sample filter realizes that response: a 20 Hz sine is attenuated accordingly.
+    t = np.arange(600) / 60.0
+    x = np.sin(2 * np.pi * 20.0 * t)
+    y = np.array([f(v) for v in x])
+    assert np.abs(y[300:]).max() == pytest.approx(h[2], rel=0.05)
+
+
+def test_filter_starts_in_steady_state_and_works_on_arrays():
+    f = LowPassFilter(4, 5.0, 60.0)
+    x = np.full((25, 3), 2.5)
+    for _ in range(3):
+        assert np.allclose(f(x), x)
+
+
+def test_lag_compensation_removes_the_delay_on_ramps():
+    plain = LowPassFilter(2, 4.0, 60.0)
+    lead = LowPassFilter(2, 4.0, 60.0, lag_compensation=True)
+    ramp = np.arange(300) / 60.0  # 1 m/s
+    yp = np.array([plain(v) for v in ramp])
+    yl = np.array([lead(v) for v in ramp])
+    assert abs(ramp[-1] - yp[-1]) == pytest.approx(plain.group_delay_s(), rel=0.05)
+    assert abs(ramp[-1] - yl[-1]) < 1e-6
+    assert lead.frequency_response(np.array([0.0]))[0] == pytest.approx(1.0)
+
+
+def test_invalid_filter_settings():
+    with pytest.raises(ValueError):
+        LowPassFilter(2, 40.0, 60.0)
+    with pytest.raises(ValueError):
+        LowPassFilter(0, 4.0, 60.0)
+
+
+def test_metrics_on_hand_computed_cases():
+    gt = np.zeros((2, 25, 3))
+    pred = gt.copy()
+    pred[:, INDEX["neck"], 0] = 0.04  # 40 mm
+    pred[:, INDEX["left_knee"], 2] = 0.12  # 120 mm
+    scored = np.zeros(25, bool)
+    scored[[INDEX["neck"], INDEX["left_knee"], INDEX["pelvis"]]] = True
+    t = table_one(pred, gt, scored)
+    assert t["mpjpe_mm"] == pytest.approx((40 + 120 + 0) / 3)
+    assert t["pck50"] == pytest.approx(200 / 3)
+    assert t["pck100"] == pytest.approx(200 / 3)
+    assert t["pck150"] == pytest.approx(100.0)
+    assert t["groups"]["upper_body"]["mpjpe_mm"] == pytest.approx(40)
+    assert t["groups"]["lower_body"]["mpjpe_mm"] == pytest.approx(60)
+    assert t["groups"]["head"] is None
+    assert summarize(np.full((3, 2), np.nan))["mpjpe_mm"] is None
+
+
+def test_bone_length_std_and_jitter():
+    kp = np.zeros((4, 25, 3))
+    kp[:, INDEX["left_elbow"], 0] = [0.3, 0.3, 0.5, 0.5]  # upper arm 0.3 then 0.5 -> std 0.1
+    assert bone_length_std(kp, {"ua": ("left_shoulder", "left_elbow")}) == pytest.approx(0.1)
+    p = np.zeros((5, 1, 3))
+    p[:, 0, 0] = 0.5 * 2.0 * (np.arange(5) / 10.0) ** 2  # constant 2 m/s^2 at 10 Hz
+    assert jitter(p, 10.0) == pytest.approx(2.0)
+
+
+def test_motion_files(tmp_path):
+    from vmocap_core.bench.accuracy import default_motions
+
+    files = default_motions()
+    assert any(f.stem == "cartwheel" for f in files)
+    m = load_motion(next(f for f in files if f.stem == "cartwheel"))
+    assert m.is_inverted()
+    r = extend(resample(m, 60.0), 4.0)
+    assert r.fps == 60.0 and r.n_frames >= 240
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, joints=np.zeros((5, 3)), names=np.array(["neck"]), fps=30.0)
+    with pytest.raises(MotionFileError):
+        load_motion(bad)
+    only = tmp_path / "partial.npz"
+    np.savez(only, joints=np.zeros((5, 2, 3)), names=np.array(["neck", "unknown_part"]), fps=30.0)
+    assert load_motion(only).present.sum() == 1

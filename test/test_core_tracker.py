@@ -1,0 +1,71 @@
+"""End-to-end synthetic runs of the spatiotemporal filter."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vmocap_core.bench.accuracy import default_motions, prepare, run_motion, score_run
+from vmocap_core.heatmaps import PcmViews
+from vmocap_core.synthetic import SyntheticPcmSource, benchmark_rig
+from vmocap_core.tracker import SpatiotemporalFilter, TrackerConfig, trunk_tilt
+
+
+def punch():
+    return prepare(next(f for f in default_motions() if f.stem == "punch"))
+
+
+def test_short_synthetic_run_is_accurate_and_rigid():
+    m = punch()
+    m.positions = m.positions[:150]
+    run = run_motion(m, seed=3)
+    s = score_run(run)
+    assert s["init_frames"] < 15
+    assert s["method"]["mpjpe_mm"] < 60.0
+    assert s["method"]["mpjpe_mm"] < s["baseline"]["mpjpe_mm"]
+    assert s["method"]["bone_length_std_m"] < 1e-9
+
+
+def test_lost_person_triggers_reinitialization_without_exceptions():
+    m = punch()
+    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
+    src = SyntheticPcmSource(rig, m.positions, m.present, seed=0)
+    tracker = SpatiotemporalFilter(rig, TrackerConfig(fps=60.0, lost_frames=5))
+    statuses = []
+    for t in range(120):
+        pcm = src.render(t)
+        if 40 <= t < 60:  # the person leaves every view
+            pcm = PcmViews(np.zeros_like(pcm.maps), pcm.image_to_map, pcm.camera, pcm.keypoints, pcm.valid, np.zeros(4), pcm.stamp_ns)
+        statuses.append(tracker.step(pcm).status)
+    assert statuses[30] == "tracking"
+    assert "lost" in statuses[40:60] and statuses[58] != "tracking"
+    assert statuses[-1] == "tracking"  # picked up again
+
+
+def test_keypoint_seen_by_one_camera_gets_weight_zero():
+    m = punch()
+    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
+    src = SyntheticPcmSource(rig, m.positions, m.present, seed=0)
+    tracker = SpatiotemporalFilter(rig, TrackerConfig(fps=60.0))
+    for t in range(40):
+        pcm = src.render(t)
+        if t >= 20:
+            pcm.valid[1:, 2] = False  # channel 2 visible in camera 0 only
+        r = tracker.step(pcm)
+    assert r.status == "tracking"
+    assert r.scores[pcm.keypoints[2]] == 0.0 and np.isfinite(r.keypoints).all()
+
+
+def test_trunk_tilt_upright_and_inverted():
+    rig = benchmark_rig()
+    kp = np.zeros((25, 3))
+    kp[0] = [0, 0, 1.0]  # pelvis
+    kp[1] = [0, 0, 1.5]  # neck
+    assert np.abs(trunk_tilt(rig, kp)).max() < 0.1
+    kp[1] = [0, 0, 0.5]
+    assert (np.abs(trunk_tilt(rig, kp)) > np.pi - 0.1).all()
+
+
+def test_config_rejects_unknown_keys():
+    with pytest.raises(ValueError, match="unknown"):
+        TrackerConfig.from_dict({"lattice_kk": 3})
