@@ -106,6 +106,9 @@ def calibrate_rig(
         raise CalibrationError(f"origin camera '{origin}' is not one of {names}")
     poses = [board_poses(u, board, it.K, it.dist) for u, it in zip(usable, intr)]
     pnp_rms = [float(np.median([p.rms for p in ps.values()])) if ps else None for ps in poses]
+    if not poses[ref] and scene is None:
+        raise CalibrationError(f"camera {names[ref]} (the world origin): no board view gave a pose with its intrinsics; "
+                               f"choose another --origin")
     cams = initial_rig(poses, names, ref, board.flip) if poses[ref] else [None] * len(views)
     if board.flip is not None:
         usable = _unify_numbering(usable, poses, cams, board)
