@@ -19,7 +19,7 @@ from ..errors import ModelError
 from .tfgraph import Node, read_graph
 from .tflite2onnx import OPSET, _same_pads
 
-CONVERTER_VERSION = "1"
+CONVERTER_VERSION = "2"
 
 
 def _clean(name: str) -> str:
@@ -109,8 +109,15 @@ def convert(nodes: list[Node], output: str, input_size: tuple[int, int], name: s
                                                    strides=list(stride), pads=pads, group=c))
             hwc[node.name] = (oh, ow, out_c)
         elif node.op == "BiasAdd":
-            b = init(consts[ins[1]].astype(np.float32).reshape(1, -1, 1, 1), node.name + "/b")
-            onnx_nodes.append(helper.make_node("Add", [ins[0] + "/nchw", b], [node.name + "/nchw"]))
+            prev = onnx_nodes[-1]
+            if prev.op_type == "Conv" and prev.output[0] == ins[0] + "/nchw" and len(prev.input) == 2:
+                # fold into the convolution's bias (onnxruntime then fuses Conv + Relu as well);
+                # frozen graphs use a convolution's raw output nowhere else
+                prev.input.append(init(consts[ins[1]].astype(np.float32).ravel(), node.name + "/b"))
+                prev.output[0] = node.name + "/nchw"
+            else:
+                b = init(consts[ins[1]].astype(np.float32).reshape(1, -1, 1, 1), node.name + "/b")
+                onnx_nodes.append(helper.make_node("Add", [ins[0] + "/nchw", b], [node.name + "/nchw"]))
             hwc[node.name] = hwc[ins[0]]
         elif node.op == "Relu":
             onnx_nodes.append(helper.make_node("Relu", [ins[0] + "/nchw"], [node.name + "/nchw"]))
