@@ -287,30 +287,31 @@ class Skeleton:
         return q
 
     # ---- kinematics ---------------------------------------------------------------------
-    def _joint_placements(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pin.forwardKinematics(self.model, self.data, q)
-        oMi = self.data.oMi
-        R = np.array([oMi[i].rotation for i in range(self.model.njoints)])
-        t = np.array([oMi[i].translation for i in range(self.model.njoints)])
-        return R, t
+    def _placements(self) -> tuple[np.ndarray, np.ndarray]:
+        """World rotations (nj, 3, 3) and translations (nj, 3) of the joints of self.data."""
+        H = np.array([M.homogeneous for M in self.data.oMi])
+        return H[:, :3, :3], H[:, :3, 3]
 
     def keypoint_positions(self, q: np.ndarray) -> np.ndarray:
         """Forward kinematics: (25, 3) keypoints in KEYPOINTS order."""
-        R, t = self._joint_placements(q)
+        pin.forwardKinematics(self.model, self.data, q)
+        R, t = self._placements()
         return np.einsum("kij,kj->ki", R[self._parent], self._offset) + t[self._parent]
 
     def keypoint_jacobians(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Keypoints (25, 3) and their translational Jacobians (25, 3, 40) in the world frame."""
         J6 = pin.computeJointJacobians(self.model, self.data, q)  # (6, 40), WORLD convention
-        oMi = self.data.oMi
-        R = np.array([oMi[i].rotation for i in range(self.model.njoints)])
-        t = np.array([oMi[i].translation for i in range(self.model.njoints)])
+        R, t = self._placements()
         p = np.einsum("kij,kj->ki", R[self._parent], self._offset) + t[self._parent]
-        # WORLD spatial Jacobian: a point p moves with v + w x p.
-        lin, ang = J6[:3].T, J6[3:].T  # (40, 3)
-        Jp = lin[None, :, :] + np.cross(ang[None, :, :], p[:, None, :])  # (25, 40, 3)
-        Jp *= self._support[:, :, None]
-        return p, Jp.transpose(0, 2, 1)
+        # WORLD spatial Jacobian: a point p moves with v + w x p (cross product written out).
+        v, w = J6[:3], J6[3:]  # (3, 40)
+        px, py, pz = p[:, 0, None], p[:, 1, None], p[:, 2, None]
+        Jp = np.empty((p.shape[0], 3, self.nv))
+        Jp[:, 0] = v[0] + w[1] * pz - w[2] * py
+        Jp[:, 1] = v[1] + w[2] * px - w[0] * pz
+        Jp[:, 2] = v[2] + w[0] * py - w[1] * px
+        Jp *= self._support[:, None, :]
+        return p, Jp
 
     def bone_length_values(self, keypoints: np.ndarray) -> dict[str, np.ndarray]:
         """Measured segment lengths of keypoint trajectories (..., 25, 3) per named bone."""

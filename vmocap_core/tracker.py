@@ -40,14 +40,15 @@ class TrackerConfig:
     # Lattice search (II-D)
     lattice_k: int = 5
     lattice_spacing: float = 0.02  # metres; sub-lattice refinement recovers the precision
-    coarse_to_fine: bool = False
+    coarse_to_fine: bool = True  # same volume, ~5x fewer samples; measured equal to the full search
     subcell: bool = True
     prediction: str = "previous"  # lattice centre: "previous" (paper) or "constant_velocity"
     min_views: int = 2  # a marker seen by fewer views gets weight 0
     reacquire_weight: float = 1.0  # a marker weaker than this triggers a search at its PCM peaks
     reacquire_radius: float = 0.6  # metres from the previous keypoint a re-acquired one may lie
     # IK (II-E)
-    ik_iterations: int = 4
+    ik_iterations: int = 4  # first IK (to the virtual markers), warm-started
+    second_ik_iterations: int = 2  # second IK (to the smoothed positions, which move little)
     ik_damping: float = 1e-3
     ik_regularization: float = 1e-5
     second_ik_restart_m: float = 0.005  # RMS fit error of the second IK that triggers a restart
@@ -397,12 +398,12 @@ class SkeletonStage:
         t1 = time.perf_counter()
         smooth = self._filter(first.keypoints)
         t2 = time.perf_counter()
-        second = solve_ik(sk, self._q_out, smooth, np.ones(N_KP), cfg.ik_iterations,
+        second = solve_ik(sk, self._q_out, smooth, np.ones(N_KP), cfg.second_ik_iterations,
                           damping=cfg.ik_damping, regularization=cfg.ik_regularization)
         if second.cost > cfg.second_ik_restart_m**2:
             # The smoothed targets lie near the first IK's pose: restart from it when the
             # warm start is caught in another branch (e.g. an arm twisted at a joint limit).
-            retry = solve_ik(sk, first.q, smooth, np.ones(N_KP), cfg.ik_iterations,
+            retry = solve_ik(sk, first.q, smooth, np.ones(N_KP), cfg.second_ik_iterations,
                              damping=cfg.ik_damping, regularization=cfg.ik_regularization)
             if retry.cost < second.cost:
                 second = retry
