@@ -135,6 +135,7 @@ def test_bad_images_are_flagged_or_rejected(models) -> None:
         assert det.detect([im]) == [[]], name
         pv = lm.infer([im], Crops([0], [(w - 1) / 2, (h - 1) / 2], [max(h, w)], [0.0]))
         assert pv.presence[0] < 0.1, name  # heatmaps alone would still peak at ~0.5
+        assert not pv.valid.any(), name  # ... so the view is flagged: nothing in it is used
         assert np.isfinite(pv.maps).all()
     ok_crop = Crops([0], [100, 100], [200], [0.0])
     for wrong in (np.zeros((64, 64, 3), np.float32), np.zeros((64, 64, 4), np.uint8), np.zeros((0, 5, 3), np.uint8), "img"):

@@ -155,9 +155,10 @@ def test_input_rotation_variants_on_upside_down_views(scene) -> None:
     lower = np.isin(np.array(KEYPOINTS), LOWER_BODY)
     scored = np.isfinite(ref).all(axis=1)
     result = {}
+    # min_presence=0: measure the heatmaps themselves, even where presence says "nobody"
+    raw = BlazePoseLandmark(min_presence=0.0)
     for mode in ("none", "all", "lower_body"):
-        pv = lm.infer(flipped, rotated_crops(np.arange(5), centre, side, tilt, mode))
-        # min_presence=0: measure the heatmaps themselves, even where presence says "nobody"
+        pv = raw.infer(flipped, rotated_crops(np.arange(5), centre, side, tilt, mode))
         Xm, _ = triangulate(flipped_rig, *camera_keypoints(pv, 5, min_presence=0.0))
         d = np.linalg.norm(Xm - ref, axis=1) * 100  # cm
         result[mode] = {

@@ -105,11 +105,13 @@ class BlazePoseLandmark(PcmModel):
     channel_valid = CHANNEL >= 0
     output_names = ("pcm", "Identity_1")  # "pcm" is added by extend_graph
 
-    def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS, variant: str = "full") -> None:
+    def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS, variant: str = "full",
+                 min_presence: float | None = None) -> None:
+        """min_presence: views below it are invalid (default 0.5, MediaPipe's tracking threshold)."""
         if variant not in VARIANTS:
             raise ModelError(f"BlazePose variant must be one of {VARIANTS}, got {variant!r}")
         self.variant = variant
-        super().__init__(path or fetch.model_path(f"pose_landmark_{variant}"), threads)
+        super().__init__(path or fetch.model_path(f"pose_landmark_{variant}"), threads, min_presence)
 
     def input_to_map(self) -> np.ndarray:
         return CROP_TO_MAP.copy()

