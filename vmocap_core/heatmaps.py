@@ -92,16 +92,19 @@ class PcmViews:
             stamp_ns=self.stamp_ns,
         )
 
-    def peaks(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per view and channel, the image pixel of the heatmap maximum (V, J, 2) and its value (V, J)."""
-        V, J, H, W = self.maps.shape
-        flat = self.maps.reshape(V, J, H * W)
+    def peaks(self, channels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Per view and channel (all, or the given channel indices), the image pixel of the
+        heatmap maximum (V, J', 2) and its value (V, J'); NaN cells are ignored."""
+        maps = self.maps if channels is None else self.maps[:, channels]
+        valid = self.valid if channels is None else self.valid[:, channels]
+        V, J, H, W = maps.shape
+        flat = np.nan_to_num(maps.reshape(V, J, H * W), nan=0.0)
         arg = flat.argmax(axis=2)
         val = np.take_along_axis(flat, arg[..., None], axis=2)[..., 0]
         xy = np.stack([arg % W, arg // W], axis=-1).astype(np.float64)
         inv = invert_affine(self.image_to_map)  # (V, 2, 3)
         uv = np.einsum("vij,vkj->vki", inv[:, :, :2], xy) + inv[:, None, :, 2]
-        return uv, np.where(self.valid, val, 0.0)
+        return uv, np.clip(np.where(valid, val, 0.0), 0.0, 1.0)
 
     def centroids(self, threshold: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
         """Per view and channel, the image pixel of the PCM centroid around the peak (V, J, 2)

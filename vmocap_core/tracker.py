@@ -51,7 +51,7 @@ class TrackerConfig:
     second_ik_iterations: int = 2  # second IK (to the smoothed positions, which move little)
     ik_damping: float = 1e-3
     ik_regularization: float = 1e-5
-    second_ik_restart_m: float = 0.005  # RMS fit error of the second IK that triggers a restart
+    second_ik_restart_m: float = 0.02  # RMS fit error of the second IK that triggers a restart
     # Low-pass filter (II-F)
     filter_order: int = 2
     filter_cutoff_hz: float = 6.0
@@ -231,14 +231,14 @@ class MarkerStage:
         within `reacquire_radius` of the previous skeleton, so another person cannot take it."""
         cfg = self.config
         sub = np.flatnonzero(weak)
-        uv, val = pcm.peaks()
+        uv, val = pcm.peaks(sub)
         cam_uv = np.zeros((len(self.rig), sub.size, 2))
         cam_w = np.zeros((len(self.rig), sub.size))
         for v in range(pcm.n_views):  # a few views: merge them per camera (strongest wins)
             c = pcm.camera[v]
-            better = val[v, sub] > cam_w[c]
-            cam_uv[c, better] = uv[v, sub][better]
-            cam_w[c, better] = val[v, sub][better]
+            better = val[v] > cam_w[c]
+            cam_uv[c, better] = uv[v][better]
+            cam_w[c, better] = val[v][better]
         pts, resid = triangulate_robust(self.rig, cam_uv, cam_w, cfg.init_max_reprojection_px, cfg.min_views)
         near = np.linalg.norm(pts - self.centres[pcm.keypoints[sub]], axis=1) < cfg.reacquire_radius
         ok = np.isfinite(resid) & (resid <= cfg.init_max_reprojection_px) & near

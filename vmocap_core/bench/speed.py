@@ -42,7 +42,7 @@ def animated_keypoints(n_frames: int, fps: float = 60.0, seed: int = 0) -> np.nd
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=300, help="timed frames (after initialization)")
     parser.add_argument("--k", type=int, default=5, help="lattice half-width in cells")
-    parser.add_argument("--coarse-to-fine", action="store_true", help="time the coarse-to-fine lattice search")
+    parser.add_argument("--full-lattice", action="store_true", help="time the full lattice instead of coarse-to-fine")
     parser.add_argument("--json", action="store_true")
 
 
@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     gt = animated_keypoints(args.frames + warm, fps)
     rig = benchmark_rig(np.array([0.0, 0.0, 0.0]))
     source = SyntheticPcmSource(rig, gt, np.ones(len(KEYPOINTS), bool), seed=1, fps=fps)
-    cfg = TrackerConfig(fps=fps, lattice_k=args.k, coarse_to_fine=args.coarse_to_fine)
+    cfg = TrackerConfig(fps=fps, lattice_k=args.k, coarse_to_fine=not args.full_lattice)
     tracker = SpatiotemporalFilter(rig, cfg)
     pcms = [source.render(t) for t in tqdm(range(len(gt)), desc="synthesizing PCMs", disable=args.json)]
     stages: dict[str, list[float]] = {"lattice": [], "ik": [], "filter": [], "ik2": []}
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         "cameras": len(rig),
         "keypoints": len(KEYPOINTS),
         "lattice_points": (2 * args.k + 1) ** 3,
-        "coarse_to_fine": bool(args.coarse_to_fine),
+        "coarse_to_fine": cfg.coarse_to_fine,
         "frames": len(total),
     }
     if args.json:
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"back end per frame: median {result['backend_ms']['median']:.2f} ms, p95 {result['backend_ms']['p95']:.2f} ms "
               f"({len(rig)} cameras, {len(KEYPOINTS)} keypoints, {(2 * args.k + 1) ** 3} lattice points"
-              f"{', coarse-to-fine' if args.coarse_to_fine else ''}, {len(total)} frames)")
+              f"{', coarse-to-fine' if cfg.coarse_to_fine else ''}, {len(total)} frames)")
         for k, v in result["stages_ms"].items():
             print(f"  {k:<8} median {v['median']:.2f} ms  p95 {v['p95']:.2f} ms")
     return 0
