@@ -62,19 +62,7 @@ GROUPS: dict[str, tuple[str, ...]] = {
 }
 
 # Lower-body keypoints are the ones the paper feeds from the rotated input image (III-B).
-LOWER_BODY: tuple[str, ...] = (
-    "pelvis",
-    "left_hip",
-    "right_hip",
-    "left_knee",
-    "right_knee",
-    "left_ankle",
-    "right_ankle",
-    "left_heel",
-    "right_heel",
-    "left_toe",
-    "right_toe",
-)
+LOWER_BODY: tuple[str, ...] = GROUPS["lower_body"] + ("left_heel", "right_heel", "left_toe", "right_toe")
 
 
 def indices(names: tuple[str, ...] | list[str]) -> np.ndarray:
