@@ -9,6 +9,8 @@ import argparse
 import importlib
 import sys
 
+from .errors import VmocapError
+
 # (command words, module, help)
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "accuracy"), "vmocap_core.bench.accuracy", "synthetic multi-camera accuracy benchmark"),
@@ -58,7 +60,11 @@ def main(argv: list[str] | None = None) -> int:
     sub = _find_subparser(parser, known._module)
     module.add_arguments(sub)
     args = parser.parse_args(argv)
-    return int(module.run(args) or 0)
+    try:
+        return int(module.run(args) or 0)
+    except VmocapError as exc:  # bad input: one clear line, no traceback
+        print(f"vmocap: error: {exc}", file=sys.stderr)
+        return 2
 
 
 def _find_subparser(parser: argparse.ArgumentParser, module: str) -> argparse.ArgumentParser:
