@@ -295,6 +295,7 @@ class MultiPersonConfig:
     min_views: int = 2  # a track with fewer assigned views this frame is "unseen"
     max_unseen: int = 8  # frames a track survives unseen before it ends
     duplicate_m: float = 0.25  # two tracks closer than this (mean keypoint distance) merge
+    joint_gate_m: float | None = 0.25  # per-keypoint gate around a tracked person (None: off)
 
 
 @dataclass
@@ -392,6 +393,18 @@ class MultiPersonTracker:
                 w[c, sel] = people[c][q, sel, 2]
         return uv, w
 
+    def _gate_joints(self, keypoints: np.ndarray, uv: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Drop single detections further than `joint_gate_m` (converted to pixels at the
+        keypoint's depth) from the tracked person's projected keypoint: a wrist of someone
+        else that the 2D grouping attached to this person must not pull its filter."""
+        finite = np.isfinite(keypoints).all(axis=-1)
+        proj, front = self.rig.project(np.nan_to_num(keypoints))  # (C, 25, 2)
+        depth = self.rig.to_camera_frames(np.nan_to_num(keypoints))[..., 2]  # (C, 25)
+        focal = np.array([c.K[0, 0] for c in self.rig])[:, None]
+        gate = self.cfg.joint_gate_m * focal / np.maximum(depth, 0.1)
+        far = np.linalg.norm(uv - proj, axis=-1) > gate
+        return np.where(far & front & finite[None] & (w > 0), 0.0, w)
+
     # ---- new people
     def _start_new(self, people: Sequence[np.ndarray], used: list[np.ndarray]) -> None:
         rest = [p[~u] for p, u in zip(people, used)]
@@ -427,6 +440,8 @@ class MultiPersonTracker:
         self._start_new(people, used)
         for t in list(self.tracks):
             uv, w = self._observations(people, t.members)
+            if cfg.joint_gate_m and t.source == "tracker":
+                w = self._gate_joints(t.keypoints, uv, w)
             n_views = int((w.max(axis=1) > 0).sum())
             if n_views < cfg.min_views:
                 t.unseen += 1

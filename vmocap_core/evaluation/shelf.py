@@ -46,7 +46,10 @@ TRACKER_SETTINGS = {
     "fps": FPS,
     "lattice_k": 5,  # +-10 cm around the constant-velocity prediction
     "lattice_spacing": 0.02,
+    "coarse_to_fine": False,  # measured on Shelf: the full lattice is 0.5-1 PCP point better
+    "prediction": "constant_velocity",  # 25 fps: limbs move up to ~10 cm per frame
     "filter_cutoff_hz": 10.0,  # 25 fps: a lower cutoff lags behind fast wrists
+    "filter_lag_compensation": False,
     "init_frames": 3,
     "init_max_reprojection_px": 15.0,
     "lost_frames": 8,
