@@ -70,6 +70,7 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("min_cameras", 2, "fewest cameras a frame set needs", 1, 64),
         Param("silent_after_ms", 500.0, "a camera without frames this long is reported silent", 1.0, 1e6),
         Param("use_feedback", True, "crop/rotate with the skeleton of the previous frame"),
+        Param("queue_depth", 5, "subscription depth per image topic (reliable; older frames are dropped)", 1, 1000),
     ],
     "vmocap_markers": [
         Param("sync_tolerance_ms", 1.0, "max stamp difference of PCM views of one frame set", 0.0, 1000.0),
@@ -77,8 +78,12 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("silent_after_ms", 500.0, "a view without heatmaps this long is reported silent", 1.0, 1e6),
         Param("feedback_timeout_ms", 200.0, "wait this long for the previous frame's skeleton (0: never wait)", 0.0, 1e5),
         Param("views", [""], "PCM view names (topics NS/pcm/VIEW/...); empty: one per camera, named as it"),
+        Param("queue_depth", 10, "subscription depth per PCM topic and frame sets queued while the "
+              "lattice search waits for feedback (beyond it the oldest are dropped and counted)", 1, 1000),
     ],
-    "vmocap_skeleton": [],
+    "vmocap_skeleton": [
+        Param("queue_depth", 10, "subscription depth of the markers topic", 1, 1000),
+    ],
     "vmocap_recorder": [
         Param("output", "", "MCAP file to write (renamed from .partial when closed)", path=True),
         Param("topics", [""], "topics to record; empty: the graph outputs"),

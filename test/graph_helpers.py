@@ -1,0 +1,81 @@
+"""Helpers of the graph tests: synthetic PCM bags, configs, processes on a private ROS domain."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parent.parent
+MOTION = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
+
+
+def domain_env(offset: int = 0) -> dict[str, str]:
+    """A ROS domain of this test process only (isolation from other test runs)."""
+    env = dict(os.environ)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env["ROS_DOMAIN_ID"] = str(1 + (os.getpid() + offset) % 100)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def synthetic_bag(path: Path, frames: int = 30, fps: float = 30.0, images: bool = False, size=(1024, 768)):
+    from vmocap_core.bag.synth import write_synthetic_bag
+    from vmocap_core.keypoints import KEYPOINTS
+    from vmocap_core.motion import load_motion, resample
+    from vmocap_core.rig_io import save_rig
+    from vmocap_core.synthetic import benchmark_rig
+
+    rig = benchmark_rig(width=size[0], height=size[1])
+    m = resample(load_motion(MOTION), fps)
+    write_synthetic_bag(path, rig, m.positions, m.present, frames, fps=fps, images=images)
+    rig_path = path.with_suffix(".rig.yaml")
+    save_rig(rig, rig_path)
+    return rig, rig_path, [KEYPOINTS[i] for i in np.flatnonzero(m.present)]
+
+
+def write_config(path: Path, rig_path: Path, keypoints: list[str], nodes: list[str], mode: str = "processes",
+                 output: Path | None = None, extra: dict | None = None) -> Path:
+    cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
+    cfg["/**"]["ros__parameters"]["rig"] = str(rig_path)
+    cfg["/**"]["ros__parameters"]["pcm_keypoints"] = keypoints
+    cfg["vmocap_pcm"]["ros__parameters"]["model"] = str(MOTION)
+    if output is not None:
+        cfg["vmocap_recorder"]["ros__parameters"]["output"] = str(output)
+    cfg["vmocap_launch"] = {"mode": mode, "nodes": nodes, "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
+    for section, params in (extra or {}).items():
+        cfg.setdefault(section, {"ros__parameters": {}})["ros__parameters"].update(params)
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def vmocap(args: list[str], env: dict[str, str], **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", *args], env=env, cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
+
+
+def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0) -> str:
+    if proc.poll() is None:
+        proc.send_signal(sig)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+        raise AssertionError(f"process did not stop on signal {sig}:\n{out}")
+    return out
+
+
+def wait_for(predicate, timeout: float, step: float = 0.1) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(step)
+    return predicate()

@@ -1,0 +1,104 @@
+"""`vmocap launch CONFIG`: start the node graph of a config (no launch_ros wheel exists).
+
+Default: each node in its own process (`python -m vmocap_ros.run_node CONFIG NODE`);
+`--single-process` (or `vmocap_launch: {mode: single_process}`): all nodes in this process
+with one executor (lowest latency: no serialization between nodes' DDS participants... the
+messages still go through rclpy, but intra-process delivery skips the network stack).
+Ctrl-C/SIGTERM: every node is asked to stop (SIGINT), closes its outputs (the recorder
+finalizes its MCAP) and exits; stragglers get SIGTERM after --grace seconds, then SIGKILL.
+Discovery is localhost-only unless ROS_AUTOMATIC_DISCOVERY_RANGE is set (docs/graph.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from .run_node import parse_sets
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("config", help="graph config YAML (see config/graph.yaml)")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--single-process", action="store_true", help="all nodes in one process, one executor")
+    mode.add_argument("--processes", action="store_true", help="each node its own process (default)")
+    parser.add_argument("--nodes", nargs="+", default=None, help="override the config's node list")
+    parser.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", help="override a parameter")
+    parser.add_argument("--grace", type=float, default=5.0, help="seconds a node gets to close on shutdown")
+
+
+def child_env(profile: str | None = None) -> dict[str, str]:
+    from .common import prepare_env
+
+    env = dict(os.environ)
+    prepare_env(env, profile)
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    return env
+
+
+def run(args: argparse.Namespace) -> int:
+    from vmocap_core import graph_config
+
+    cfg = graph_config.load(args.config)
+    nodes = args.nodes or cfg.node_names()
+    sets = parse_sets(args.set)
+    for n in nodes:  # validate overrides before starting anything
+        cfg.node_params(n, sets.get(n))
+    single = args.single_process or (cfg.launch["mode"] == "single_process" and not args.processes)
+    env = child_env(cfg.launch.get("fastdds_profile"))
+    for k, v in (cfg.launch.get("env") or {}).items():
+        env[str(k)] = str(v)
+    if single:
+        os.environ.update(env)
+        from .run_node import spin_nodes
+
+        return spin_nodes(args.config, nodes, sets)
+    return run_processes(args.config, nodes, args.set, env, args.grace)
+
+
+def run_processes(config: str, nodes: list[str], sets: list[str], env: dict[str, str], grace: float) -> int:
+    procs: list[tuple[str, subprocess.Popen]] = []
+    stopping = {"flag": False}
+
+    def stop(signum: int, frame: object) -> None:
+        stopping["flag"] = True
+
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+    for n in nodes:
+        node_sets = [s for s in sets if s.startswith(n + ".")]
+        cmd = [sys.executable, "-m", "vmocap_ros.run_node", config, n]
+        for s in node_sets:
+            cmd += ["--set", s]
+        # own process group: a terminal Ctrl-C reaches us, we forward it in order
+        procs.append((n, subprocess.Popen(cmd, env=env, start_new_session=True)))
+    print(f"vmocap launch: {len(procs)} processes: " + ", ".join(f"{n}[{p.pid}]" for n, p in procs), flush=True)
+    code = 0
+    while not stopping["flag"]:
+        time.sleep(0.1)
+        dead = [(n, p) for n, p in procs if p.poll() is not None]
+        if dead:
+            for n, p in dead:
+                print(f"vmocap launch: {n} exited with {p.returncode}; stopping the graph", file=sys.stderr, flush=True)
+                code = code or p.returncode or 0
+            break
+    for _, p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + grace
+    for n, p in procs:
+        try:
+            p.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            print(f"vmocap launch: {n} did not stop in {grace} s: SIGTERM", file=sys.stderr)
+            p.terminate()
+            try:
+                p.wait(2.0)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+    return code

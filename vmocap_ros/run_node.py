@@ -1,0 +1,89 @@
+"""Run vmocap nodes in this process with one executor: `python -m vmocap_ros.run_node CONFIG NODE [NODE...]
+[--set node.key=value ...]`. SIGINT/SIGTERM: stop spinning, close every node (outputs flushed,
+bags finalized), then shut rclpy down. Prints READY when all nodes exist."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+import yaml
+
+DRAIN_S = 0.5  # after SIGINT/SIGTERM, keep handling messages in flight this long
+
+
+def parse_sets(items: list[str]) -> dict[str, dict[str, Any]]:
+    """['vmocap_recorder.output=x.mcap', ...] -> {'vmocap_recorder': {'output': 'x.mcap'}}"""
+    out: dict[str, dict[str, Any]] = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        node, _, param = key.partition(".")
+        if not param:
+            raise SystemExit(f"--set wants NODE.PARAM=VALUE, got {item!r}")
+        out.setdefault(node, {})[param] = yaml.safe_load(value)
+    return out
+
+
+def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str, Any]] | None = None,
+               ready: Any = None) -> int:
+    from vmocap_core import graph_config
+
+    from .common import StopFlag, init_rclpy
+
+    cfg = graph_config.load(config_path)
+    stop = StopFlag().install()
+    rclpy = init_rclpy()
+    from rclpy.executors import SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor()
+    nodes = []
+    try:
+        from .nodes import create
+
+        for name in names:
+            node = create(name, cfg, (overrides or {}).get(name))
+            nodes.append(node)
+            executor.add_node(node)
+        print("READY " + " ".join(names), flush=True)
+        if ready is not None:
+            ready()
+        while not stop:
+            executor.spin_once(timeout_sec=0.1)
+        # drain: deliver what is already in flight (e.g. the last outputs to the recorder)
+        drain_end = time.monotonic() + DRAIN_S
+        while time.monotonic() < drain_end:
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        for node in reversed(nodes):
+            try:
+                node.close()
+            except Exception as exc:  # noqa: BLE001 - keep closing the others
+                print(f"{node.get_name()}: close failed: {exc}", file=sys.stderr)
+        for node in nodes:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m vmocap_ros.run_node")
+    ap.add_argument("config")
+    ap.add_argument("nodes", nargs="+")
+    ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE")
+    a = ap.parse_args(argv)
+    from vmocap_core.errors import VmocapError
+
+    try:
+        return spin_nodes(a.config, a.nodes, parse_sets(a.set))
+    except VmocapError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
