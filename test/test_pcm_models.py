@@ -120,6 +120,21 @@ def test_all_views_in_one_batch_equal_single_calls(models, messi) -> None:
         np.testing.assert_allclose(both.image_to_map[v], one.image_to_map[0])
 
 
+def test_thread_strategies_give_the_same_maps(models, messi) -> None:
+    """runner.py: views split over threads ("views") or one call with intra-op threads."""
+    _, lm = models
+    crops = Crops([0, 0, 0], [[260, 170], [240, 180], [250, 175]], [420, 380, 400], [0.0, -0.3, 0.2])
+    intra = BlazePoseLandmark(threads=2, parallel="intra")
+    a, b = lm.infer([messi], crops), intra.infer([messi], crops)
+    assert lm.runner.parallel == "views" and intra.runner.parallel == "intra"
+    np.testing.assert_allclose(a.maps, b.maps, atol=1e-4)
+    np.testing.assert_allclose(a.presence, b.presence, atol=1e-5)
+    one = lm.infer([messi], Crops([0], [260, 170], [420], [0.0]))  # a single view: the intra-op session
+    np.testing.assert_allclose(one.maps[0], a.maps[0], atol=1e-4)
+    with pytest.raises(ModelError):
+        BlazePoseLandmark(parallel="processes")
+
+
 def test_bad_images_are_flagged_or_rejected(models) -> None:
     det, lm = models
     rng = np.random.default_rng(0)

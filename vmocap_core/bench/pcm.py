@@ -94,6 +94,9 @@ def measure(repeat: int = 30, threads: int = DEFAULT_THREADS, quiet: bool = Fals
     pcm = BlazePosePcm(rig, threads=threads)
     views = len(pcm.crops_from_skeleton(standing))
     result["frame_set_ms"] = _time(lambda: pcm.infer(images, standing), repeat, "tracking frame set", quiet)
+    result["parallel"] = pcm.landmark.runner.parallel
+    intra = BlazePosePcm(rig, threads=threads, parallel="intra")  # onnxruntime's own threads, for comparison
+    result["frame_set_ms_intra_op"] = _time(lambda: intra.infer(images, standing), repeat, "tracking frame set, intra-op", quiet)
     result["views"] = views
     result["per_image_ms"] = {}
     result["landmark"] = {}
@@ -152,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     f = lambda d: f"median {d['median']:.1f} ms, p95 {d['p95']:.1f}, min {d['min']:.1f} ({d['runs']} runs)"  # noqa: E731
     print(f"PCM timing at {W}x{H}, {N_CAMERAS} cameras (load average before {r['loadavg_before'][0]:.2f}, after {r['loadavg_after'][0]:.2f})")
-    print(f"tracking frame set ({r['views']} views, crops from the skeleton, {r['threads']} threads): {f(r['frame_set_ms'])}")
+    print(f"tracking frame set ({r['views']} views, crops from the skeleton, {r['threads']} threads, parallel={r['parallel']}): {f(r['frame_set_ms'])}")
+    print(f"  the same with onnxruntime intra-op threads: {f(r['frame_set_ms_intra_op'])}")
     for t in ("threads_1", "threads_2"):
         print(f"landmark {t}: per image {f(r['landmark'][t]['per_image_ms'])}; 4 views {f(r['landmark'][t]['frame_set_ms'])}")
         print(f"detector {t}: per image {f(r['detector'][t]['per_image_ms'])}; 4 images {f(r['detector'][t]['frame_set_ms'])}")

@@ -38,6 +38,7 @@ from ..errors import ModelError
 from . import fetch
 from .crops import Crops
 from .model import DEFAULT_THREADS, PcmModel
+from .runner import DEFAULT_PARALLEL
 
 BLAZEPOSE_NAMES: tuple[str, ...] = (
     "nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye",
@@ -106,12 +107,13 @@ class BlazePoseLandmark(PcmModel):
     output_names = ("pcm", "Identity_1")  # "pcm" is added by extend_graph
 
     def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS, variant: str = "full",
-                 min_presence: float | None = None) -> None:
-        """min_presence: views below it are invalid (default 0.5, MediaPipe's tracking threshold)."""
+                 min_presence: float | None = None, parallel: str = DEFAULT_PARALLEL) -> None:
+        """min_presence: views below it are invalid (default 0.5, MediaPipe's tracking threshold);
+        parallel: "views" or "intra" (runner.py)."""
         if variant not in VARIANTS:
             raise ModelError(f"BlazePose variant must be one of {VARIANTS}, got {variant!r}")
         self.variant = variant
-        super().__init__(path or fetch.model_path(f"pose_landmark_{variant}"), threads, min_presence)
+        super().__init__(path or fetch.model_path(f"pose_landmark_{variant}"), threads, min_presence, parallel)
 
     def input_to_map(self) -> np.ndarray:
         return CROP_TO_MAP.copy()

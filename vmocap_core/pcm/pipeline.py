@@ -21,6 +21,7 @@ from .blazepose import DEFAULT_ROTATION, MIN_TILT, BlazePoseLandmark, rotated_cr
 from .crops import Crops, crops_from_skeleton
 from .detector import PoseDetector
 from .model import DEFAULT_THREADS
+from .runner import DEFAULT_PARALLEL
 
 
 class BlazePosePcm:
@@ -30,6 +31,7 @@ class BlazePosePcm:
     margin: crop side / projected body extent while tracking.
     variant: "full" (default) or "lite" (faster; `vmocap models fetch --lite`).
     min_presence: views whose BlazePose presence is below it come out with valid=False.
+    parallel: how the threads are used, "views" (default) or "intra" (runner.py).
     """
 
     def __init__(
@@ -43,12 +45,14 @@ class BlazePosePcm:
         detector_path: Path | str | None = None,
         variant: str = "full",
         min_presence: float = 0.5,
+        parallel: str = DEFAULT_PARALLEL,
     ) -> None:
         self.rig = rig
         self.rotation = rotation
         self.margin = float(margin)
         self.min_tilt = float(min_tilt)
-        self.landmark = BlazePoseLandmark(landmark_path, threads, variant, min_presence)
+        self.landmark = BlazePoseLandmark(landmark_path, threads, variant, min_presence, parallel)
+        self._parallel = parallel
         self._detector_path = detector_path
         self._threads = threads
         self._detector: PoseDetector | None = None  # loaded on first use: tracking never needs it
@@ -57,7 +61,7 @@ class BlazePosePcm:
     @property
     def detector(self) -> PoseDetector:
         if self._detector is None:
-            self._detector = PoseDetector(self._detector_path, self._threads)
+            self._detector = PoseDetector(self._detector_path, self._threads, parallel=self._parallel)
         return self._detector
 
     def crops_from_detector(self, images: Sequence[np.ndarray], seed: np.ndarray | None = None) -> Crops:
