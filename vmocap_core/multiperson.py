@@ -245,11 +245,9 @@ class PcmRenderer:
         self._chan[self.keypoints] = np.arange(len(self.keypoints))
 
     def render(self, uv: np.ndarray, score: np.ndarray, view_ok: np.ndarray, stamp_ns: int = 0) -> PcmViews:
-        """uv (C, K, 2) pixels and score (C, K) of detections of keypoint index kp (C, K) ...
-
-        Simplified: uv (C, 25, 2), score (C, 25) in KEYPOINTS order, one detection per
-        keypoint and camera (score 0 = none). Views with view_ok False are marked invalid.
-        """
+        """PcmViews (one view per camera) of one person: uv (C, 25, 2) pixels and score (C, 25)
+        in KEYPOINTS order, one detection per keypoint and camera (score 0 = none). Cameras
+        with view_ok False (the person is not seen there) are marked invalid."""
         C = uv.shape[0]
         J = len(self.keypoints)
         maps = np.zeros((C, J, self.H, self.W), dtype=np.float32)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..keypoints import INDEX, KEYPOINTS
+from ..keypoints import KEYPOINTS
 from ..multiperson import (
     MultiPersonConfig,
     MultiPersonTracker,
@@ -37,6 +37,7 @@ from .pcp import PART_GROUPS, ShelfScore, to_shelf15
 from .shelf_data import BODY25_LIMBS, BODY25_TO_KEYPOINT, ShelfData, load_shelf
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "shelf"
+N_KP = len(KEYPOINTS)
 FPS = 25.0  # Shelf's frame rate (approximately)
 STRIDE = 8  # OpenPose's output stride
 SIGMA_CELLS = 2.0  # Gaussian of a rendered candidate, in map cells (a wide basin for the lattice)
@@ -128,8 +129,6 @@ def evaluate(data: ShelfData, progress: bool = True, tracker_settings: dict | No
     )
     return result
 
-
-N_KP = len(KEYPOINTS)
 
 
 def format_table(res: dict) -> str:
