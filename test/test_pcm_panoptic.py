@@ -199,6 +199,13 @@ def test_pipeline_initializes_with_the_detector_then_tracks(scene) -> None:
     paper = BlazePosePcm(rig, rotation="lower_body", threads=1)
     pv = paper.infer(images, body, tilt=np.array([0.0, np.pi, 0.0, 0.0, 1.0]))
     assert pv.camera.tolist() == [0, 1, 2, 3, 4, 1, 4]
+    # a camera without a frame in this set: no view for it, the others still work
+    partial = list(images)
+    partial[2] = None
+    assert pcm.infer(partial, body).camera.tolist() == [0, 1, 3, 4]
+    assert 2 not in pcm.infer(partial).camera.tolist()
+    with pytest.raises(ModelError):
+        pcm.infer(images[:3], body)
     # nobody in view: zero views, not an error
     black = [np.zeros_like(im) for im in images]
     assert pcm.infer(black).n_views == 0

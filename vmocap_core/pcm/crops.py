@@ -52,6 +52,11 @@ class Crops:
     def __len__(self) -> int:
         return self.camera.size
 
+    def select(self, keep: np.ndarray) -> "Crops":
+        """The crops where `keep` (V,) is True."""
+        keep = np.asarray(keep, dtype=bool).reshape(len(self))
+        return Crops(self.camera[keep], self.center[keep], self.side[keep], self.rotation[keep], self.valid[keep])
+
     def image_to_crop(self, n: int) -> np.ndarray:
         """(V, 2, 3) affines image pixel -> pixel of the n x n crop (see module docstring)."""
         return crop_affine(self.center, self.side, self.rotation, n)

@@ -198,10 +198,11 @@ class PcmModel(abc.ABC):
 
     def sample(self, images: Sequence[np.ndarray], views: InputViews) -> np.ndarray:
         """(V, H, W, 3) uint8 BGR network-input crops: each view warped by its exact affine."""
-        checked = [check_image(im, i) for i, im in enumerate(images)]
         cam = np.asarray(views.camera, dtype=np.intp)
-        if cam.size and (cam.min() < 0 or cam.max() >= len(checked)):
-            raise ModelError(f"view camera indices {cam.tolist()} out of range for {len(checked)} images")
+        if cam.size and (cam.min() < 0 or cam.max() >= len(images)):
+            raise ModelError(f"view camera indices {cam.tolist()} out of range for {len(images)} images")
+        # only the images that views look at are checked: a camera without a frame may be None
+        checked = {int(c): check_image(images[c], int(c)) for c in np.unique(cam)}
         w, h = self.input_size
         A = np.asarray(views.image_to_input, dtype=np.float64)
         batch = np.empty((cam.size, h, w, 3), dtype=np.uint8)

@@ -15,6 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from ..camera import Rig
+from ..errors import ModelError
 from ..heatmaps import PcmViews
 from ..keypoints import KEYPOINTS
 from .blazepose import DEFAULT_ROTATION, MIN_TILT, BlazePoseLandmark, rotated_crops
@@ -69,7 +70,10 @@ class BlazePosePcm:
         detection, or with `seed` (3,) (a world point on the wanted person, e.g. from another
         tracker) the detection whose hip centre is nearest to the seed's projection, so that all
         cameras look at the same person when several are in view."""
-        found = self.detector.detect(images)
+        have = [c for c, im in enumerate(images) if im is not None]
+        found: list[list] = [[] for _ in images]
+        for c, dets in zip(have, self.detector.detect([images[c] for c in have])):
+            found[c] = dets
         if seed is not None:
             hip, front = self.rig.project(np.asarray(seed, dtype=np.float64).reshape(3))  # (C, 2), (C,)
             for c, dets in enumerate(found):
@@ -93,12 +97,16 @@ class BlazePosePcm:
         stamp_ns: int = 0,
         seed: np.ndarray | None = None,
     ) -> PcmViews:
-        """PCMs of one frame set: images in rig camera order (uint8 BGR or mono).
+        """PCMs of one frame set: images in rig camera order (uint8 BGR or mono; None for a
+        camera without a frame in this set: it gets no view).
         keypoints None: detector crops (seed picks the person, see crops_from_detector)."""
+        if len(images) != len(self.rig):
+            raise ModelError(f"{len(images)} images for a rig of {len(self.rig)} cameras")
         if keypoints is None:
             crops = self.crops_from_detector(images, seed)
         else:
             crops = self.crops_from_skeleton(keypoints, tilt)
+            crops = crops.select(np.array([images[c] is not None for c in crops.camera], dtype=bool))
         if len(crops) == 0:
             J = len(KEYPOINTS)
             return PcmViews(np.zeros((0, J, 64, 64)), np.zeros((0, 2, 3)), np.zeros(0), np.arange(J),
