@@ -244,7 +244,7 @@ class BagReader:
             reader = SeekingReader(self._f)
             reader._summary = self._summary
             for schema, ch, rec in reader.iter_messages(
-                topics=None if wanted is None else sorted(wanted), start_time=start_ns, end_time=end_ns, log_time_order=True
+                topics=None if wanted is None else sorted(wanted), starting_at=start_ns, ending_before=end_ns, log_time_order=True
             ):
                 yield BagMessage(ch.topic, self.topics[ch.topic], rec.log_time, rec.data)
         except (McapError, ValueError, OSError, EOFError) as exc:

@@ -1,0 +1,194 @@
+"""MCAP I/O without ROS: CDR against rclpy's own serializer, rosbags reads our files,
+truncated/corrupt bags give a clear BagError, recovery reads what precedes the damage."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vmocap_core.bag import BagReader, BagWriter, cdr
+from vmocap_core.bag import messages as M
+from vmocap_core.errors import BagError
+
+
+def _image(k: int) -> dict:
+    img = np.full((6, 8, 3), k % 256, dtype=np.uint8)
+    return M.image_msg(img, 1_000_000_000 + k * 33_333_333, "cam0")
+
+
+def _write(path: Path, n: int = 40, compression: str = "zstd") -> None:
+    with BagWriter(path, compression=compression, chunk_size=4096) as w:
+        for k in range(n):
+            t = 1_000_000_000 + k * 33_333_333
+            w.write("/vmocap/cam0/image_raw", "sensor_msgs/msg/Image", _image(k), t)
+            w.write("/vmocap/joint_states", "sensor_msgs/msg/JointState", M.joint_state_msg(t, ["a", "b"], [k, -k]), t)
+
+
+SAMPLES = {
+    "sensor_msgs/msg/Image": lambda: _image(3),
+    "sensor_msgs/msg/CameraInfo": lambda: {"header": M.header(5, "c"), "width": 4, "height": 3, "distortion_model": "plumb_bob",
+                                           "d": [0.1, -0.2, 0, 0, 0.01], "k": np.arange(9.0), "r": np.eye(3).ravel(), "p": np.arange(12.0)},
+    "sensor_msgs/msg/PointCloud2": lambda: M.keypoint_cloud(7, np.random.default_rng(0).normal(size=(25, 3)), np.ones(25), "lattice"),
+    "sensor_msgs/msg/JointState": lambda: M.joint_state_msg(9, ["x", "yy", "zzz"], [1.0, 2.0, 3.0]),
+    "visualization_msgs/msg/MarkerArray": lambda: M.skeleton_markers(11, np.random.default_rng(1).normal(size=(25, 3))),
+    "diagnostic_msgs/msg/DiagnosticArray": lambda: M.diagnostics_msg(13, [(1, "n", "m", {"k": "v"})]),
+    "rosgraph_msgs/msg/Clock": lambda: M.clock_msg(15),
+}
+
+
+@pytest.mark.parametrize("type_name", sorted(SAMPLES))
+def test_cdr_matches_rclpy_serialization(type_name: str) -> None:
+    pytest.importorskip("rclpy")
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from vmocap_ros.common import msg_class
+
+    cls = msg_class(type_name)
+    ours = cdr.encode(type_name, SAMPLES[type_name]())
+    ros_msg = deserialize_message(ours, cls)  # rclpy reads our bytes ...
+    theirs = serialize_message(ros_msg)
+    # (rclpy's buffer may carry a few trailing slack bytes: only the content is compared)
+    assert len(theirs) >= len(ours)
+    # ... and we read rclpy's bytes back to the same message (padding bytes may differ)
+    again = cdr.encode(type_name, cdr.decode(type_name, theirs))
+    assert deserialize_message(again, cls) == ros_msg
+
+
+def test_rosbags_reads_our_bag(tmp_path: Path) -> None:
+    rosbags = pytest.importorskip("rosbags")
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    bag = tmp_path / "b.mcap"
+    _write(bag)
+    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as r:
+        types = {c.topic: c.msgtype for c in r.connections}
+        msgs = [(c.topic, t, r.deserialize(raw, c.msgtype)) for c, t, raw in r.messages()]
+    assert types == {"/vmocap/cam0/image_raw": "sensor_msgs/msg/Image", "/vmocap/joint_states": "sensor_msgs/msg/JointState"}
+    assert len(msgs) == 80
+    img = [m for topic, _, m in msgs if topic.endswith("image_raw")][5]
+    assert (img.width, img.height, img.encoding) == (8, 6, "bgr8") and int(img.data[0]) == 5
+    js = [m for topic, _, m in msgs if topic.endswith("joint_states")][7]
+    assert list(js.name) == ["a", "b"] and list(js.position) == [7.0, -7.0]
+
+
+def test_schema_is_full_ros2msg_definition(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    text = cdr.schema_text("visualization_msgs/msg/MarkerArray")
+    for dep in ("MSG: visualization_msgs/Marker", "MSG: std_msgs/Header", "MSG: builtin_interfaces/Time",
+                "MSG: geometry_msgs/Pose", "MSG: sensor_msgs/CompressedImage", "MSG: visualization_msgs/MeshFile"):
+        assert dep in text
+    bag = tmp_path / "m.mcap"
+    with BagWriter(bag) as w:
+        w.write("/s", "visualization_msgs/msg/MarkerArray", M.skeleton_markers(1, np.zeros((25, 3))), 1)
+    with open(bag, "rb") as f:
+        r = make_reader(f)
+        assert r.get_header().profile == "ros2"
+        (schema,) = r.get_summary().schemas.values()
+        (channel,) = r.get_summary().channels.values()
+    assert schema.encoding == "ros2msg" and schema.name == "visualization_msgs/msg/MarkerArray"
+    assert schema.data.decode() == text and channel.message_encoding == "cdr"
+
+
+def test_reader_time_range_and_topics(tmp_path: Path) -> None:
+    bag = tmp_path / "b.mcap"
+    _write(bag)
+    with BagReader(bag) as r:
+        assert r.message_counts == {"/vmocap/cam0/image_raw": 40, "/vmocap/joint_states": 40}
+        start = r.start_ns + 10 * 33_333_333
+        got = list(r.messages(["/vmocap/joint_states"], start_ns=start))
+        assert len(got) == 30 and got[0].decode()["position"][0] == 10.0
+        with pytest.raises(BagError, match="no topic"):
+            list(r.messages(["/nope"]))
+
+
+def test_truncated_bag_clear_error_and_recovery(tmp_path: Path) -> None:
+    bag = tmp_path / "full.mcap"
+    _write(bag, n=200, compression="none")
+    data = bag.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    with pytest.raises(BagError) as err:
+        BagReader(cut).open()
+    assert str(cut) in str(err.value) and "truncated" in str(err.value)
+    r = BagReader(cut, recover=True).open()
+    got = list(r.messages(["/vmocap/joint_states"]))
+    assert 50 < len(got) < 200
+    # what was recovered is intact and in order
+    pos = [m.decode()["position"][0] for m in got]
+    assert pos == [float(k) for k in range(len(pos))]
+    r.close()
+
+
+def test_not_an_mcap_and_missing_file(tmp_path: Path) -> None:
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"this is not a bag at all")
+    with pytest.raises(BagError, match="not an MCAP"):
+        BagReader(junk).open()
+    with pytest.raises(BagError, match="no such bag"):
+        BagReader(tmp_path / "missing.mcap").open()
+
+
+def test_writer_is_atomic(tmp_path: Path) -> None:
+    out = tmp_path / "o.mcap"
+    w = BagWriter(out).open()
+    w.write("/vmocap/joint_states", "sensor_msgs/msg/JointState", M.joint_state_msg(1, ["a"], [1.0]), 1)
+    assert not out.exists() and w.tmp_path.exists()  # nothing under the final name yet
+    w.close()
+    assert out.exists() and not w.tmp_path.exists()
+    # an exception inside `with` still finalizes a readable file
+    out2 = tmp_path / "o2.mcap"
+    with pytest.raises(RuntimeError):
+        with BagWriter(out2) as w2:
+            w2.write("/x", "sensor_msgs/msg/JointState", M.joint_state_msg(1, ["a"], [1.0]), 1)
+            raise RuntimeError("boom")
+    assert BagReader(out2).open().message_counts == {"/x": 1}
+
+
+def test_pcm_message_roundtrip_exact() -> None:
+    from vmocap_core.heatmaps import PcmViews, stride_affine
+    from vmocap_core.synthetic import benchmark_rig
+
+    rig = benchmark_rig()
+    rng = np.random.default_rng(2)
+    A = np.stack([stride_affine(16), stride_affine(8)])
+    A[1, :, 2] += [3.0, -2.0]
+    rot = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    A[1, :, :2] = rot @ A[1, :, :2]  # a rotated crop
+    views = PcmViews(maps=rng.random((2, 3, 12, 16)), image_to_map=A, camera=[2, 0], keypoints=[0, 1, 7],
+                     valid=[[True, False, True], [True, True, True]], presence=[0.5, 1.0], stamp_ns=42)
+    pairs = [(cdr.decode("sensor_msgs/msg/Image", cdr.encode("sensor_msgs/msg/Image", i)),
+              cdr.decode("sensor_msgs/msg/CameraInfo", cdr.encode("sensor_msgs/msg/CameraInfo", c)))
+             for i, c in M.pcm_msgs(views, rig)]
+    assert pairs[0][0]["encoding"] == "32FC4"
+    back = M.pcm_views(pairs, rig, np.array([0, 1, 7]))
+    assert np.allclose(back.image_to_map, A, atol=1e-12)
+    assert np.array_equal(back.camera, [2, 0]) and np.array_equal(back.valid, views.valid)
+    assert np.array_equal(back.maps[views.valid], views.maps[views.valid])
+    assert np.allclose(back.presence, [0.5, 1.0]) and back.stamp_ns == 42
+    # the CameraInfo K is the heatmap's own projection: a world point lands on its map cell
+    X = np.array([[0.3, -0.2, 1.1]])
+    uv, _ = rig.project(X)
+    K = np.asarray(pairs[1][1]["k"]).reshape(3, 3)
+    cam = rig[0]
+    xc = cam.R @ X[0] + cam.t
+    from vmocap_core.heatmaps import apply_affine
+
+    expect = apply_affine(A[1], uv[0, 0])
+    # distorted normalized coordinates = K_cam^-1 uv; then the heatmap K maps them to the map
+    d = np.linalg.solve(cam.K, np.array([*uv[0, 0], 1.0]))
+    assert np.allclose((K @ d)[:2], expect, atol=1e-9) and xc[2] > 0
+
+
+def test_camera_info_mismatch_is_reported() -> None:
+    from vmocap_core.synthetic import benchmark_rig
+
+    cam = benchmark_rig()[0]
+    good = M.camera_info_msg(cam, 0)
+    assert M.camera_info_mismatch(good, cam) is None
+    bad = dict(good, k=np.asarray(good["k"]) * 1.01)
+    assert "K differs" in M.camera_info_mismatch(bad, cam)
+    assert "1024x768" in M.camera_info_mismatch(dict(good, width=640), cam)

@@ -1,0 +1,266 @@
+"""`vmocap bench graph [--json]`: rate, drops and latency of the node graph.
+
+A synthetic bag (4 cameras, 1024x768 bgr8, 30 Hz; benchmark rig, walk clip) is played in a
+loop by `vmocap play --restamp` (capture stamp = the moment the player publishes the frame
+set) through vmocap_pcm -> vmocap_markers -> vmocap_skeleton, once with each node in its own
+process and once with all three in one process (the player is always its own process).
+A probe node in this process measures, from the capture stamp, the age of:
+  cam0/camera_info (transport), pcm/cam0 (after PCM), markers (after the lattice search),
+  joint_states (end to end);
+the achieved output rate, the frame sets that never came out (dropped %), and the CPU per
+node (callback CPU time from the nodes' diagnostics, % of one core).
+PCM: `--pcm bag` (default) hands out heatmaps recorded in the bag (no CNN cost), `synthetic`
+renders them per frame set, `model` runs the CNN (vmocap_core.pcm) when it is available.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parent.parent
+NODES = ["vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print the results as JSON")
+    parser.add_argument("--seconds", type=float, default=8.0, help="measured seconds per mode")
+    parser.add_argument("--warmup", type=float, default=2.0, help="seconds ignored at the start of each mode")
+    parser.add_argument("--frames", type=int, default=15, help="frame sets in the looped bag")
+    parser.add_argument("--fps", type=float, default=30.0)
+    parser.add_argument("--cameras", type=int, default=4)
+    parser.add_argument("--size", default="1024x768", help="image size WxH")
+    parser.add_argument("--pcm", default="bag", choices=("bag", "synthetic", "model"))
+    parser.add_argument("--model", default="", help="PCM model for --pcm model")
+    parser.add_argument("--modes", nargs="+", default=["processes", "single_process"], choices=("processes", "single_process"))
+    parser.add_argument("--workdir", default=None, help="where the bag and configs go (default: a temp dir)")
+
+
+def _bag(work: Path, args: argparse.Namespace):
+    from vmocap_core.bag.synth import write_synthetic_bag
+    from vmocap_core.keypoints import KEYPOINTS
+    from vmocap_core.motion import load_motion, resample
+    from vmocap_core.rig_io import save_rig
+    from vmocap_core.synthetic import benchmark_rig
+
+    w, h = (int(x) for x in args.size.split("x"))
+    rig = benchmark_rig(width=w, height=h)
+    rig = rig.subset(rig.names[: args.cameras]) if args.cameras < len(rig) else rig
+    motion_path = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
+    m = resample(load_motion(motion_path), args.fps)
+    bag = work / f"bench_{args.cameras}x{w}x{h}_{args.frames}.mcap"
+    if not bag.exists():
+        write_synthetic_bag(bag, rig, m.positions, m.present, args.frames, fps=args.fps, images=True, pcm=True)
+    rig_path = work / "rig.yaml"
+    save_rig(rig, rig_path)
+    return rig, bag, rig_path, [KEYPOINTS[i] for i in np.flatnonzero(m.present)], motion_path
+
+
+def _config(work: Path, mode: str, rig_path: Path, kps: list[str], args: argparse.Namespace, bag: Path, motion: Path) -> Path:
+    cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
+    common = cfg["/**"]["ros__parameters"]
+    common.update(rig=str(rig_path), pcm_keypoints=kps)
+    pcm = cfg["vmocap_pcm"]["ros__parameters"]
+    if args.pcm == "bag":
+        pcm.update(source="model", model=str(bag))
+    elif args.pcm == "synthetic":
+        pcm.update(source="synthetic", model=str(motion))
+    else:
+        pcm.update(source="model", model=args.model)
+    for n in ("vmocap_markers", "vmocap_skeleton"):
+        cfg[n]["ros__parameters"].setdefault("tracker", {})["fps"] = float(args.fps)
+    cfg["vmocap_launch"] = {"mode": mode, "nodes": NODES, "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
+    path = work / f"graph_{mode}.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+class Probe:
+    """Subscribes to the stage outputs and records (receive wall time, capture stamp)."""
+
+    def __init__(self, rclpy, cameras: list[str]) -> None:
+        from vmocap_core.bag import cdr
+        from vmocap_core.bag import messages as M
+
+        from .common import Topics, msg_class, qos
+
+        self.rclpy = rclpy
+        self.node = rclpy.create_node("vmocap_bench_probe")
+        t = Topics("/vmocap")
+        self.samples: dict[str, list[tuple[int, int]]] = {k: [] for k in ("transport", "pcm", "markers", "joint_states", "keypoints")}
+        self.diag: dict[str, list[tuple[int, float]]] = {}
+        self.recording = False
+
+        def stamp_of(data: bytes) -> int:
+            import struct
+
+            sec, nsec = struct.unpack_from("<iI", data, 4)
+            return sec * 1_000_000_000 + nsec
+
+        def sub(kind: str, ty: str, topic: str, latched: bool = False) -> None:
+            def cb(data: bytes) -> None:
+                if self.recording:
+                    self.samples[kind].append((time.time_ns(), stamp_of(data)))
+
+            self.node.create_subscription(msg_class(ty), topic, cb, qos(50, latched=latched), raw=True)
+
+        sub("transport", "sensor_msgs/msg/CameraInfo", t.camera_info(cameras[0]))
+        sub("pcm", "sensor_msgs/msg/CameraInfo", t.pcm_info(cameras[0]))
+        sub("markers", "sensor_msgs/msg/PointCloud2", t.markers, latched=True)
+        sub("joint_states", "sensor_msgs/msg/JointState", t.joint_states)
+        sub("keypoints", "sensor_msgs/msg/PointCloud2", t.keypoints)
+
+        def on_diag(data: bytes) -> None:
+            d = cdr.decode("diagnostic_msgs/msg/DiagnosticArray", data)
+            for s in d["status"]:
+                vals = {v["key"]: v["value"] for v in s["values"]}
+                if "cpu_s" in vals:
+                    self.diag.setdefault(s["name"], []).append((time.monotonic_ns(), float(vals["cpu_s"])))
+                    self.last_status = getattr(self, "last_status", {})
+                    self.last_status[s["name"]] = vals
+
+        self.node.create_subscription(msg_class("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", on_diag, qos(50), raw=True)
+        self._M = M
+
+    def spin_for(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.rclpy.spin_once(self.node, timeout_sec=0.01)
+
+    def clear(self, all_: bool = False) -> None:
+        for v in self.samples.values():
+            v.clear()
+        if all_:
+            self.diag.clear()
+            self.last_status = {}
+
+    def close(self) -> None:
+        self.node.destroy_node()
+
+
+def _lat(samples: list[tuple[int, int]]) -> dict[str, float]:
+    if not samples:
+        return {"p50": float("nan"), "p95": float("nan"), "n": 0}
+    a = np.array([(r - s) / 1e6 for r, s in samples])
+    return {"p50": round(float(np.percentile(a, 50)), 2), "p95": round(float(np.percentile(a, 95)), 2), "n": int(a.size)}
+
+
+def _cpu(diag: list[tuple[int, float]], t0: int, t1: int) -> float:
+    pts = [(t, c) for t, c in diag if t0 <= t <= t1]
+    if len(pts) < 2:
+        return float("nan")
+    (ta, ca), (tb, cb) = pts[0], pts[-1]
+    return round(100.0 * (cb - ca) / ((tb - ta) / 1e9), 1)
+
+
+def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, probe: Probe, env: dict[str, str]) -> dict:
+    launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    topics = [t for c in rig.names for t in (f"/vmocap/{c}/image_raw", f"/vmocap/{c}/camera_info")]
+    player = subprocess.Popen(
+        [sys.executable, "-m", "vmocap_core.cli", "play", str(bag), "--loop", "--restamp", "--no-clock", "--quiet",
+         "--wait-subscribers", "60", "--expect", *[f"/vmocap/{c}/image_raw" for c in rig.names], "--topics", *topics],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        # wait for the graph's first output, then warm up, then measure
+        probe.clear(all_=True)
+        probe.recording = True
+        deadline = time.monotonic() + 90
+        while not probe.samples["keypoints"] and time.monotonic() < deadline:
+            probe.spin_for(0.2)
+            if launch.poll() is not None or player.poll() is not None:
+                raise RuntimeError("graph or player exited early:\n" + (launch.communicate()[0] if launch.poll() is not None else player.communicate()[0]))
+        probe.spin_for(args.warmup)
+        probe.clear()
+        t0 = time.monotonic_ns()
+        probe.spin_for(args.seconds)
+        t1 = time.monotonic_ns()
+        probe.recording = False
+        s = {k: list(v) for k, v in probe.samples.items()}
+        diag = {n: list(v) for n, v in probe.diag.items()}
+        status = dict(getattr(probe, "last_status", {}))
+    finally:
+        for p in (player, launch):
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in (player, launch):
+            try:
+                p.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.communicate()
+    # frame sets the player published in the window (camera_info of cam0, as delivered) vs out
+    sets_in = {st for _, st in s["transport"]}
+    sets_out = {st for _, st in s["keypoints"]}
+    # a frame set published near the end may still be in flight: count only those well before
+    horizon = max((st for st in sets_in), default=0) - int(0.3e9)
+    considered = {st for st in sets_in if st <= horizon}
+    dropped = 100.0 * len(considered - sets_out) / max(len(considered), 1)
+    seconds = (t1 - t0) / 1e9
+    pcm_name = args.pcm if args.pcm != "model" else (args.model or "model")
+    return {
+        "rate_hz": round(len(sets_out) / seconds, 2),
+        "input_rate_hz": round(len(sets_in) / seconds, 2),
+        "dropped_pct": round(dropped, 2),
+        "latency_ms": _lat(s["joint_states"]),
+        "stages_ms": {"transport": _lat(s["transport"]), "pcm": _lat(s["pcm"]), "markers": _lat(s["markers"]),
+                      "joint_states": _lat(s["joint_states"])},
+        "cpu_pct": {n: _cpu(v, t0, t1) for n, v in diag.items() if n in NODES},
+        "proc_ms_p50": {n: float(status[n].get("proc_ms_p50", "nan")) for n in NODES if n in status},
+        "pcm": pcm_name,
+        "tracking_frames": int(len(s["joint_states"])),
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    from .common import prepare_env
+
+    work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="vmocap_bench_graph_"))
+    work.mkdir(parents=True, exist_ok=True)
+    if not args.json:
+        print(f"bench graph: preparing the bag in {work} ...", file=sys.stderr)
+    rig, bag, rig_path, kps, motion = _bag(work, args)
+    env = dict(os.environ)
+    prepare_env(env)
+    env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+    env["PYTHONUNBUFFERED"] = "1"
+    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION")})
+    if "FASTRTPS_DEFAULT_PROFILES_FILE" in env:
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = env["FASTRTPS_DEFAULT_PROFILES_FILE"]
+    from .common import init_rclpy
+
+    rclpy = init_rclpy()
+    probe = Probe(rclpy, rig.names)
+    results = {}
+    try:
+        for mode in args.modes:
+            if not args.json:
+                print(f"bench graph: {mode} ...", file=sys.stderr)
+            results[mode] = run_mode(mode, _config(work, mode, rig_path, kps, args, bag, motion), bag, rig, args, probe, env)
+    finally:
+        probe.close()
+        if rclpy.ok():
+            rclpy.shutdown()
+    out = {"modes": results, "cameras": len(rig), "size": args.size, "fps": args.fps, "seconds": args.seconds,
+           "shm_profile": env.get("FASTRTPS_DEFAULT_PROFILES_FILE", "")}
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    for mode, r in results.items():
+        st = r["stages_ms"]
+        print(f"{mode:15s} rate {r['rate_hz']:6.2f} Hz (input {r['input_rate_hz']:.2f})  dropped {r['dropped_pct']:5.2f} %  "
+              f"end-to-end p50 {r['latency_ms']['p50']:.1f} ms p95 {r['latency_ms']['p95']:.1f} ms  pcm: {r['pcm']}")
+        print("   age after stage (p50/p95 ms): " + ", ".join(f"{k} {v['p50']}/{v['p95']}" for k, v in st.items()))
+        print("   CPU % of one core: " + ", ".join(f"{k} {v}" for k, v in r["cpu_pct"].items())
+              + "   proc ms p50: " + ", ".join(f"{k} {v}" for k, v in r["proc_ms_p50"].items()))
+    return 0
