@@ -103,3 +103,20 @@ def test_flush_and_bad_arguments():
         sync.add("zz", 1, None)
     with pytest.raises(ValueError):
         ApproximateSync(["a", "a"], 0)
+
+
+def test_camera_back_from_silence_is_matched_again_even_if_its_first_frame_is_late():
+    # views arrive cam0 first; cameras 1-3 pause for longer than the silence timeout
+    sync = ApproximateSync(CAMS, tolerance_ns=MS, min_cameras=2, silent_after_ns=100 * MS)
+    out = []
+    for k in range(5):
+        out += feed(sync, [(c, k * 33 * MS) for c in CAMS])
+    for k in range(5, 12):  # only cam0 delivers: its lone frames are dropped (below min_cameras)
+        out += feed(sync, [("c0", k * 33 * MS)])
+    assert set(sync.stats().silent) == {"c1", "c2", "c3"}
+    for k in range(12, 20):  # all back, cam0 always first
+        out += feed(sync, [(c, k * 33 * MS) for c in CAMS])
+    assert not sync.stats().silent
+    late_sets = [s for s in out if s.stamp_ns >= 13 * 33 * MS]
+    # after the first set back (whose cam0 frame went alone), every set is complete again
+    assert len(late_sets) == 7 and all(s.complete for s in late_sets)

@@ -99,6 +99,11 @@ class ApproximateSync(Generic[T]):
             raise KeyError(f"unknown camera {name!r}; expected one of {self.names}")
         stamp_ns = int(stamp_ns)
         st = self._stats
+        # a frame, even a late one, proves the camera is alive (not silent)
+        if self._first is None:
+            self._first = stamp_ns
+        newest = self._newest[name]
+        self._newest[name] = stamp_ns if newest is None else max(newest, stamp_ns)
         last = self._emitted_until
         if last is not None and (
             stamp_ns <= last or (name not in self._last_members and stamp_ns <= last + self.tolerance_ns)
@@ -113,10 +118,6 @@ class ApproximateSync(Generic[T]):
             return []
         stamps.insert(i, stamp_ns)
         self._items[name].insert(i, item)
-        if self._first is None:
-            self._first = stamp_ns
-        newest = self._newest[name]
-        self._newest[name] = stamp_ns if newest is None else max(newest, stamp_ns)
         return self._drain()
 
     def flush(self) -> list[FrameSet[T]]:

@@ -219,6 +219,8 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         "proc_ms_p50": {n: float(status[n].get("proc_ms_p50", "nan")) for n in NODES if n in status},
         "pcm": pcm_name,
         "tracking_frames": int(len(s["joint_states"])),
+        "node_status": {n: {k: v for k, v in status[n].items() if k in ("frames", "sync", "queue_dropped", "feedback_timeouts", "queued", "tracking")}
+                        for n in NODES if n in status},
     }
 
 
