@@ -470,6 +470,10 @@ def run(args: argparse.Namespace) -> int:
     from .calibration.datasets import pose2sim_demo
     from .rig_io import save_rig
 
+    from .pcm.fetch import fetch as fetch_models
+
+    log("PCM models: checking the cache (builds it on a fresh machine, as `vmocap models fetch`)")
+    fetch_models(quiet=True)
     log("fetching the pose2sim==0.10.49 wheel (pip download --no-deps, cached)")
     demo = pose2sim_demo(fetch=True)
     if demo is None:
