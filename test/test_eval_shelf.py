@@ -174,3 +174,21 @@ def test_person_who_leaves_ends_only_their_tracker() -> None:
     assert [t.track_id for t in tracks] == [stay_id]
     assert any(e[1] == "end" and e[2] == leaving.track_id for e in mpt.events)
     assert not any(e[1] == "start" and e[0] >= 20 for e in mpt.events)
+
+
+@needs_shelf
+def test_cli_reports_a_broken_detection_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import shutil
+
+    from vmocap_core.cli import main
+
+    shutil.copy(SHELF / "calibration.json", tmp_path / "calibration.json")
+    shutil.copy(SHELF / "gt.txt", tmp_path / "gt.txt")
+    (tmp_path / "detection").mkdir()
+    for cam in range(5):
+        shutil.copy(SHELF / "detection" / f"{cam}.txt", tmp_path / "detection" / f"{cam}.txt")
+    lines = (tmp_path / "detection" / "3.txt").read_text().splitlines()
+    (tmp_path / "detection" / "3.txt").write_text("\n".join(lines[:1000]) + "\n")  # cut mid-file
+    assert main(["eval", "shelf", "--data", str(tmp_path), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "detection/3.txt: line " in err and "file ends" in err

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import VmocapError
 from ..keypoints import KEYPOINTS
 from ..multiperson import (
     MultiPersonConfig,
@@ -155,7 +156,11 @@ def format_table(res: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    data = load_shelf(args.data, args.frames)
+    try:
+        data = load_shelf(args.data, args.frames)
+    except VmocapError as exc:
+        print(f"vmocap eval shelf: {exc}", file=sys.stderr)
+        return 2
     res = evaluate(data, progress=not args.no_progress)
     if args.json:
         print(json.dumps(res, indent=2))
