@@ -114,6 +114,7 @@ class ShelfScore:
     correct: dict[int, list[np.ndarray]] = field(default_factory=lambda: defaultdict(list))
     errors_mm: dict[int, list[float]] = field(default_factory=lambda: defaultdict(list))
     missed: dict[int, int] = field(default_factory=lambda: defaultdict(int))
+    coverage: dict[int, list[float]] = field(default_factory=lambda: defaultdict(list))
 
     def add_frame(self, preds: np.ndarray, gt_ids: np.ndarray, gt: np.ndarray, gt_valid: np.ndarray) -> None:
         """preds: (P, 15, 3) Shelf-15 predictions; gt (G, 15, 3)."""
@@ -128,9 +129,11 @@ class ShelfScore:
                 # joints we produced (the count of missing ones is reported separately).
                 if np.isfinite(e).any():
                     self.errors_mm[pid].append(float(np.nanmean(e)) * 1000.0)
+                self.coverage[pid].append(float(np.isfinite(e).mean()) if e.size else 0.0)
             else:
                 c = np.zeros(len(PARTS), dtype=bool)
                 self.missed[pid] += 1
+                self.coverage[pid].append(0.0)
             self.correct[pid].append(np.where(part_ok, c, np.nan))
 
     def summary(self) -> dict:
@@ -154,4 +157,6 @@ class ShelfScore:
             "mpjpe_mm": mpjpe,
             "frames": {str(pid): len(self.correct[pid]) for pid in ids},
             "missed_frames": {str(pid): int(self.missed[pid]) for pid in ids},
+            # Share of ground-truth joints with a reconstruction (MPJPE is over these only).
+            "joints_reconstructed_pct": {str(pid): 100.0 * float(np.mean(self.coverage[pid])) for pid in ids},
         }

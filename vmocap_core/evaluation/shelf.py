@@ -144,6 +144,7 @@ def format_table(res: dict) -> str:
             lines.append(f"  {g:22s}" + "".join(f"{v:9.1f}" for v in vals) + f"{np.mean(vals):9.1f}")
         lines.append(f"  {'PCP':22s}" + "".join(f"{r['pcp'][i]:9.1f}" for i in ids) + f"{r['pcp']['mean']:9.1f}")
         lines.append(f"  {'MPJPE mm':22s}" + "".join(f"{r['mpjpe_mm'][i]:9.1f}" for i in ids) + f"{r['mpjpe_mm']['mean']:9.1f}")
+        lines.append(f"  {'joints reconstr. %':22s}" + "".join(f"{r['joints_reconstructed_pct'][i]:9.1f}" for i in ids))
         lines.append(f"  {'frames (missed)':22s}" + "".join(f"{str(r['frames'][i]) + '(' + str(r['missed_frames'][i]) + ')':>9s}" for i in ids))
         lines.append("")
     lines.append(f"tracks started {res['tracks_started']}, ended {res['tracks_ended']}; person-frames from "
