@@ -70,7 +70,7 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("min_cameras", 2, "fewest cameras a frame set needs", 1, 64),
         Param("silent_after_ms", 500.0, "a camera without frames this long is reported silent", 1.0, 1e6),
         Param("use_feedback", True, "crop/rotate with the skeleton of the previous frame"),
-        Param("queue_depth", 5, "subscription depth per image topic (reliable; older frames are dropped)", 1, 1000),
+        Param("queue_depth", 2, "subscription depth per image topic (reliable; when the node falls behind, older frames are dropped: freshness over completeness)", 1, 1000),
     ],
     "vmocap_markers": [
         Param("sync_tolerance_ms", 1.0, "max stamp difference of PCM views of one frame set", 0.0, 1000.0),
@@ -235,7 +235,7 @@ class GraphConfig:
         given.update(overrides or {})
         for key, value in given.items():
             if key not in spec:
-                if section_is_common(key):
+                if node not in TRACKER_NODES and section_is_common(key):
                     continue
                 raise GraphConfigError(self.path, f"{node}.{key}", f"unknown parameter (known: {sorted(spec)})")
             values[key] = _check(self.path, spec[key], value)
@@ -278,5 +278,6 @@ def load(path: str | Path) -> GraphConfig:
     for node in cfg.node_names():
         if node not in NODE_PARAMS:
             raise GraphConfigError(path, "vmocap_launch.nodes", f"unknown node {node!r}")
+    for node in set(cfg.node_names()) | (set(raw) & set(NODE_PARAMS)):
         cfg.node_params(node)  # validate early: a bad file fails before anything starts
     return cfg

@@ -1,0 +1,54 @@
+"""The graph config: declared parameters only, types and ranges checked, paths resolved."""
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from vmocap_core import graph_config
+from vmocap_core.graph_config import GraphConfigError
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _cfg(tmp_path: Path, patch: dict) -> Path:
+    cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
+    for section, params in patch.items():
+        cfg.setdefault(section, {"ros__parameters": {}})["ros__parameters"].update(params)
+    p = tmp_path / "g.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    return p
+
+
+def test_shipped_config_is_valid_and_complete():
+    cfg = graph_config.load(REPO / "config" / "graph.yaml")
+    p = cfg.node_params("vmocap_markers")
+    assert Path(p["rig"]).is_file() and p["cameras"] == [] and len(p["pcm_keypoints"]) == 14
+    assert p["tracker.fps"] == 30.0 and "tracker.lattice_k" in p
+    for node in graph_config.NODE_PARAMS:
+        cfg.node_params(node)
+        for prm in graph_config.params_of(node):
+            assert prm.description
+
+
+def test_unknown_parameter_is_rejected(tmp_path):
+    with pytest.raises(GraphConfigError, match=r"vmocap_markers\.lattice_kk.*unknown"):
+        graph_config.load(_cfg(tmp_path, {"vmocap_markers": {"lattice_kk": 3}}))
+    with pytest.raises(GraphConfigError, match="unknown section"):
+        graph_config.load(_cfg(tmp_path, {"vmocap_nonsense": {"x": 1}}))
+    with pytest.raises(GraphConfigError, match="unknown tracker|tracker.nope"):
+        graph_config.load(_cfg(tmp_path, {"vmocap_skeleton": {"tracker": {"nope": 1}}}))
+
+
+def test_types_and_ranges_are_checked(tmp_path):
+    with pytest.raises(GraphConfigError, match="outside"):
+        graph_config.load(_cfg(tmp_path, {"vmocap_markers": {"min_cameras": 0}}))
+    with pytest.raises(GraphConfigError, match="expected a number"):
+        graph_config.load(_cfg(tmp_path, {"vmocap_markers": {"sync_tolerance_ms": "fast"}}))
+    with pytest.raises(GraphConfigError, match="not one of"):
+        graph_config.load(_cfg(tmp_path, {"vmocap_pcm": {"source": "magic"}}))
+    cfg = graph_config.load(_cfg(tmp_path, {"vmocap_markers": {"sync_tolerance_ms": 2}}))
+    assert cfg.node_params("vmocap_markers")["sync_tolerance_ms"] == 2.0
+    # overrides (vmocap launch --set) are validated the same way
+    with pytest.raises(GraphConfigError):
+        cfg.node_params("vmocap_recorder", {"compression": "rar"})
