@@ -27,7 +27,8 @@ REPO = Path(__file__).resolve().parents[1]
 PAPER_TABLE_I = {"regular": {"mpjpe_mm": 26.1, "pck100": 99.8}, "inverted": {"mpjpe_mm": 38.8, "pck100": 96.4}}
 
 # Published Shelf PCP (%) per actor (Actor 1, 2, 3) and average, as reported by the authors
-# (standard protocol: 3 actors, frames 300-600). Our ground truth file has ids 0-3 over 301
+# (standard protocol: 3 actors, frames 300-600); transcribed from memory of the papers' tables,
+# to be checked against them before citing. Our ground truth file has ids 0-3 over 301
 # frames, so the comparison is indicative, not protocol-exact.
 PUBLISHED_SHELF = [
     ("Belagiannis et al. 3DPS, CVPR 2014", (66.1, 65.0, 83.2), 71.4),
@@ -161,8 +162,15 @@ def shelf_table(shelf: dict[str, Any] | None) -> list[str]:
     out.append("")
     out.append("MPJPE per id (mm): ours " + ", ".join(f"id {i} {_f(shelf['mpjpe_mm'][i])}" for i in ids) +
                "; baseline " + ", ".join(f"id {i} {_f(shelf['baseline']['mpjpe_mm'][i])}" for i in ids) + ".")
+    if "joints_reconstructed_pct" in shelf:
+        out.append("")
+        out.append("MPJPE counts only the joints a method reconstructed: ours " +
+                   ", ".join(f"{_f(shelf['joints_reconstructed_pct'][i])} %" for i in ids) + ", baseline " +
+                   ", ".join(f"{_f(shelf['baseline']['joints_reconstructed_pct'][i])} %" for i in ids) +
+                   " of the ground-truth joints (ids in the order above); PCP counts a missing joint as wrong.")
     out.append("")
-    out.append("Published average PCP on Shelf (Actor 1 / 2 / 3 / average, as reported by the authors):")
+    out.append("Published PCP on Shelf (Actor 1 / 2 / 3 / average, as reported by the authors and reproduced "
+               "in the comparison tables of MVPose and VoxelPose; check against the papers before citing):")
     out.append("")
     out.append("| method | Actor 1 | Actor 2 | Actor 3 | average |")
     out.append("|---|---|---|---|---|")
