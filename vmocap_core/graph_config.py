@@ -44,7 +44,7 @@ class Param:
     lo: float | None = None
     hi: float | None = None
     choices: tuple[str, ...] | None = None
-    path: bool = False  # resolve relative to the config file
+    path: bool | str = False  # resolve relative to the config file ("auto": when it looks like a file)
 
 
 COMMON = [
@@ -65,7 +65,11 @@ NODE_PARAMS: dict[str, list[Param]] = {
     ],
     "vmocap_pcm": [
         Param("source", "model", "where heatmaps come from", choices=("model", "synthetic")),
-        Param("model", "", "PCM model name or ONNX path (source=model)"),
+        Param("model", "", "source=model: 'blazepose' / 'blazepose-lite' (the CNN) or a bag of heatmaps (*.mcap); "
+              "source=synthetic: the motion clip (.npz)", path="auto"),
+        Param("rotation", "all", "CNN input rotation (paper III-B): all = each crop rotated upright; lower_body = "
+              "an extra rotated view per camera for the lower body (views CAM and CAM_1); none", choices=("all", "lower_body", "none")),
+        Param("threads", 2, "onnxruntime threads of the CNN", 1, 64),
         Param("sync_tolerance_ms", 8.0, "max stamp difference of frames in one frame set", 0.0, 1000.0),
         Param("min_cameras", 2, "fewest cameras a frame set needs", 1, 64),
         Param("silent_after_ms", 500.0, "a camera without frames this long is reported silent", 1.0, 1e6),
@@ -156,7 +160,8 @@ def _check(path: Path, p: Param, value: Any) -> Any:
         raise GraphConfigError(path, p.name, f"{value} is outside [{p.lo}, {p.hi}]")
     if p.choices is not None and value not in p.choices:
         raise GraphConfigError(path, p.name, f"{value!r} is not one of {list(p.choices)}")
-    if p.path and isinstance(value, str) and value and not Path(value).is_absolute():
+    looks_like_file = p.path != "auto" or ("/" in str(value) or str(value).endswith((".npz", ".mcap", ".onnx")))
+    if p.path and looks_like_file and isinstance(value, str) and value and not Path(value).is_absolute():
         value = str((path.parent / value).resolve())
     return value
 

@@ -259,6 +259,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .errors import VmocapError
+
+    try:
+        return _run(args)
+    except VmocapError as exc:
+        print(f"vmocap process: {exc}", file=sys.stderr)
+        return 1
+
+
+def _run(args: argparse.Namespace) -> int:
     from . import graph_config
     from .rig_io import load_rig
 
@@ -339,3 +349,27 @@ class SyntheticPcmProvider:
         keep = np.isin(pcm.camera, cameras)
         return PcmViews(pcm.maps[keep], pcm.image_to_map[keep], pcm.camera[keep], pcm.keypoints,
                         pcm.valid[keep], pcm.presence[keep], stamp_ns)
+
+
+class ModelPcmProvider:
+    """The CNN (vmocap_core.pcm.pipeline.BlazePosePcm): detector crops until a skeleton is fed
+    back, then crops around the projected skeleton, rotated by the trunk tilt."""
+
+    def __init__(self, rig: Rig, model: str = "", rotation: str = "all", threads: int = 2) -> None:
+        from .pcm.pipeline import BlazePosePcm
+
+        variant = "lite" if model.endswith("lite") else "full"
+        self.rig = rig
+        self.pcm = BlazePosePcm(rig, rotation=rotation, threads=threads, variant=variant)
+        self.name = f"blazepose-{variant} (rotation {rotation})"
+
+    def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
+        full: list[np.ndarray | None] = [None] * len(self.rig)
+        for c, img in zip(cameras, images):
+            full[int(c)] = img
+        usable = feedback is not None and np.isfinite(feedback[[0, 1]]).all()
+        return self.pcm.infer(full, keypoints=feedback if usable else None, stamp_ns=stamp_ns)
+
+
+def make_model_provider(model: str, rig: Rig, rotation: str = "all", threads: int = 2) -> ModelPcmProvider:
+    return ModelPcmProvider(rig, model, rotation, threads)

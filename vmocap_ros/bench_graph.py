@@ -76,7 +76,8 @@ def _config(work: Path, mode: str, rig_path: Path, kps: list[str], args: argpars
     elif args.pcm == "synthetic":
         pcm.update(source="synthetic", model=str(motion))
     else:
-        pcm.update(source="model", model=args.model)
+        pcm.update(source="model", model=args.model or "blazepose")
+        common["pcm_keypoints"] = [""]  # the CNN's channels are all 25 KEYPOINTS
     for n in ("vmocap_markers", "vmocap_skeleton"):
         cfg[n]["ros__parameters"].setdefault("tracker", {})["fps"] = float(args.fps)
     cfg["vmocap_launch"] = {"mode": mode, "nodes": NODES, "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}

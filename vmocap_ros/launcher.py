@@ -2,8 +2,7 @@
 
 Default: each node in its own process (`python -m vmocap_ros.run_node CONFIG NODE`);
 `--single-process` (or `vmocap_launch: {mode: single_process}`): all nodes in this process
-with one executor (lowest latency: no serialization between nodes' DDS participants... the
-messages still go through rclpy, but intra-process delivery skips the network stack).
+with one executor (no process switches; messages still go through DDS, within one process).
 Ctrl-C/SIGTERM: every node is asked to stop (SIGINT), closes its outputs (the recorder
 finalizes its MCAP) and exits; stragglers get SIGTERM after --grace seconds, then SIGKILL.
 Discovery is localhost-only unless ROS_AUTOMATIC_DISCOVERY_RANGE is set (docs/graph.md).
@@ -41,6 +40,16 @@ def child_env(profile: str | None = None) -> dict[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vmocap_core.errors import VmocapError
+
+    try:
+        return _run(args)
+    except VmocapError as exc:
+        print(f"vmocap launch: {exc}", file=sys.stderr)
+        return 1
+
+
+def _run(args: argparse.Namespace) -> int:
     from vmocap_core import graph_config
 
     cfg = graph_config.load(args.config)

@@ -205,7 +205,12 @@ class PcmNode(VmocapNode):
             return BagPcmProvider(model, self.rig, channel_keypoints(self.p["pcm_keypoints"]), self.p["namespace"])
         from vmocap_core.process import make_model_provider  # the CNN (vmocap_core.pcm)
 
-        return make_model_provider(model, self.rig)
+        provider = make_model_provider(model, self.rig, self.p["rotation"], self.p["threads"])
+        expected = list(channel_keypoints(self.p["pcm_keypoints"]))
+        if list(provider.pcm.landmark.keypoints) != expected:
+            raise VmocapError(f"pcm_keypoints of the config do not match the model's channels "
+                              f"({len(provider.pcm.landmark.keypoints)} channels; for BlazePose leave pcm_keypoints empty)")
+        return provider
 
     def _on_info(self, cam: str, msg: dict) -> None:
         problem = M.camera_info_mismatch(msg, self.rig[cam])
@@ -224,7 +229,8 @@ class PcmNode(VmocapNode):
             t0 = time.perf_counter()
             cams = [n for n in self.rig.names if n in fs.items]
             idx = np.array([self.rig.names.index(n) for n in cams])
-            pcm = self.provider.infer([fs.items[n] for n in cams], idx, fs.stamp_ns, self.feedback)
+            fb = self.feedback if self.p["use_feedback"] else None
+            pcm = self.provider.infer([fs.items[n] for n in cams], idx, fs.stamp_ns, fb)
             seen: dict[str, int] = {}
             for img, info in M.pcm_msgs(pcm, self.rig):
                 cam_name = img["header"]["frame_id"]
