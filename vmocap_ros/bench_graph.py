@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cameras", type=int, default=4)
     parser.add_argument("--size", default="1024x768", help="image size WxH")
     parser.add_argument("--pcm", default="bag", choices=("bag", "synthetic", "model"))
+    parser.add_argument("--images", default="synthetic", choices=("synthetic", "pose2sim"),
+                        help="synthetic: random texture (no person; use with --pcm bag/synthetic); pose2sim: the "
+                             "Pose2Sim demo videos (a real person, 4 calibrated cameras) resized to --size (with --pcm model)")
     parser.add_argument("--model", default="", help="PCM model for --pcm model")
     parser.add_argument("--modes", nargs="+", default=["processes", "single_process"], choices=("processes", "single_process"))
     parser.add_argument("--workdir", default=None, help="where the bag and configs go (default: a temp dir)")
@@ -64,6 +67,53 @@ def _bag(work: Path, args: argparse.Namespace):
     rig_path = work / "rig.yaml"
     save_rig(rig, rig_path)
     return rig, bag, rig_path, [KEYPOINTS[i] for i in np.flatnonzero(m.present)], motion_path
+
+
+def _pose2sim_bag(work: Path, args: argparse.Namespace):
+    """The first --frames frame sets of the Pose2Sim demo (real person), resized to --size
+    (intrinsics scaled to match), stamps at --fps."""
+    import cv2
+
+    from vmocap_core.bag import BagWriter
+    from vmocap_core.bag import messages as M
+    from vmocap_core.calibration.datasets import pose2sim_demo
+    from vmocap_core.camera import Camera, Rig
+    from vmocap_core.demo import load_qualisys_rig, video_paths, video_sizes
+    from vmocap_core.graph_config import Topics
+    from vmocap_core.rig_io import save_rig
+
+    demo = pose2sim_demo(fetch=True)
+    videos = video_paths(demo)
+    full = load_qualisys_rig(demo / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    w, h = (int(x) for x in args.size.split("x"))
+    cams = []
+    for c in full:
+        # keep the aspect: fit into w x h (portrait videos give a portrait image)
+        s = min(w, h) / min(c.width, c.height)
+        W, H = int(round(c.width * s)), int(round(c.height * s))
+        sx, sy = W / c.width, H / c.height
+        S = np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]])  # pixel centres at integers
+        cams.append(Camera(c.name, S @ c.K, c.dist, c.R, c.t, W, H))
+    rig = Rig(cams[: args.cameras])
+    bag = work / f"pose2sim_{args.cameras}x{args.size}_{args.frames}.mcap"
+    if not bag.exists():
+        topics = Topics()
+        caps = {c.name: cv2.VideoCapture(str(videos[c.name])) for c in rig}
+        with BagWriter(bag) as wr:
+            for k in range(args.frames):
+                t = 1_000_000_000_000 + int(round(k * 1e9 / args.fps))
+                for c in rig:
+                    ok, img = caps[c.name].read()
+                    if not ok:
+                        raise RuntimeError(f"{videos[c.name]}: fewer than {args.frames} frames")
+                    img = cv2.resize(img, (c.width, c.height), interpolation=cv2.INTER_AREA)
+                    wr.write(topics.image(c.name), "sensor_msgs/msg/Image", M.image_msg(img, t, c.name), t)
+                    wr.write(topics.camera_info(c.name), "sensor_msgs/msg/CameraInfo", M.camera_info_msg(c, t), t)
+        for cap in caps.values():
+            cap.release()
+    rig_path = work / "rig_pose2sim.yaml"
+    save_rig(rig, rig_path)
+    return rig, bag, rig_path, [], None
 
 
 def _config(work: Path, mode: str, rig_path: Path, kps: list[str], args: argparse.Namespace, bag: Path, motion: Path) -> Path:
@@ -232,7 +282,13 @@ def run(args: argparse.Namespace) -> int:
     work.mkdir(parents=True, exist_ok=True)
     if not args.json:
         print(f"bench graph: preparing the bag in {work} ...", file=sys.stderr)
-    rig, bag, rig_path, kps, motion = _bag(work, args)
+    if args.images == "pose2sim":
+        if args.pcm != "model":
+            print("bench graph: --images pose2sim needs --pcm model", file=sys.stderr)
+            return 2
+        rig, bag, rig_path, kps, motion = _pose2sim_bag(work, args)
+    else:
+        rig, bag, rig_path, kps, motion = _bag(work, args)
     env = dict(os.environ)
     prepare_env(env)
     env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
@@ -254,11 +310,22 @@ def run(args: argparse.Namespace) -> int:
         probe.close()
         if rclpy.ok():
             rclpy.shutdown()
-    out = {"modes": results, "cameras": len(rig), "size": args.size, "fps": args.fps, "seconds": args.seconds,
+    # the same frames offline (no DDS): what the graph adds on top of the computation
+    offline_ms = None
+    if args.images == "synthetic":
+        from vmocap_core.process import process_bag
+
+        off = process_bag(bag, work / "offline_out.mcap", rig, tracker={"fps": float(args.fps)}, keypoints=kps, progress=False)
+        offline_ms = round(off["ms_per_frame"], 2)
+    for r in results.values():
+        r["graph_overhead_ms_p50"] = round(r["latency_ms"]["p50"] - offline_ms, 2) if offline_ms is not None and args.pcm != "model" else None
+    out = {"modes": results, "offline_ms_per_frame": offline_ms, "cameras": len(rig), "size": args.size, "fps": args.fps, "seconds": args.seconds,
            "shm_profile": env.get("FASTRTPS_DEFAULT_PROFILES_FILE", "")}
     if args.json:
         print(json.dumps(out))
         return 0
+    if offline_ms is not None:
+        print(f"offline pipeline (vmocap process, same PCM frames): {offline_ms:.2f} ms per frame set")
     for mode, r in results.items():
         st = r["stages_ms"]
         print(f"{mode:15s} rate {r['rate_hz']:6.2f} Hz (input {r['input_rate_hz']:.2f})  dropped {r['dropped_pct']:5.2f} %  "

@@ -1,0 +1,27 @@
+"""`vmocap bench graph --json` runs both modes end to end (small images to stay fast) and
+reports the documented fields with plausible values."""
+
+import json
+import subprocess
+import sys
+
+from graph_helpers import REPO, domain_env
+
+
+def test_bench_graph_json(tmp_path):
+    env = domain_env(21)
+    r = subprocess.run(
+        [sys.executable, "-m", "vmocap_core.cli", "bench", "graph", "--json", "--seconds", "3", "--warmup", "1",
+         "--size", "320x240", "--frames", "10", "--workdir", str(tmp_path)],
+        env=env, cwd=REPO, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-4000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert set(out["modes"]) == {"processes", "single_process"}
+    for mode, m in out["modes"].items():
+        assert m["pcm"] == "bag"
+        assert {"rate_hz", "dropped_pct", "latency_ms", "pcm"} <= set(m)
+        assert m["rate_hz"] > 3.0, (mode, m)  # frame sets really flow through the graph
+        assert 0.0 <= m["dropped_pct"] <= 100.0
+        assert 0.0 < m["latency_ms"]["p50"] <= m["latency_ms"]["p95"] < 5000.0
+        assert set(m["cpu_pct"]) == {"vmocap_pcm", "vmocap_markers", "vmocap_skeleton"}
+    assert out["offline_ms_per_frame"] > 0
