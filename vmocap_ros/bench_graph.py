@@ -151,6 +151,7 @@ class Probe:
         self.samples: dict[str, list[tuple[int, int]]] = {k: [] for k in ("transport", "pcm", "markers", "joint_states", "keypoints")}
         self.diag: dict[str, list[tuple[int, float]]] = {}
         self.recording = False
+        self.min_stamp = 0  # ignore outputs of frames captured before the current mode started
 
         def stamp_of(data: bytes) -> int:
             import struct
@@ -161,7 +162,9 @@ class Probe:
         def sub(kind: str, ty: str, topic: str, latched: bool = False) -> None:
             def cb(data: bytes) -> None:
                 if self.recording:
-                    self.samples[kind].append((time.time_ns(), stamp_of(data)))
+                    st = stamp_of(data)
+                    if st >= self.min_stamp:
+                        self.samples[kind].append((time.time_ns(), st))
 
             self.node.create_subscription(msg_class(ty), topic, cb, qos(50, latched=latched), raw=True)
 
@@ -225,9 +228,10 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
     try:
         # wait for the graph's first output, then warm up, then measure
         probe.clear(all_=True)
+        probe.min_stamp = time.time_ns()
         probe.recording = True
         deadline = time.monotonic() + 90
-        while not probe.samples["keypoints"] and time.monotonic() < deadline:
+        while not (probe.samples["keypoints"] and probe.samples["transport"]) and time.monotonic() < deadline:
             probe.spin_for(0.2)
             if launch.poll() is not None or player.poll() is not None:
                 raise RuntimeError("graph or player exited early:\n" + (launch.communicate()[0] if launch.poll() is not None else player.communicate()[0]))
