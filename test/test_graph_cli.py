@@ -87,3 +87,39 @@ def test_process_cli_truncated_bag(tmp_path: Path) -> None:
 
     stats = json.loads(r.stdout.strip().splitlines()[-1])
     assert 3 <= stats["frames"] < 12
+
+
+def test_silent_camera_graph_continues_and_reports(tmp_path: Path) -> None:
+    """cam3's heatmaps never arrive: every frame set still comes out (3 views >= min 2) and
+    vmocap_markers lists cam3 as silent on /diagnostics."""
+    bag = tmp_path / "in.mcap"
+    rig, rig_path, kps = synthetic_bag(bag, frames=30)
+    out = tmp_path / "out.mcap"
+    cfg = write_config(tmp_path / "g.yaml", rig_path, kps, ["vmocap_markers", "vmocap_skeleton", "vmocap_recorder"],
+                       mode="single_process", output=out,
+                       extra={"vmocap_markers": {"queue_depth": 100, "silent_after_ms": 200.0, "feedback_timeout_ms": 5000.0},
+                              "vmocap_skeleton": {"queue_depth": 100}})
+    env = domain_env(13)
+    launch = vmocap(["launch", str(cfg)], env)
+    topics = [f"/vmocap/pcm/{c}/{k}" for c in ("cam0", "cam1", "cam2") for k in ("heatmaps", "camera_info")]
+    try:
+        assert wait_for(lambda: Path(str(out) + ".partial").exists() or launch.poll() is not None, 60.0)
+        import time
+
+        time.sleep(1.0)
+        play = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "play", str(bag), "--topics", *topics,
+                               "--expect", *topics, "/vmocap/pcm/cam3/heatmaps", "--wait-subscribers", "60"],
+                              env=env, capture_output=True, text=True, timeout=90)
+        assert play.returncode == 0, play.stdout + play.stderr
+        import time
+
+        time.sleep(4.0)  # processing backlog + at least one diagnostics period
+    finally:
+        log = stop(launch)
+    assert launch.returncode == 0, log
+    with BagReader(out) as r:
+        n_kp = r.message_counts.get("/vmocap/keypoints", 0)
+        status = [s for m in r.messages(["/diagnostics"]) for s in m.decode()["status"] if s["name"] == "vmocap_markers"]
+    assert n_kp == 30, log
+    last = {v["key"]: v["value"] for v in status[-1]["values"]}
+    assert "cam3" in last["silent"] and last["frames"] == "30"

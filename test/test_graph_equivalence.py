@@ -61,9 +61,16 @@ def test_graph_equals_offline(tmp_path: Path, mode: str, listener) -> None:
                               "vmocap_skeleton": {"queue_depth": 100}})
     launch = vmocap(["launch", str(cfg)], env)
     try:
+        # the recorder exists once its .partial file does; give DDS a moment to match it with
+        # the skeleton's publishers (the player itself waits for the markers node)
+        assert wait_for(lambda: Path(str(out) + ".partial").exists() or launch.poll() is not None, 60.0)
+        assert launch.poll() is None, stop(launch)
+        import time
+
+        time.sleep(1.5)
         play = subprocess.run(
             [sys.executable, "-m", "vmocap_core.cli", "play", str(bag), "--rate", "2", "--wait-subscribers", "60",
-             "--expect", *[f"/vmocap/pcm/{c}/heatmaps" for c in rig.names], "/vmocap/pcm/cam3/camera_info"],
+             "--expect", *[f"/vmocap/pcm/{c}/{k}" for c in rig.names for k in ("heatmaps", "camera_info")]],
             env=env, capture_output=True, text=True, timeout=120)
         assert play.returncode == 0, play.stdout + play.stderr
         # the pipeline lags the player: wait until every frame set came out
@@ -80,6 +87,7 @@ def test_graph_equals_offline(tmp_path: Path, mode: str, listener) -> None:
     assert np.max(np.abs(q_g - q_off)) <= 1e-6
 
     # the recorder's file is a real rosbag2 MCAP: rosbags reads it with the standard type store
+    pytest.importorskip("rosbags")
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 

@@ -82,11 +82,12 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("silent_after_ms", 500.0, "a view without heatmaps this long is reported silent", 1.0, 1e6),
         Param("feedback_timeout_ms", 200.0, "wait this long for the previous frame's skeleton (0: never wait)", 0.0, 1e5),
         Param("views", [""], "PCM view names (topics NS/pcm/VIEW/...); empty: one per camera, named as it"),
-        Param("queue_depth", 10, "subscription depth per PCM topic and frame sets queued while the "
+        Param("queue_depth", 3, "subscription depth per PCM topic and frame sets queued while the "
               "lattice search waits for feedback (beyond it the oldest are dropped and counted)", 1, 1000),
     ],
     "vmocap_skeleton": [
-        Param("queue_depth", 10, "subscription depth of the markers topic", 1, 1000),
+        Param("queue_depth", 3, "subscription depth of the markers topic (live: freshness over completeness; "
+              "raise it to process every frame of a bag played faster than the pipeline)", 1, 1000),
     ],
     "vmocap_recorder": [
         Param("output", "", "MCAP file to write (renamed from .partial when closed)", path=True),
