@@ -5,10 +5,13 @@ Steps (each reported on stderr):
    or ~/.cache/vmocap/pose2sim, shared with the calibration tests) and unpack the demo folder;
 2. convert its Qualisys calibration (Calib.qca.txt) to a vmocap rig file;
 3. convert the 4 synchronized 60 fps videos into a rosbag2 MCAP in bags/ (JPEG
-   sensor_msgs/CompressedImage + CameraInfo per camera; raw 1088x1920 frames would be 2.5 GB);
-4. run the pipeline on the bag: the real CNN (pcm.BlazePosePcm: detector to initialize, crops
-   from the fed-back skeleton while tracking), MarkerStage (triangulation / lattice search),
-   SkeletonStage (IK, IIR, second IK); outputs recorded into an MCAP next to the report;
+   sensor_msgs/CompressedImage + CameraInfo per camera, 50 MB; the graph's camera node reads
+   raw sensor_msgs/Image, so graph mode also writes bags/*_raw.mcap, ~0.9 GB with zstd);
+4. run the pipeline on the bag: by default the ROS 2 node graph (`vmocap launch`: camera node
+   playing a raw-image copy of the bag, CNN PCM node, markers, skeleton, recorder); with
+   `--mode in-process` the same stages in this process: the real CNN (pcm.BlazePosePcm: detector
+   to initialize, crops from the fed-back skeleton while tracking), MarkerStage (triangulation /
+   lattice search), SkeletonStage (IK, IIR, second IK); outputs recorded into an MCAP;
 5. write the report folder: skeleton reprojected over the 4 views (MP4 + contact sheet),
    3D trajectories, bone-length constancy, reprojection error per camera and keypoint, PCM
    score over time, per-stage timing, report.md and summary.json.
@@ -188,14 +191,15 @@ def bag_frame_sets(bag: Path, rig: Rig):
                 yield ns, [imgs[i] for i in range(len(rig))]
 
 
-def _count_frame_sets(bag: Path, rig: Rig) -> int:
+def _count_frame_sets(bag: Path, rig: Rig, raw: bool = False) -> int:
     from .bag import BagReader
     from .errors import BagError
     from .graph_config import Topics
 
+    suffix = "" if raw else "/compressed"
     try:
         with BagReader(bag) as reader:
-            return min(reader.message_counts.get(Topics().image(c.name) + "/compressed", 0) for c in rig)
+            return min(reader.message_counts.get(Topics().image(c.name) + suffix, 0) for c in rig)
     except BagError:
         return -1
 
@@ -264,6 +268,148 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
         bar.close()
     out = {k: (np.array(v) if k not in ("status", "links") else v) for k, v in rec.items()}
     return out
+
+
+# ------------------------------------------------------------------------------ node graph
+def run_graph(raw_bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int, rate: float = 0.05) -> Path:
+    """The ROS 2 node graph (camera from the raw bag, CNN PCM node, markers, skeleton,
+    recorder) as `vmocap launch` processes; returns the recorded MCAP (outputs + PCMs).
+
+    The bag is played at `rate` x real time so the CNN on this CPU keeps up (frames the PCM
+    node cannot take are dropped by design: freshness over completeness)."""
+    import os
+    import signal
+    import subprocess
+
+    import yaml
+    from tqdm import tqdm
+
+    from .graph_config import Topics
+
+    topics = Topics()
+    record = [topics.keypoints, topics.joint_states, topics.markers, topics.skeleton, Topics.diagnostics]
+    record += [topics.pcm(c.name) for c in rig] + [topics.pcm_info(c.name) for c in rig]
+    output = out_dir / "graph_outputs.mcap"
+    tracker = dict(TRACKER_SETTINGS)
+    cfg = {
+        "/**": {"ros__parameters": {"rig": str(rig_yaml), "cameras": [""], "namespace": topics.ns,
+                                    "pcm_keypoints": [""], "use_sim_time": False}},
+        "vmocap_camera": {"ros__parameters": {"source": "bag", "uri": str(raw_bag), "rate": rate, "loop": False,
+                                              "start_offset": 0.0}},
+        "vmocap_pcm": {"ros__parameters": {"source": "model", "model": "blazepose", "min_cameras": 2,
+                                           "silent_after_ms": 5000.0, "use_feedback": True, "queue_depth": 50}},
+        "vmocap_markers": {"ros__parameters": {"min_cameras": 2, "silent_after_ms": 5000.0,
+                                               "feedback_timeout_ms": 2000.0, "views": [""], "tracker": tracker}},
+        "vmocap_skeleton": {"ros__parameters": {"tracker": tracker}},
+        "vmocap_recorder": {"ros__parameters": {"output": str(output), "topics": record, "compression": "zstd"}},
+        "vmocap_launch": {"mode": "processes", "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml"),
+                          "nodes": ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]},
+    }
+    cfg_path = out_dir / "graph.yaml"
+    cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    launch = [sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg_path), "--nodes"]
+    back = ["vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]
+    procs: list[subprocess.Popen] = []
+
+    def stop(proc: subprocess.Popen) -> None:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)  # the launcher stops its nodes; the recorder flushes
+            try:
+                proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+    log_main, log_cam = out_dir / "graph.log", out_dir / "graph_camera.log"
+    with open(log_main, "w") as lf, open(log_cam, "w") as lc:
+        try:
+            # The camera starts only once the other nodes are up (else the first frames, the
+            # ones that initialize the tracker, would go to a PCM node still loading its model).
+            procs.append(subprocess.Popen(launch + back, stdout=lf, stderr=subprocess.STDOUT, env=env, cwd=REPO))
+            deadline = time.monotonic() + 180
+            while time.monotonic() < deadline and procs[0].poll() is None:
+                if all(f"READY {n}" in log_main.read_text() for n in back):
+                    break
+                time.sleep(0.5)
+            else:
+                raise VmocapError(f"the node graph did not start; see {log_main}")
+            procs.append(subprocess.Popen(launch + ["vmocap_camera"], stdout=lc, stderr=subprocess.STDOUT, env=env, cwd=REPO))
+            seconds = int(n_frames / FPS / rate + 15)  # playback + the last frames through the graph
+            for _ in tqdm(range(seconds), desc="node graph", unit="s", file=sys.stderr):
+                if any(p.poll() is not None for p in procs):
+                    break
+                time.sleep(1.0)
+        finally:
+            for proc in reversed(procs):
+                stop(proc)
+    if not output.exists():
+        raise VmocapError(f"the node graph wrote no {output}; see {out_dir / 'graph.log'}")
+    return output
+
+
+def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
+    """The report's per-frame record from the graph's recorded topics (frame f = stamp f/60 s)."""
+    from .bag import BagReader
+    from .bag import messages as M
+    from .graph_config import Topics
+    from .pcm.peaks import camera_keypoints
+    from .process import PcmAssembler, channel_keypoints
+
+    topics = Topics()
+    stamps = np.array([int(round(f * 1e9 / FPS)) for f in range(n_frames)], dtype=np.int64)
+    index = {int(s): f for f, s in enumerate(stamps)}
+    J, C = len(KEYPOINTS), len(rig)
+    nan3 = np.full((n_frames, J, 3), np.nan)
+    rec = {"stamp": stamps, "status": ["dropped"] * n_frames, "keypoints": nan3.copy(), "raw": nan3.copy(),
+           "markers": nan3.copy(), "uv": np.full((n_frames, C, J, 2), np.nan), "w": np.zeros((n_frames, C, J)),
+           "score": np.zeros(n_frames), "weights": np.zeros((n_frames, J)), "n_views": np.zeros(n_frames, int)}
+    for k in ("t_decode", "t_pcm", "t_markers", "t_skeleton"):
+        rec[k] = np.full(n_frames, np.nan)  # per-stage timing: `vmocap bench graph` measures the graph
+    asm = PcmAssembler(rig, rig.names, channel_keypoints([]), tolerance_ns=1_000_000, min_views=1)
+    pcm_topics = {topics.pcm(c.name): (c.name, "image") for c in rig} | {topics.pcm_info(c.name): (c.name, "info") for c in rig}
+
+    def take(pcms) -> None:
+        for pcm in pcms:
+            f = index.get(int(pcm.stamp_ns))
+            if f is not None:
+                rec["uv"][f], rec["w"][f] = camera_keypoints(pcm, C)
+                rec["n_views"][f] = pcm.n_views
+
+    node_timing: dict[str, dict[str, float]] = {}
+    with BagReader(path) as reader:
+        for m in reader.messages():
+            msg = m.decode()
+            if m.topic == Topics.diagnostics:
+                for st in msg.get("status", []):  # the nodes' own processing time (last report wins)
+                    kv = {e["key"]: e["value"] for e in st.get("values", [])}
+                    if "proc_ms_p50" in kv:
+                        node_timing[st["name"]] = {"median_ms": float(kv["proc_ms_p50"]), "p95_ms": float(kv["proc_ms_p95"]),
+                                                   "frames": float(kv.get("proc_ms_n", "nan"))}
+                continue
+            if m.topic in pcm_topics:
+                view, kind = pcm_topics[m.topic]
+                take(asm.add_image(view, msg) if kind == "image" else asm.add_info(view, msg))
+                continue
+            f = index.get(M.stamp_ns(msg)) if isinstance(msg, dict) and "header" in msg else None
+            if f is None:
+                continue
+            if m.topic == topics.keypoints:
+                P, S, _ = M.cloud_keypoints(msg)
+                rec["status"][f] = "tracking" if P is not None else "initializing"
+                if P is not None:
+                    rec["keypoints"][f] = P
+                    rec["raw"][f] = P
+            elif m.topic == topics.markers:
+                P, S, _ = M.cloud_keypoints(msg)
+                if P is not None:
+                    rec["markers"][f] = P
+                rec["weights"][f] = S
+        take(asm.flush())
+    rec["node_timing"] = node_timing
+    seen = rec["n_views"] > 0
+    rec["score"] = np.where(seen, rec["weights"].sum(axis=1) / np.maximum(rec["n_views"], 1) / J, 0.0)
+    return rec
 
 
 # ------------------------------------------------------------------------------ report
@@ -378,8 +524,13 @@ def write_report(rig: Rig, rec: dict, out_dir: Path, info: dict) -> dict:
         if L.size:
             bones[name] = {"mean_m": float(L.mean()), "std_mm": float(L.std() * 1000), "range_mm": float(np.ptp(L) * 1000)}
     # Timing.
-    timing = {k[2:]: {"mean_ms": float(np.mean(rec[k]) * 1000), "median_ms": float(np.median(rec[k]) * 1000)}
-              for k in ("t_decode", "t_pcm", "t_markers", "t_skeleton")}
+    if rec.get("node_timing"):
+        timing = {f"node {k}": {"mean_ms": float("nan"), "median_ms": v["median_ms"], "p95_ms": v["p95_ms"]}
+                  for k, v in rec["node_timing"].items()}
+    else:
+        timing = {k[2:]: {"mean_ms": float(np.mean(rec[k]) * 1000), "median_ms": float(np.median(rec[k]) * 1000),
+                          "p95_ms": float(np.percentile(rec[k], 95) * 1000)}
+                  for k in ("t_decode", "t_pcm", "t_markers", "t_skeleton")}
 
     fig, ax = plt.subplots(figsize=(9, 4))
     ax.plot(t, rec["score"], label="mean PCM score per view (marker weights)")
@@ -433,15 +584,18 @@ def write_report(rig: Rig, rec: dict, out_dir: Path, info: dict) -> dict:
         **info,
     }
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    np.savez_compressed(out_dir / "recording.npz", **{k: np.asarray(v) for k, v in rec.items() if k != "links"})
+    np.savez_compressed(out_dir / "recording.npz",
+                        **{k: np.asarray(v) for k, v in rec.items() if k not in ("links", "node_timing")})
     md = [
         "# vmocap demo: Pose2Sim Demo_SinglePerson", "",
         f"{summary['frames']} frame sets at {FPS:.0f} fps, 4 cameras 1088x1920 (cam01/cam02 videos are "
         "stored 1080 wide, cropped at the right). Tracking in "
-        f"{summary['tracking_frames']} frames (from t = {summary['first_tracking_s']} s).", "",
+        f"{summary['tracking_frames']} frames (from t = {summary['first_tracking_s']} s). Run: "
+        f"{info.get('mode', 'in-process pipeline')}; frame sets processed: {info.get('processed_frames', summary['frames'])}.", "",
         f"**Median reprojection error** of the output skeleton against the CNN's confident 2D keypoints "
         f"(PCM centroids, peak >= 0.5), all cameras and keypoints: **{median_all:.1f} px** (target <= 12 px). "
-        f"Before the low-pass filter (first IK): {median_raw:.1f} px. Reference on the same samples: free "
+        + ("" if rec.get("node_timing") else f"Before the low-pass filter (first IK): {median_raw:.1f} px. ")
+        + f"Reference on the same samples: free "
         f"per-frame triangulation of the same 2D keypoints (no skeleton, no filter) reprojects with "
         f"{median_free:.1f} px (ours {median_same:.1f} px). Without the 5 face keypoints: ours "
         f"{median_body:.1f} px, free triangulation {median_body_free:.1f} px (the skeleton's rigid head "
@@ -453,10 +607,9 @@ def write_report(rig: Rig, rec: dict, out_dir: Path, info: dict) -> dict:
         "| bone | mean (m) | std (mm) | range (mm) |", "|---|---|---|---|",
         *[f"| {k} | {v['mean_m']:.3f} | {v['std_mm']:.2f} | {v['range_mm']:.2f} |" for k, v in bones.items()], "",
         "Time per frame set (this machine, shared CPU):", "",
-        "| stage | mean ms | median ms |", "|---|---|---|",
-        *[f"| {k} | {v['mean_ms']:.1f} | {v['median_ms']:.1f} |" for k, v in timing.items()], "",
-        "Files: overlay.mp4, contact_sheet.png, trajectories_3d.png, bone_lengths.png, reprojection_error.png, "
-        "pcm_score.png, outputs.mcap (graph output topics), rig.yaml, summary.json.",
+        "| stage | mean ms | median ms | p95 ms |", "|---|---|---|---|",
+        *[f"| {k} | {v['mean_ms']:.1f} | {v['median_ms']:.1f} | {v['p95_ms']:.1f} |" for k, v in timing.items()], "",
+        "Files: " + ", ".join(sorted(p.name for p in out_dir.iterdir() if p.is_file())) + ".",
     ]
     (out_dir / "report.md").write_text("\n".join(md) + "\n")
     return summary
@@ -470,6 +623,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument("--no-video", action="store_true", help="skip the overlay MP4 / contact sheet")
     parser.add_argument("--rebuild-bag", action="store_true", help="convert the videos again even if the bag exists")
+    parser.add_argument("--mode", choices=("graph", "in-process"), default="graph",
+                        help="graph: the ROS 2 node graph (vmocap launch) on a raw-image bag (default); "
+                             "in-process: the same stages in this process on the compressed bag (no DDS, faster)")
+    parser.add_argument("--graph-rate", type=float, default=0.05, help="bag playback rate in graph mode (x real time)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
@@ -499,8 +656,19 @@ def run(args: argparse.Namespace) -> int:
         n = videos_to_bag(videos, rig, args.bag, args.frames)
         log(f"{n} frame sets -> {args.bag}")
     t0 = time.perf_counter()
-    rec = run_pipeline(args.bag, rig, args.out / "outputs.mcap", n, args.threads)
-    info = {"pipeline_s": time.perf_counter() - t0, "bag": str(args.bag), "tracker_settings": TRACKER_SETTINGS}
+    if args.mode == "graph":
+        raw_bag = args.bag.with_name(args.bag.stem + "_raw.mcap")
+        if not raw_bag.exists() or args.rebuild_bag or _count_frame_sets(raw_bag, rig, raw=True) != n:
+            videos_to_bag(videos, rig, raw_bag, args.frames, raw=True)
+        log(f"node graph on {raw_bag} at {args.graph_rate} x real time")
+        recorded = run_graph(raw_bag, args.out / "rig.yaml", rig, args.out, n, args.graph_rate)
+        rec = recording_from_graph(recorded, rig, n)
+        mode = "ROS 2 node graph (vmocap launch: camera from bag, CNN PCM, markers, skeleton, recorder)"
+    else:
+        rec = run_pipeline(args.bag, rig, args.out / "outputs.mcap", n, args.threads)
+        mode = "in-process pipeline (the graph's stage classes, no DDS)"
+    info = {"pipeline_s": time.perf_counter() - t0, "bag": str(args.bag), "mode": mode,
+            "processed_frames": int(sum(s != "dropped" for s in rec["status"])), "tracker_settings": TRACKER_SETTINGS}
     if not args.no_video:
         info["overlays"] = render_overlays(args.bag, rig, rec, args.out)
     summary = write_report(rig, rec, args.out, info)
