@@ -123,3 +123,28 @@ def test_silent_camera_graph_continues_and_reports(tmp_path: Path) -> None:
     assert n_kp == 30, log
     last = {v["key"]: v["value"] for v in status[-1]["values"]}
     assert "cam3" in last["silent"] and last["frames"] == "30"
+
+
+def test_process_image_bag_runs_the_cnn(tmp_path: Path) -> None:
+    """A bag with camera images only: `vmocap process` runs the CNN per synchronized frame set
+    (random textures: no person, so nothing is tracked, but every frame set goes through)."""
+    import pytest
+
+    try:
+        from vmocap_core.pcm.fetch import model_path
+
+        model_path("pose_landmark_full")
+        model_path("pose_detection")
+    except Exception as exc:  # noqa: BLE001 - models not built on this machine
+        pytest.skip(f"PCM models not available ({exc})")
+    from vmocap_core.bag.synth import write_synthetic_bag
+    from vmocap_core.process import process_bag
+    from vmocap_core.synthetic import benchmark_rig
+
+    rig = benchmark_rig(width=160, height=120)
+    bag = tmp_path / "imgs.mcap"
+    write_synthetic_bag(bag, rig, np.zeros((5, 25, 3)), np.ones(25, bool), 5, images=True, pcm=False)
+    stats = process_bag(bag, tmp_path / "o.mcap", rig, tracker={"fps": 30.0}, progress=False)
+    assert stats["frames"] == 5 and stats["pcm"].startswith("blazepose") and stats["sync"]["complete"] == 5
+    with BagReader(tmp_path / "o.mcap") as r:
+        assert r.message_counts["/vmocap/keypoints"] == 5

@@ -58,7 +58,8 @@ COMMON = [
 NODE_PARAMS: dict[str, list[Param]] = {
     "vmocap_camera": [
         Param("source", "bag", "frame source kind", choices=("bag", "video", "aravis", "v4l2")),
-        Param("uri", "", "bag file, video files directory, or device/camera id", path=True),
+        Param("uri", "", "source URI (vmocap_core.sources.factory): bag file, video file/folder/template, "
+              "/dev/videoN or Aravis ids, per camera as cam0=...,cam1=...; options after '?'", path="auto"),
         Param("rate", 1.0, "playback speed of recorded sources (0: as fast as possible)", 0.0, 100.0),
         Param("loop", False, "restart recorded sources at their end"),
         Param("start_offset", 0.0, "skip this many seconds of a recording", 0.0, 1e6),
@@ -161,7 +162,8 @@ def _check(path: Path, p: Param, value: Any) -> Any:
         raise GraphConfigError(path, p.name, f"{value} is outside [{p.lo}, {p.hi}]")
     if p.choices is not None and value not in p.choices:
         raise GraphConfigError(path, p.name, f"{value!r} is not one of {list(p.choices)}")
-    looks_like_file = p.path != "auto" or ("/" in str(value) or str(value).endswith((".npz", ".mcap", ".onnx")))
+    # "auto": a relative value is a path only when it names something next to the config
+    looks_like_file = p.path != "auto" or (isinstance(value, str) and bool(value) and (path.parent / value).exists())
     if p.path and looks_like_file and isinstance(value, str) and value and not Path(value).is_absolute():
         value = str((path.parent / value).resolve())
     return value

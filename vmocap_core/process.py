@@ -178,9 +178,11 @@ def process_bag(
     min_views: int = 2,
     recover: bool = False,
     progress: bool = True,
+    model: str = "blazepose",
 ) -> dict[str, Any]:
-    """Run the pipeline over the PCM topics of a bag; write the graph's outputs to out_path
-    (log time = capture stamp). Returns counts and the time per frame."""
+    """Run the pipeline over the PCM topics of a bag (or, when it has none, over its camera
+    images with the CNN `model`); write the graph's outputs to out_path (log time = capture
+    stamp). Returns counts and the time per frame."""
     from tqdm import tqdm
 
     topics = Topics(namespace)
@@ -188,8 +190,12 @@ def process_bag(
     with BagReader(in_path, recover=recover) as reader:
         view_names = pcm_topics(reader.topics, topics, views)
         if not view_names:
-            raise BagError(f"{in_path}: no PCM topics under {topics.ns}/pcm/ (bags with camera images "
-                           "only need the PCM model: not supported offline yet)")
+            cams = [c.name for c in rig if topics.image(c.name) in reader.topics]
+            if len(cams) < 2:
+                raise BagError(f"{in_path}: neither PCM topics under {topics.ns}/pcm/ nor images "
+                               f"{topics.image('CAM')} of at least 2 rig cameras")
+            return _process_images(reader, out_path, rig, cams, topics, tracker, model, tolerance_ns,
+                                   min_views, progress)
         asm = PcmAssembler(rig, view_names, kp, tolerance_ns, min_views)
         pipe = TrackerPipeline(rig, dict(tracker or {}))
         by_topic = {}
@@ -232,6 +238,50 @@ def process_bag(
     return stats
 
 
+def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topics: Topics, tracker, model: str,
+                    tolerance_ns: int, min_views: int, progress: bool) -> dict[str, Any]:
+    """Images -> approximate-time sync -> CNN (crops from the previous frame's skeleton) ->
+    tracker: what vmocap_pcm + vmocap_markers + vmocap_skeleton do, frame set by frame set."""
+    from tqdm import tqdm
+
+    provider = make_model_provider(model, rig)
+    sync: ApproximateSync[np.ndarray] = ApproximateSync(cams, max(tolerance_ns, 8_000_000), min_cameras=min_views)
+    pipe = TrackerPipeline(rig, dict(tracker or {}))
+    want = {topics.image(c): c for c in cams}
+    stats = {"frames": 0, "tracking": 0, "seconds": 0.0, "pcm": provider.name}
+    feedback = None
+    with BagWriter(out_path, compression="zstd") as writer:
+        bar = tqdm(total=min(reader.message_counts.get(t, 0) for t in want), unit="frame", desc="process (CNN)",
+                   disable=not progress, file=sys.stderr)
+
+        def handle(sets: list) -> None:
+            nonlocal feedback
+            for fs in sets:
+                t0 = time.perf_counter()
+                names = [c for c in rig.names if c in fs.items]
+                idx = np.array([rig.names.index(c) for c in names])
+                pcm = provider.infer([fs.items[c] for c in names], idx, fs.stamp_ns, feedback)
+                markers, result = pipe.step(pcm)
+                feedback = feedback_of(result)
+                stats["seconds"] += time.perf_counter() - t0
+                writer.write(topics.markers, CLOUD, markers_message(markers), fs.stamp_ns)
+                for topic, ty, msg in result_messages(topics, result):
+                    if topic != topics.feedback:
+                        writer.write(topic, ty, msg, fs.stamp_ns)
+                stats["frames"] += 1
+                stats["tracking"] += result.status == "tracking"
+            bar.update(len(sets))
+
+        for m in reader.messages(list(want)):
+            msg = m.decode()
+            handle(sync.add(want[m.topic], M.stamp_ns(msg), M.image_array(msg)))
+        handle(sync.flush())
+        bar.close()
+    stats["sync"] = sync.stats().as_dict()
+    stats["ms_per_frame"] = 1e3 * stats["seconds"] / max(stats["frames"], 1)
+    return stats
+
+
 def joint_trajectory(path: str | Path, topic: str = "/vmocap/joint_states") -> tuple[np.ndarray, np.ndarray, list[str]]:
     """(stamps (N,), q (N, 40), names) of the JointState messages of a bag, by capture stamp."""
     stamps, qs, names = [], [], []
@@ -249,7 +299,8 @@ def joint_trajectory(path: str | Path, topic: str = "/vmocap/joint_states") -> t
 
 # --------------------------------------------------------------------------------- CLI
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", help="MCAP bag with PCM topics (NS/pcm/VIEW/heatmaps + camera_info)")
+    parser.add_argument("input", help="MCAP bag with PCM topics (NS/pcm/VIEW/heatmaps + camera_info), "
+                        "or with camera images (NS/CAM/image_raw: the CNN runs)")
     parser.add_argument("-o", "--output", required=True, help="MCAP file to write the graph outputs to")
     parser.add_argument("--config", default=None, help="graph config (rig, keypoints, tracker.*); default config/graph.yaml")
     parser.add_argument("--rig", default=None, help="rig YAML (overrides the config's)")
@@ -286,6 +337,7 @@ def _run(args: argparse.Namespace) -> int:
         args.input, args.output, rig, tracker=cfg.tracker_dict(p), keypoints=p["pcm_keypoints"],
         views=p["views"] or None, namespace=p["namespace"], tolerance_ns=int(p["sync_tolerance_ms"] * 1e6),
         min_views=p["min_cameras"], recover=args.recover, progress=not args.no_progress,
+        model=cfg.node_params("vmocap_pcm")["model"] if cfg.node_params("vmocap_pcm")["source"] == "model" else "blazepose",
     )
     if args.json:
         print(json.dumps(stats))
