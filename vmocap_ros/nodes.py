@@ -47,6 +47,36 @@ class Stat:
         return {"p50": f"{np.percentile(a, 50):.3f}", "p95": f"{np.percentile(a, 95):.3f}", "n": str(len(a))}
 
 
+class LocalBus:
+    """All-nodes-in-one-process delivery (`vmocap launch --single-process`): a message published
+    by one of our nodes reaches our other nodes in this process as the dict itself (no CDR,
+    no DDS), queued and handed over by the spin loop after the current callback returns. It is
+    still published over DDS when anyone else (recorder, RViz, a controller) subscribes.
+    Subscriptions are decided in `finalize()`, once every node exists: a topic published by a
+    node of this process is taken locally, any other topic over DDS."""
+
+    def __init__(self) -> None:
+        self.enabled = False
+        self.publishers: set[str] = set()
+        self.subscribers: dict[str, list[Callable[[dict], None]]] = {}
+        self.pending: deque = deque()
+
+    def publish(self, topic: str, msg: dict) -> None:
+        for cb in self.subscribers.get(topic, ()):
+            self.pending.append((cb, msg))
+
+    def drain(self) -> int:
+        n = 0
+        while self.pending:
+            cb, msg = self.pending.popleft()
+            cb(msg)
+            n += 1
+        return n
+
+
+BUS = LocalBus()
+
+
 class VmocapNode(Node):
     """Base: validated parameters (declared with descriptions/ranges), raw pub/sub helpers,
     CPU accounting, a 1 Hz /diagnostics status."""
@@ -71,27 +101,52 @@ class VmocapNode(Node):
         self.proc = Stat()
         self.age = Stat()  # capture stamp -> end of processing, ms (wall clock)
         self.problems: dict[str, str] = {}
+        self._pending_subs: list = []
         self._diag = self.create_publisher(msg_class(DIAG), Topics.diagnostics, qos(10))
         self.create_timer(1.0, self._publish_diagnostics)
 
     # -- raw messages --------------------------------------------------------------------
     def publisher(self, type_name: str, topic: str, depth: int = STREAM_DEPTH, latched: bool = False) -> Callable[[dict], None]:
         pub = self.create_publisher(msg_class(type_name), topic, qos(depth, latched=latched))
-        return lambda msg: pub.publish(cdr.encode(type_name, msg))
+        if not BUS.enabled:
+            return lambda msg: pub.publish(cdr.encode(type_name, msg))
+        BUS.publishers.add(topic)
+
+        def publish(msg: dict) -> None:
+            BUS.publish(topic, msg)
+            # over DDS only when someone outside this process's nodes subscribes (our own
+            # nodes take it locally and have no DDS subscription on this topic)
+            if pub.get_subscription_count() > 0:
+                pub.publish(cdr.encode(type_name, msg))
+
+        return publish
 
     def subscribe(self, type_name: str, topic: str, cb: Callable[[dict], None], depth: int = STREAM_DEPTH,
                   latched: bool = False) -> None:
-        def raw(data: bytes) -> None:
+        def guarded(msg: dict) -> None:
             t0 = time.thread_time()
             try:
-                cb(cdr.decode(type_name, data))
+                cb(msg)
             except VmocapError as exc:
                 self.problems[topic] = str(exc)
                 self.get_logger().error(f"{topic}: {exc}", throttle_duration_sec=5.0)
             finally:
                 self.cpu_s += time.thread_time() - t0
 
-        self.create_subscription(msg_class(type_name), topic, raw, qos(depth, latched=latched), raw=True)
+        self._pending_subs.append((type_name, topic, guarded, depth, latched))
+        if not BUS.enabled:
+            self.finalize()
+
+    def finalize(self) -> None:
+        """Create the subscriptions: local for topics a node of this process publishes."""
+        subs, self._pending_subs = self._pending_subs, []
+        for type_name, topic, guarded, depth, latched in subs:
+            if BUS.enabled and topic in BUS.publishers:
+                BUS.subscribers.setdefault(topic, []).append(guarded)
+                continue
+            self.create_subscription(msg_class(type_name), topic,
+                                     lambda data, g=guarded, t=type_name: g(cdr.decode(t, data)),
+                                     qos(depth, latched=latched), raw=True)
 
     # -- diagnostics ---------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -293,12 +348,12 @@ class MarkersNode(VmocapNode):
             pcm = self.queue.popleft()
             t0 = time.perf_counter()
             markers = self.stage.step(pcm)
+            if self.timeout > 0:  # before publishing: the feedback may come back at once
+                self.awaiting, self.awaiting_since = pcm.stamp_ns, time.monotonic()
             self.pub(markers_message(markers))
             self.counts["frames"] += 1
             self.proc.add(1e3 * (time.perf_counter() - t0))
             self.age.add((time.time_ns() - pcm.stamp_ns) / 1e6)
-            if self.timeout > 0:
-                self.awaiting, self.awaiting_since = pcm.stamp_ns, time.monotonic()
 
     def _on_feedback(self, msg: dict) -> None:
         t = M.stamp_ns(msg)

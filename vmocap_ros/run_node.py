@@ -27,7 +27,7 @@ def parse_sets(items: list[str]) -> dict[str, dict[str, Any]]:
 
 
 def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str, Any]] | None = None,
-               ready: Any = None) -> int:
+               ready: Any = None, local_bus: bool = True) -> int:
     from vmocap_core import graph_config
 
     from .common import StopFlag, init_rclpy
@@ -39,22 +39,25 @@ def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str
 
     executor = SingleThreadedExecutor()
     nodes = []
-    try:
-        from .nodes import create
+    from .nodes import BUS, create
 
+    BUS.enabled = len(names) > 1 and local_bus
+    try:
         for name in names:
             node = create(name, cfg, (overrides or {}).get(name))
             nodes.append(node)
             executor.add_node(node)
+        for node in nodes:
+            node.finalize()
         print("READY " + " ".join(names), flush=True)
         if ready is not None:
             ready()
         while not stop:
-            executor.spin_once(timeout_sec=0.1)
+            executor.spin_once(timeout_sec=0.0 if BUS.drain() else 0.1)
         # drain: deliver what is already in flight (e.g. the last outputs to the recorder)
         drain_end = time.monotonic() + DRAIN_S
         while time.monotonic() < drain_end:
-            executor.spin_once(timeout_sec=0.05)
+            executor.spin_once(timeout_sec=0.0 if BUS.drain() else 0.05)
     finally:
         for node in reversed(nodes):
             try:
