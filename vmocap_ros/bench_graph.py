@@ -217,9 +217,26 @@ def _cpu(diag: list[tuple[int, float]], t0: int, t1: int) -> float:
     return round(100.0 * (cb - ca) / ((tb - ta) / 1e9), 1)
 
 
+def _proc_cpu_s(pid: int) -> float:
+    """utime + stime of a process (seconds), 0 when it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
 def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, probe: Probe, env: dict[str, str]) -> dict:
     launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # process ids: the launcher prints its children first (processes mode); single process: itself
+    pids = {"launcher (all nodes)" if mode == "single_process" else "launcher": launch.pid}
+    if mode == "processes":
+        line = launch.stdout.readline()
+        for item in line.rsplit(": ", 1)[-1].split(","):
+            name, _, pid = item.strip().rstrip("]").partition("[")
+            if pid.isdigit():
+                pids[name] = int(pid)
     topics = [t for c in rig.names for t in (f"/vmocap/{c}/image_raw", f"/vmocap/{c}/camera_info")]
     player = subprocess.Popen(
         [sys.executable, "-m", "vmocap_core.cli", "play", str(bag), "--loop", "--restamp", "--no-clock", "--quiet",
@@ -238,8 +255,13 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         probe.spin_for(args.warmup)
         probe.clear()
         t0 = time.monotonic_ns()
+        cpu0 = {n: _proc_cpu_s(p) for n, p in pids.items()}
+        cpu0["player"] = _proc_cpu_s(player.pid)
         probe.spin_for(args.seconds)
         t1 = time.monotonic_ns()
+        cpu1 = {n: _proc_cpu_s(p) for n, p in pids.items()}
+        cpu1["player"] = _proc_cpu_s(player.pid)
+        process_cpu = {n: round(100.0 * (cpu1[n] - cpu0[n]) / ((t1 - t0) / 1e9), 1) for n in cpu0}
         probe.recording = False
         s = {k: list(v) for k, v in probe.samples.items()}
         diag = {n: list(v) for n, v in probe.diag.items()}
@@ -270,7 +292,8 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         "latency_ms": _lat(s["joint_states"]),
         "stages_ms": {"transport": _lat(s["transport"]), "pcm": _lat(s["pcm"]), "markers": _lat(s["markers"]),
                       "joint_states": _lat(s["joint_states"])},
-        "cpu_pct": {n: _cpu(v, t0, t1) for n, v in diag.items() if n in NODES},
+        "cpu_pct": {n: _cpu(v, t0, t1) for n, v in diag.items() if n in NODES},  # callbacks only
+        "process_cpu_pct": process_cpu,  # whole processes (rclpy executor and DDS threads included)
         "proc_ms_p50": {n: float(status[n].get("proc_ms_p50", "nan")) for n in NODES if n in status},
         "pcm": pcm_name,
         "tracking_frames": int(len(s["joint_states"])),
@@ -335,6 +358,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{mode:15s} rate {r['rate_hz']:6.2f} Hz (input {r['input_rate_hz']:.2f})  dropped {r['dropped_pct']:5.2f} %  "
               f"end-to-end p50 {r['latency_ms']['p50']:.1f} ms p95 {r['latency_ms']['p95']:.1f} ms  pcm: {r['pcm']}")
         print("   age after stage (p50/p95 ms): " + ", ".join(f"{k} {v['p50']}/{v['p95']}" for k, v in st.items()))
-        print("   CPU % of one core: " + ", ".join(f"{k} {v}" for k, v in r["cpu_pct"].items())
+        print("   process CPU % of one core: " + ", ".join(f"{k} {v}" for k, v in r["process_cpu_pct"].items()))
+        print("   callback CPU % of one core: " + ", ".join(f"{k} {v}" for k, v in r["cpu_pct"].items())
               + "   proc ms p50: " + ", ".join(f"{k} {v}" for k, v in r["proc_ms_p50"].items()))
     return 0
