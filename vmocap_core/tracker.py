@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 
 from .camera import Rig
 from .heatmaps import PcmViews
@@ -335,6 +336,42 @@ def identify_dimensions(frames: np.ndarray) -> BodyDimensions:
     return dims
 
 
+# Keypoints that are not joint centres, and the BodyDimensions field of their offset in the
+# parent joint's frame (left side; the right side mirrors y).
+OFFSET_FIELDS = {"nose": "nose", "left_eye": "eye", "right_eye": "eye", "left_ear": "ear", "right_ear": "ear",
+                 "left_heel": "heel", "right_heel": "heel", "left_toe": "toe", "right_toe": "toe"}
+
+
+def refine_offsets(skeleton: Skeleton, frames: np.ndarray, q0: np.ndarray, rounds: int = 2) -> Skeleton:
+    """Identify the offsets of face and foot keypoints on the subject (II-C identifies link
+    lengths; these are the rest of the body's geometry): alternate IK over the initialization
+    frames with the median of each keypoint's coordinates in its parent joint's frame,
+    left and mirrored right averaged. Keypoints seen in fewer than half the frames keep the
+    scaled defaults."""
+    seen = np.isfinite(frames).all(axis=2)  # (N, 25)
+    names = [n for n in OFFSET_FIELDS if seen[:, INDEX[n]].sum() >= max(2, len(frames) // 2)]
+    if not names:
+        return skeleton
+    sk = skeleton
+    for _ in range(rounds):
+        samples: dict[str, list[np.ndarray]] = {n: [] for n in names}
+        q = q0
+        for f, ok in zip(frames, seen):
+            q = solve_ik(sk, q, f, ok.astype(float), 30, damping=1e-2, regularization=1e-6, line_search=True).q
+            pin.forwardKinematics(sk.model, sk.data, q)
+            R, t = sk._placements()
+            for n in names:
+                if ok[INDEX[n]]:
+                    jid = sk._parent[INDEX[n]]
+                    samples[n].append(R[jid].T @ (f[INDEX[n]] - t[jid]))
+        fields: dict[str, list[np.ndarray]] = {}
+        for n in names:
+            off = np.median(np.array(samples[n]), axis=0)
+            fields.setdefault(OFFSET_FIELDS[n], []).append(off * ([1.0, -1.0, 1.0] if n.startswith("right_") else 1.0))
+        sk = Skeleton(dataclasses.replace(sk.dims, **{k: tuple(float(x) for x in np.mean(v, axis=0)) for k, v in fields.items()}))
+    return sk
+
+
 def initial_pose(skeleton: Skeleton, keypoints: np.ndarray) -> np.ndarray:
     """A configuration with the root at the pelvis, oriented by the hips and trunk, limbs
     neutral: the starting point of the initial IK."""
@@ -347,9 +384,7 @@ def initial_pose(skeleton: Skeleton, keypoints: np.ndarray) -> np.ndarray:
         z -= y * (z @ y)
         z /= np.linalg.norm(z)
         R = np.stack([np.cross(y, z), y, z], axis=1)
-        from pinocchio import Quaternion
-
-        q[3:7] = Quaternion(R).coeffs()
+        q[3:7] = pin.Quaternion(R).coeffs()
     if np.all(np.isfinite(p[INDEX["pelvis"]])):
         q[:3] = p[INDEX["pelvis"]]
     return q
@@ -447,6 +482,11 @@ class SkeletonStage:
             if best is None or rms < best[0]:
                 best = (rms, sk, fit)
         rms, sk, fit = best
+        if rms <= cfg.init_max_fit_error_m:
+            sk = refine_offsets(sk, frames, fit.q)
+            w = np.where(np.isfinite(frames[-1]).all(axis=1), 1.0, 0.0)
+            fit = solve_ik(sk, fit.q, frames[-1], w, 30, damping=1e-2, regularization=1e-6, line_search=True)
+            rms = float(np.sqrt(fit.cost))
         if rms > cfg.init_max_fit_error_m:
             self._buffer.popleft()
             return self._empty(markers, status)
