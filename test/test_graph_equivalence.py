@@ -98,3 +98,56 @@ def test_graph_equals_offline(tmp_path: Path, mode: str, listener) -> None:
     assert len(msgs) == len(t_off)
     assert np.max(np.abs(np.array([m.position for m in msgs]) - q_off)) <= 1e-6
     assert list(msgs[0].name) == names_off
+
+
+def test_graph_with_cnn_equals_offline(tmp_path: Path, listener) -> None:
+    """Real images of a person (Pose2Sim demo) through the CNN: with feedback_wait_ms the PCM
+    node crops frame t around the skeleton of frame t-1, exactly as `vmocap process` does."""
+    import argparse
+
+    try:
+        from vmocap_core.calibration.datasets import pose2sim_demo
+        from vmocap_core.pcm.fetch import model_path
+
+        model_path("pose_landmark_full")
+        model_path("pose_detection")
+        if pose2sim_demo(fetch=False) is None:
+            raise FileNotFoundError("pose2sim demo not cached")
+    except Exception as exc:  # noqa: BLE001 - models / demo videos not on this machine
+        pytest.skip(f"CNN or Pose2Sim demo not available ({exc})")
+    from vmocap_core.process import joint_trajectory, process_bag
+    from vmocap_ros.bench_graph import _pose2sim_bag
+
+    env, counter = listener
+    counter.reset()
+    n = 10
+    rig, bag, rig_path, _, _ = _pose2sim_bag(tmp_path, argparse.Namespace(size="640x480", cameras=4, frames=n, fps=30.0))
+    offline = tmp_path / "offline.mcap"
+    stats = process_bag(bag, offline, rig, tracker={"fps": 30.0}, progress=False)
+    assert stats["frames"] == n and stats["tracking"] >= 3, stats
+
+    out = tmp_path / "graph.mcap"
+    cfg = write_config(tmp_path / "graph.yaml", rig_path, [""], ["vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"],
+                       mode="processes", output=out,
+                       extra={"vmocap_pcm": {"source": "model", "model": "blazepose", "feedback_wait_ms": 20000.0, "queue_depth": 100},
+                              "vmocap_markers": {"feedback_timeout_ms": 20000.0, "queue_depth": 100},
+                              "vmocap_skeleton": {"queue_depth": 100}})
+    launch = vmocap(["launch", str(cfg)], env)
+    try:
+        assert wait_for(lambda: Path(str(out) + ".partial").exists() or launch.poll() is not None, 60.0)
+        import time
+
+        time.sleep(1.5)
+        play = subprocess.run(
+            [sys.executable, "-m", "vmocap_core.cli", "play", str(bag), "--rate", "0.5", "--wait-subscribers", "60",
+             "--expect", *[f"/vmocap/{c}/image_raw" for c in rig.names]],
+            env=env, capture_output=True, text=True, timeout=120)
+        assert play.returncode == 0, play.stdout + play.stderr
+        assert wait_for(lambda: counter.count() >= n, 60.0, 0.0), f"only {counter.count()} of {n} frame sets came out"
+    finally:
+        log = stop(launch)
+    assert launch.returncode == 0, log
+    t_off, q_off, _ = joint_trajectory(offline)
+    t_g, q_g, _ = joint_trajectory(out)
+    assert np.array_equal(t_g, t_off), (t_g, t_off)
+    assert np.max(np.abs(q_g - q_off)) <= 1e-6

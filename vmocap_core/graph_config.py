@@ -75,7 +75,10 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("min_cameras", 2, "fewest cameras a frame set needs", 1, 64),
         Param("silent_after_ms", 500.0, "a camera without frames this long is reported silent", 1.0, 1e6),
         Param("use_feedback", True, "crop/rotate with the skeleton of the previous frame"),
-        Param("queue_depth", 2, "subscription depth per image topic (reliable; when the node falls behind, older frames are dropped: freshness over completeness)", 1, 1000),
+        Param("feedback_wait_ms", 0.0, "0: crop with the latest skeleton (pipelined, fastest); > 0: frame t waits "
+              "(at most this long) for the skeleton of frame t-1, exactly as offline (deterministic)", 0.0, 1e5),
+        Param("queue_depth", 2, "subscription depth per image topic and frame sets waiting (reliable; when the node "
+              "falls behind, older frames are dropped: freshness over completeness)", 1, 1000),
     ],
     "vmocap_markers": [
         Param("sync_tolerance_ms", 1.0, "max stamp difference of PCM views of one frame set", 0.0, 1000.0),

@@ -246,8 +246,19 @@ class PcmNode(VmocapNode):
         for name in names:
             self.subscribe(IMAGE, self.topics.image(name), lambda m, n=name: self._on_image(n, m), depth=p["queue_depth"])
             self.subscribe(INFO, self.topics.camera_info(name), lambda m, n=name: self._on_info(n, m))
-        self.subscribe(CLOUD, self.topics.feedback, self._on_feedback)
+        self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
+        # one view per camera exists from the start (publishers created late would lose their
+        # first messages while discovery matches them); extra views (CAM_1...) come on demand
+        for name in names:
+            self._pubs[name] = (self.publisher(IMAGE, self.topics.pcm(name)), self.publisher(INFO, self.topics.pcm_info(name)))
         self.frames = 0
+        self.sets: deque = deque()
+        self.counts = {"queue_dropped": 0, "feedback_timeouts": 0}
+        self.wait = p["feedback_wait_ms"] / 1e3
+        self.awaiting: int | None = None
+        self.awaiting_since = 0.0
+        if self.wait > 0:
+            self.create_timer(min(0.02, self.wait / 2), self._check_timeout)
 
     def _make_provider(self):
         from vmocap_core.process import BagPcmProvider, SyntheticPcmProvider
@@ -277,15 +288,38 @@ class PcmNode(VmocapNode):
 
     def _on_feedback(self, msg: dict) -> None:
         self.feedback = M.cloud_keypoints(msg)[0]
+        if self.awaiting is not None and M.stamp_ns(msg) == self.awaiting:
+            self.awaiting = None
+            self._pump()
 
     def _on_image(self, cam: str, msg: dict) -> None:
         t = M.stamp_ns(msg)
         for fs in self.sync.add(cam, t, M.image_array(msg)):
+            self.sets.append(fs)
+            if len(self.sets) > self.p["queue_depth"]:
+                self.sets.popleft()
+                self.counts["queue_dropped"] += 1
+        self._pump()
+
+    def _check_timeout(self) -> None:
+        if self.awaiting is not None and time.monotonic() - self.awaiting_since > self.wait:
+            self.counts["feedback_timeouts"] += 1
+            self.problems["feedback"] = f"no skeleton feedback within {self.wait * 1e3:.0f} ms ({self.counts['feedback_timeouts']}x)"
+            self.awaiting = None
+            self._pump()
+
+    def _pump(self) -> None:
+        """Frame sets in order; with feedback_wait_ms > 0 frame t waits for the skeleton of the
+        frame before it (crops from t-1, as offline), otherwise the latest skeleton is used."""
+        while self.sets and self.awaiting is None:
+            fs = self.sets.popleft()
             t0 = time.perf_counter()
             cams = [n for n in self.rig.names if n in fs.items]
             idx = np.array([self.rig.names.index(n) for n in cams])
             fb = self.feedback if self.p["use_feedback"] else None
             pcm = self.provider.infer([fs.items[n] for n in cams], idx, fs.stamp_ns, fb)
+            if self.wait > 0 and self.p["use_feedback"]:
+                self.awaiting, self.awaiting_since = fs.stamp_ns, time.monotonic()
             seen: dict[str, int] = {}
             for img, info in M.pcm_msgs(pcm, self.rig):
                 cam_name = img["header"]["frame_id"]
@@ -297,13 +331,16 @@ class PcmNode(VmocapNode):
                 pi, pc = self._pubs[view]
                 pc(info)
                 pi(img)
+            if pcm.n_views == 0 and self.awaiting is not None:
+                self.awaiting = None  # nothing published: no skeleton will answer this frame
             self.frames += 1
             self.proc.add(1e3 * (time.perf_counter() - t0))
             self.age.add((time.time_ns() - fs.stamp_ns) / 1e6)
 
     def status(self) -> dict[str, Any]:
         st = self.sync.stats()
-        return {"frames": self.frames, "pcm": self.provider.name, "sync": st.as_dict(), "silent": list(st.silent)}
+        return dict(self.counts, frames=self.frames, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
+                    queued=len(self.sets))
 
 
 class MarkersNode(VmocapNode):
