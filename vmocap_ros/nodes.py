@@ -478,7 +478,12 @@ class RecorderNode(VmocapNode):
             if topic in self.subscribed or topic not in types:
                 continue
             ty = types[topic]
-            self.writer.add_topic(topic, ty, qos_depth=100)
+            try:
+                self.writer.add_topic(topic, ty, qos_depth=100)
+            except VmocapError as exc:  # a type vmocap's CDR codec does not know
+                self.problems[topic] = f"not recorded: {exc}"
+                self.subscribed.add(topic)
+                continue
 
             def cb(data: bytes, topic: str = topic, ty: str = ty) -> None:
                 t0 = time.thread_time()

@@ -181,6 +181,7 @@ def dependencies(type_name: str) -> list[str]:
 
 def schema_text(type_name: str) -> str:
     """Full ros2msg definition of `type_name` as rosbag2 writes it into MCAP schemas."""
+    fields_of(type_name)  # BagError for a type the codec does not know
     parts = [DEFINITIONS[type_name].rstrip("\n")]
     for dep in dependencies(type_name):
         parts.append("=" * 80 + f"\nMSG: {dep.replace('/msg/', '/')}\n" + DEFINITIONS[dep].rstrip("\n"))
