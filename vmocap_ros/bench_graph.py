@@ -284,7 +284,7 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
     considered = {st for st in sets_in if st <= horizon}
     dropped = 100.0 * len(considered - sets_out) / max(len(considered), 1)
     seconds = (t1 - t0) / 1e9
-    pcm_name = args.pcm if args.pcm != "model" else (args.model or "model")
+    pcm_name = args.pcm if args.pcm != "model" else (args.model or "blazepose")
     return {
         "rate_hz": round(len(sets_out) / seconds, 2),
         "input_rate_hz": round(len(sets_in) / seconds, 2),
