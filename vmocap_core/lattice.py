@@ -10,6 +10,7 @@ All keypoints, lattice points and views are evaluated in one vectorized pass.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,14 +20,18 @@ from .camera import Rig
 from .heatmaps import PcmViews
 
 
+@functools.lru_cache(maxsize=32)
 def lattice_offsets(k: int, spacing: float) -> np.ndarray:
-    """(L, 3) offsets of the (2k+1)^3 lattice of spacing `spacing`, centre first."""
+    """(L, 3) offsets of the (2k+1)^3 lattice of spacing `spacing`, centre first (cached:
+    the same few lattices serve every frame; do not modify the returned array)."""
     r = np.arange(-k, k + 1, dtype=np.float64) * spacing
     g = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
     # Centre first so that ties (e.g. all zeros) keep the marker where it was.
     centre = len(g) // 2
     order = np.r_[centre, np.arange(centre), np.arange(centre + 1, len(g))]
-    return g[order]
+    out = g[order]
+    out.flags.writeable = False
+    return out
 
 
 @dataclass

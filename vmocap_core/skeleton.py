@@ -131,6 +131,16 @@ class BodyDimensions:
 _TWIST_PI = pin.Quaternion(0.0, 0.0, 0.0, 1.0)
 
 
+def _quat_to_rotvec(quats: np.ndarray) -> np.ndarray:
+    """Unit quaternions (N, 4) as x y z w -> rotation vectors (N, 3) with angle in [0, pi]."""
+    q = quats * np.where(quats[:, 3:] < 0, -1.0, 1.0)  # w >= 0: the short way round
+    v = q[:, :3]
+    s = np.linalg.norm(v, axis=1)
+    angle = 2.0 * np.arctan2(s, q[:, 3])
+    scale = np.where(s > 1e-12, angle / np.where(s > 1e-12, s, 1.0), 2.0)
+    return v * scale[:, None]
+
+
 def _mirror(v: tuple[float, float, float], side: str) -> np.ndarray:
     x, y, z = v
     return np.array([x, y if side == "left" else -y, z])
@@ -169,6 +179,21 @@ class Skeleton:
             [self.model.joints[self.model.parents[self.model.getJointId(n)]].idx_q for n in REVOLUTE]
         )
         self.joint_names = self._dof_names()
+        # Index maps between q (quaternions) and the published 40 DOF (rotation vectors).
+        quat_q, rotvec_v, hinge_v = [], [], []
+        for jid in self.joint_ids:
+            j = self.model.joints[int(jid)]
+            if j.nq == 7:
+                quat_q.append(np.arange(3, 7))
+                rotvec_v.append(np.arange(3, 6))
+            elif j.nq == 4:
+                quat_q.append(np.arange(j.idx_q, j.idx_q + 4))
+                rotvec_v.append(np.arange(j.idx_v, j.idx_v + 3))
+            else:
+                hinge_v.append(j.idx_v)
+        self._quat_q = np.array(quat_q)
+        self._rotvec_v = np.concatenate(rotvec_v)
+        self._hinge_v = np.array(hinge_v)
 
     # ---- model construction -------------------------------------------------------------
     def _build(self) -> pin.Model:
@@ -252,20 +277,11 @@ class Skeleton:
     def to_angles(self, q: np.ndarray) -> np.ndarray:
         """q (nq) -> the 40 published DOF: root position, rotation vectors, hinge angles."""
         out = np.empty(40)
-        i = 0
-        for jid in self.joint_ids:
-            j = self.model.joints[int(jid)]
-            qs = q[j.idx_q : j.idx_q + j.nq]
-            if j.nq == 7:
-                out[0:3] = qs[:3]
-                out[3:6] = pin.log3(pin.Quaternion(qs[3:]).toRotationMatrix())
-                i = 6
-            elif j.nq == 4:
-                out[i : i + 3] = pin.log3(pin.Quaternion(qs).toRotationMatrix())
-                i += 3
-            else:
-                out[i] = qs[0]
-                i += 1
+        out[:3] = q[:3]
+        quats = q[self._quat_q]  # (11, 4) x y z w: the root and the spherical joints
+        rotvec = _quat_to_rotvec(quats)
+        out[self._rotvec_v] = rotvec.reshape(-1)
+        out[self._hinge_v] = q[self._rev_q]
         return out
 
     def from_angles(self, angles: np.ndarray) -> np.ndarray:

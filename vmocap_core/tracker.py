@@ -48,8 +48,8 @@ class TrackerConfig:
     reacquire_weight: float = 1.0  # a marker weaker than this triggers a search at its PCM peaks
     reacquire_radius: float = 0.6  # metres from the previous keypoint a re-acquired one may lie
     # IK (II-E)
-    ik_iterations: int = 4  # first IK (to the virtual markers), warm-started
-    second_ik_iterations: int = 2  # second IK (to the smoothed positions, which move little)
+    ik_iterations: int = 3  # first IK (to the virtual markers), warm-started
+    second_ik_iterations: int = 1  # second IK (to the smoothed positions, which move little)
     ik_damping: float = 1e-3
     ik_regularization: float = 1e-5
     second_ik_restart_m: float = 0.02  # RMS fit error of the second IK that triggers a restart
