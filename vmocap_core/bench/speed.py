@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from ..keypoints import KEYPOINTS
 from ..skeleton import Skeleton
-from ..synthetic import SyntheticPcmSource, benchmark_rig
+from ..synthetic import NoiseModel, SyntheticPcmSource, benchmark_rig
 from ..tracker import SpatiotemporalFilter, TrackerConfig
 
 
@@ -43,6 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=300, help="timed frames (after initialization)")
     parser.add_argument("--k", type=int, default=5, help="lattice half-width in cells")
     parser.add_argument("--full-lattice", action="store_true", help="time the full lattice instead of coarse-to-fine")
+    parser.add_argument("--stride", type=int, default=4,
+                        help="PCM stride in image pixels (4: 256x192 maps as the accuracy benchmark; 16: 64x48, "
+                             "about the size of BlazePose's 64x64 maps)")
     parser.add_argument("--json", action="store_true")
 
 
@@ -51,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
     warm = 30
     gt = animated_keypoints(args.frames + warm, fps)
     rig = benchmark_rig(np.array([0.0, 0.0, 0.0]))
-    source = SyntheticPcmSource(rig, gt, np.ones(len(KEYPOINTS), bool), seed=1, fps=fps)
+    noise = NoiseModel(stride=args.stride, sigma_cells=2.0 * 4 / args.stride)  # same Gaussian width in pixels
+    source = SyntheticPcmSource(rig, gt, np.ones(len(KEYPOINTS), bool), seed=1, fps=fps, noise=noise)
     cfg = TrackerConfig(fps=fps, lattice_k=args.k, coarse_to_fine=not args.full_lattice)
     tracker = SpatiotemporalFilter(rig, cfg)
     pcms = [source.render(t) for t in tqdm(range(len(gt)), desc="synthesizing PCMs", disable=args.json)]
@@ -80,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         "keypoints": len(KEYPOINTS),
         "lattice_points": (2 * args.k + 1) ** 3,
         "coarse_to_fine": cfg.coarse_to_fine,
+        "map_size": list(source.map_size),
         "frames": len(total),
     }
     if args.json:
@@ -87,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"back end per frame: median {result['backend_ms']['median']:.2f} ms, p95 {result['backend_ms']['p95']:.2f} ms "
               f"({len(rig)} cameras, {len(KEYPOINTS)} keypoints, {(2 * args.k + 1) ** 3} lattice points"
-              f"{', coarse-to-fine' if cfg.coarse_to_fine else ''}, {len(total)} frames)")
+              f"{', coarse-to-fine' if cfg.coarse_to_fine else ''}, maps {source.map_size[0]}x{source.map_size[1]}, {len(total)} frames)")
         for k, v in result["stages_ms"].items():
             print(f"  {k:<8} median {v['median']:.2f} ms  p95 {v['p95']:.2f} ms")
     return 0
