@@ -60,9 +60,39 @@ def vmocap(args: list[str], env: dict[str, str], **kw) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
 
 
+def wait_ready(proc: subprocess.Popen, nodes: list[str], timeout: float = 60.0) -> bool:
+    """Read the launcher's output (in a thread, kept for `stop`) until every node printed READY."""
+    import threading
+
+    if not hasattr(proc, "_lines"):
+        proc._lines = []  # type: ignore[attr-defined]
+
+        def pump() -> None:
+            for line in proc.stdout:  # type: ignore[union-attr]
+                proc._lines.append(line)  # type: ignore[attr-defined]
+
+        proc._reader = threading.Thread(target=pump, daemon=True)  # type: ignore[attr-defined]
+        proc._reader.start()  # type: ignore[attr-defined]
+
+    def ready() -> bool:
+        text = "".join(proc._lines)  # type: ignore[attr-defined]
+        return all(n in " ".join(l for l in text.splitlines() if l.startswith("READY")) for n in nodes)
+
+    return wait_for(lambda: ready() or proc.poll() is not None, timeout) and ready()
+
+
 def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0) -> str:
     if proc.poll() is None:
         proc.send_signal(sig)
+    if hasattr(proc, "_reader"):
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            raise AssertionError(f"process did not stop on signal {sig}:\n{''.join(proc._lines)}")
+        proc._reader.join(timeout=5)
+        return "".join(proc._lines)
     try:
         out, _ = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:

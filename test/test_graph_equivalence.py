@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from graph_helpers import domain_env, stop, synthetic_bag, vmocap, wait_for, write_config
+from graph_helpers import domain_env, stop, synthetic_bag, vmocap, wait_for, wait_ready, write_config
 
 N = 30
 
@@ -134,10 +134,12 @@ def test_graph_with_cnn_equals_offline(tmp_path: Path, listener) -> None:
                               "vmocap_skeleton": {"queue_depth": 100}})
     launch = vmocap(["launch", str(cfg)], env)
     try:
-        assert wait_for(lambda: Path(str(out) + ".partial").exists() or launch.poll() is not None, 60.0)
+        # every node must be up and matched before the first frame: a PCM frame set lost at
+        # start-up would leave the PCM node waiting for its feedback
+        assert wait_ready(launch, ["vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]), stop(launch)
         import time
 
-        time.sleep(1.5)
+        time.sleep(2.0)
         play = subprocess.run(
             [sys.executable, "-m", "vmocap_core.cli", "play", str(bag), "--rate", "0.5", "--wait-subscribers", "60",
              "--expect", *[f"/vmocap/{c}/image_raw" for c in rig.names]],
