@@ -12,11 +12,12 @@ import math
 import numpy as np
 
 try:
-    from numba import njit
+    from numba import njit, prange
 
     AVAILABLE = True
 except ImportError:  # numba is pinned in requirements.lock; the numpy path still works without it
     AVAILABLE = False
+    prange = range
 
     def njit(*args, **kwargs):  # type: ignore[no-redef]
         def wrap(f):
@@ -65,7 +66,7 @@ def _bicubic(maps: np.ndarray, v: int, j: int, x0: int, y0: int, fx: float, fy: 
     return val
 
 
-@njit(cache=True, fastmath=False, nogil=True)
+@njit(cache=True, fastmath=False, nogil=True, parallel=True)
 def score_lattice(
     centres: np.ndarray,  # (J, 3) float64 world
     rotated_offsets: np.ndarray,  # (V, L, 3) float64: R_v @ offset_l, shared by all keypoints
@@ -81,8 +82,8 @@ def score_lattice(
 ) -> None:
     V, J, H, W = maps.shape
     L = rotated_offsets.shape[1]
-    for v in range(V):
-        for j in range(J):
+    for j in prange(J):  # keypoints in parallel: each writes only its own row of scores
+        for v in range(V):
             if not valid[v, j]:
                 continue
             # Camera-frame centre once per (view, keypoint); R o per lattice point below.

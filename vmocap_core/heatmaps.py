@@ -98,9 +98,14 @@ class PcmViews:
         maps = self.maps if channels is None else self.maps[:, channels]
         valid = self.valid if channels is None else self.valid[:, channels]
         V, J, H, W = maps.shape
-        flat = np.nan_to_num(maps.reshape(V, J, H * W), nan=0.0)
+        flat = maps.reshape(V, J, H * W)
         arg = flat.argmax(axis=2)
         val = np.take_along_axis(flat, arg[..., None], axis=2)[..., 0]
+        broken = np.isnan(val)  # argmax stops at a NaN: redo only those channels without them
+        if broken.any():
+            fixed = np.nan_to_num(flat[broken], nan=0.0)
+            arg[broken] = fixed.argmax(axis=1)
+            val[broken] = fixed[np.arange(len(fixed)), arg[broken]]
         xy = np.stack([arg % W, arg // W], axis=-1).astype(np.float64)
         inv = invert_affine(self.image_to_map)  # (V, 2, 3)
         uv = np.einsum("vij,vkj->vki", inv[:, :, :2], xy) + inv[:, None, :, 2]

@@ -68,7 +68,9 @@ def solve_ik(
         g = Jw.T @ r.reshape(-1)
         dq = np.linalg.solve(H + lam * np.diag(np.diag(H)) + regularization * eye, g)
         q_new = skeleton.integrate(q, dq)
-        p_new, J_new = skeleton.keypoint_jacobians(q_new)
+        last = it == max_iterations and not line_search
+        # The last plain step needs positions only (a Jacobian there would go unused).
+        p_new, J_new = (skeleton.keypoint_positions(q_new), J) if last else skeleton.keypoint_jacobians(q_new)
         r_new = x - p_new
         cost_new = float(w @ (r_new * r_new).sum(axis=1))
         if line_search and cost_new > cost:
