@@ -598,8 +598,8 @@ def write_report(rig: Rig, rec: dict, out_dir: Path, info: dict) -> dict:
         + f"Reference on the same samples: free "
         f"per-frame triangulation of the same 2D keypoints (no skeleton, no filter) reprojects with "
         f"{median_free:.1f} px (ours {median_same:.1f} px). Without the 5 face keypoints: ours "
-        f"{median_body:.1f} px, free triangulation {median_body_free:.1f} px (the skeleton's rigid head "
-        "carries default eye/ear offsets scaled by the trunk, not offsets identified on this subject).", "",
+        f"{median_body:.1f} px, free triangulation {median_body_free:.1f} px (the face keypoints hang on a "
+        "rigid head that pivots at the shoulder midpoint, BlazePose having no neck keypoint).", "",
         "| camera | median px |", "|---|---|", *[f"| {k} | {v:.1f} |" for k, v in per_cam.items()], "",
         "| keypoint | median px | free triangulation px |", "|---|---|---|",
         *[f"| {k} | {v:.1f} | {free_kp.get(k, float('nan')):.1f} |" for k, v in per_kp.items()], "",

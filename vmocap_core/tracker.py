@@ -47,6 +47,7 @@ class TrackerConfig:
     min_views: int = 2  # a marker seen by fewer views gets weight 0
     reacquire_weight: float = 1.0  # a marker weaker than this triggers a search at its PCM peaks
     reacquire_radius: float = 0.6  # metres from the previous keypoint a re-acquired one may lie
+    reacquire_after: int = 2  # consecutive weak frames before the search at the PCM peaks
     # IK (II-E)
     ik_iterations: int = 3  # first IK (to the virtual markers), warm-started
     second_ik_iterations: int = 1  # second IK (to the smoothed positions, which move little)
@@ -137,6 +138,7 @@ class MarkerStage:
         self.centres: np.ndarray | None = None  # skeleton keypoints of the previous frame
         self.velocity = np.zeros((N_KP, 3))
         self._low = 0
+        self._weak = np.zeros(N_KP, dtype=np.int64)  # consecutive weak frames per keypoint
         self.timings: dict[str, float] = {}  # seconds spent in the last step, per stage
 
     @property
@@ -148,6 +150,7 @@ class MarkerStage:
         if keypoints is None:
             self.centres = None
             self.velocity[:] = 0.0
+            self._weak[:] = 0
             return
         kp = np.asarray(keypoints, dtype=np.float64)
         if self.centres is not None:
@@ -205,7 +208,12 @@ class MarkerStage:
             subcell=cfg.subcell,
         )
         markers, weights, n_views = res.markers, res.weights, res.n_views
-        weak = weights < cfg.reacquire_weight
+        # A marker weak for `reacquire_after` frames in a row (one weak frame is usually a
+        # view's missing PCM, not a lost keypoint).
+        low = np.zeros(N_KP, dtype=bool)
+        low[pcm.keypoints] = weights < cfg.reacquire_weight
+        self._weak = np.where(low, self._weak + 1, 0)
+        weak = self._weak[pcm.keypoints] >= cfg.reacquire_after
         if weak.any():
             markers, weights, n_views = self._reacquire(pcm, weak, markers, weights, n_views)
         seen = n_views >= cfg.min_views
