@@ -310,16 +310,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .errors import VmocapError
-
-    try:
-        return _run(args)
-    except VmocapError as exc:
-        print(f"vmocap process: {exc}", file=sys.stderr)
-        return 1
-
-
-def _run(args: argparse.Namespace) -> int:
+    # bad input (VmocapError) is reported by vmocap_core.cli.main
     from . import graph_config
     from .rig_io import load_rig
 

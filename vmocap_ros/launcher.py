@@ -40,16 +40,7 @@ def child_env(profile: str | None = None) -> dict[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vmocap_core.errors import VmocapError
-
-    try:
-        return _run(args)
-    except VmocapError as exc:
-        print(f"vmocap launch: {exc}", file=sys.stderr)
-        return 1
-
-
-def _run(args: argparse.Namespace) -> int:
+    # bad input (VmocapError) is reported by vmocap_core.cli.main
     from vmocap_core import graph_config
 
     cfg = graph_config.load(args.config)
