@@ -95,17 +95,21 @@ class PcmViews:
     def peaks(self, channels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Per view and channel (all, or the given channel indices), the image pixel of the
         heatmap maximum (V, J', 2) and its value (V, J'); NaN cells are ignored."""
-        maps = self.maps if channels is None else self.maps[:, channels]
-        valid = self.valid if channels is None else self.valid[:, channels]
-        V, J, H, W = maps.shape
-        flat = maps.reshape(V, J, H * W)
-        arg = flat.argmax(axis=2)
-        val = np.take_along_axis(flat, arg[..., None], axis=2)[..., 0]
+        chans = np.arange(self.maps.shape[1]) if channels is None else np.asarray(channels)
+        valid = self.valid[:, chans]
+        V, _, H, W = self.maps.shape
+        if channels is None:
+            flat = self.maps.reshape(V, chans.size, H * W)
+        else:  # a few channels: (V, H*W) views of each, no copy of the stack
+            flat = [self.maps[:, c].reshape(V, H * W) for c in chans]
+        arg = np.stack([f.argmax(axis=1) for f in flat], axis=1) if channels is not None else flat.argmax(axis=2)
+        val = np.stack([flat[i][np.arange(V), arg[:, i]] for i in range(chans.size)], axis=1) \
+            if channels is not None else np.take_along_axis(flat, arg[..., None], axis=2)[..., 0]
         broken = np.isnan(val)  # argmax stops at a NaN: redo only those channels without them
-        if broken.any():
-            fixed = np.nan_to_num(flat[broken], nan=0.0)
-            arg[broken] = fixed.argmax(axis=1)
-            val[broken] = fixed[np.arange(len(fixed)), arg[broken]]
+        for v, i in zip(*np.nonzero(broken)):
+            fixed = np.nan_to_num(self.maps[v, chans[i]].reshape(-1), nan=0.0)
+            arg[v, i] = fixed.argmax()
+            val[v, i] = fixed[arg[v, i]]
         xy = np.stack([arg % W, arg // W], axis=-1).astype(np.float64)
         inv = invert_affine(self.image_to_map)  # (V, 2, 3)
         uv = np.einsum("vij,vkj->vki", inv[:, :, :2], xy) + inv[:, None, :, 2]

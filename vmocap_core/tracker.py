@@ -254,9 +254,14 @@ class MarkerStage:
         if not ok.any():
             return markers, weights, n_views
         cand = sub[ok]
-        sub_pcm = PcmViews(pcm.maps[:, cand], pcm.image_to_map, pcm.camera, pcm.keypoints[cand],
-                           pcm.valid[:, cand], pcm.presence, pcm.stamp_ns)
-        alt = lattice_search(self.rig, sub_pcm, pts[ok], k=2, spacing=cfg.lattice_spacing, subcell=cfg.subcell)
+        # The same maps with only the candidates valid: the kernel skips the other channels.
+        only = np.zeros_like(pcm.valid)
+        only[:, cand] = pcm.valid[:, cand]
+        centres = markers.copy()
+        centres[cand] = pts[ok]
+        masked = PcmViews(pcm.maps, pcm.image_to_map, pcm.camera, pcm.keypoints, only, pcm.presence, pcm.stamp_ns)
+        alt = lattice_search(self.rig, masked, centres, k=2, spacing=cfg.lattice_spacing, subcell=cfg.subcell)
+        alt.markers, alt.weights, alt.n_views = alt.markers[cand], alt.weights[cand], alt.n_views[cand]
         better = alt.weights > weights[cand]
         markers, weights, n_views = markers.copy(), weights.copy(), n_views.copy()
         markers[cand[better]] = alt.markers[better]
