@@ -29,7 +29,10 @@ class BlazePosePcm:
     """Detector + landmark model + crops for a rig.
 
     rotation: "lower_body" (paper, default), "all" or "none" (see blazepose.rotated_crops).
-    margin: crop side / projected body extent while tracking.
+    margin: crop side / projected body extent while tracking. 1.15: the 64x64 heatmap covers
+        the crop, so a tighter crop means finer cells; on the Pose2Sim demo (in-process, 100
+        frame sets) 1.05/1.1/1.15/1.2/1.25/1.4 gave 11.2/11.3/11.2/11.7/12.2/12.8 px median
+        reprojection, and 1.0 lost the person (limbs left the crop).
     variant: "full" (default) or "lite" (faster; `vmocap models fetch --lite`).
     min_presence: views whose BlazePose presence is below it come out with valid=False.
     parallel: how the threads are used, "views" (default) or "intra" (runner.py).
@@ -40,7 +43,7 @@ class BlazePosePcm:
         rig: Rig,
         rotation: str = DEFAULT_ROTATION,
         threads: int = DEFAULT_THREADS,
-        margin: float = 1.25,
+        margin: float = 1.15,
         min_tilt: float = MIN_TILT,
         landmark_path: Path | str | None = None,
         detector_path: Path | str | None = None,
