@@ -119,22 +119,28 @@ class BlazePoseLandmark(PcmModel):
         return CROP_TO_MAP.copy()
 
     def extend_graph(self, model: onnx.ModelProto) -> onnx.ModelProto:
-        """Output "pcm" (V, 25, 64, 64): our channels gathered from Identity_3, NCHW, sigmoid,
-        channels without a BlazePose heatmap zeroed; computed by onnxruntime (numpy took ~5 ms)."""
+        """Output "pcm" (V, 25, 64, 64): our channels gathered from the heatmap logits, NCHW,
+        sigmoid, channels without a BlazePose heatmap zeroed; computed by onnxruntime (numpy
+        took ~5 ms). The gather reads the planes of the NCHW convolution behind `Identity_3`
+        when the converter's NCHW -> NHWC Transpose is there (a Gather over the last axis of
+        the NHWC output copies element by element: ~1.7 ms per crop)."""
         out = onnx.ModelProto()
         out.CopyFrom(model)
         g = out.graph
+        source, axis, transpose = _heatmap_planes(g, "Identity_3")
         mask = self.channel_valid.astype(np.float32).reshape(1, -1, 1, 1)
         g.initializer.extend([
             numpy_helper.from_array(np.maximum(CHANNEL, 0).astype(np.int64), "_vm_channels"),
             numpy_helper.from_array(mask, "_vm_mask"),
         ])
-        g.node.extend([
-            helper.make_node("Gather", ["Identity_3", "_vm_channels"], ["_vm_g"], axis=3),
-            helper.make_node("Transpose", ["_vm_g"], ["_vm_t"], perm=[0, 3, 1, 2]),
-            helper.make_node("Sigmoid", ["_vm_t"], ["_vm_sig"]),
+        nodes = [helper.make_node("Gather", [source, "_vm_channels"], ["_vm_g"], axis=axis)]
+        if transpose:
+            nodes.append(helper.make_node("Transpose", ["_vm_g"], ["_vm_t"], perm=[0, 3, 1, 2]))
+        nodes += [
+            helper.make_node("Sigmoid", ["_vm_t" if transpose else "_vm_g"], ["_vm_sig"]),
             helper.make_node("Mul", ["_vm_sig", "_vm_mask"], ["pcm"]),
-        ])
+        ]
+        g.node.extend(nodes)
         g.output.append(helper.make_tensor_value_info("pcm", TensorProto.FLOAT, ["batch", len(KEYPOINTS), 64, 64]))
         return out
 
@@ -144,6 +150,20 @@ class BlazePoseLandmark(PcmModel):
             raise ModelError(f"{self.path}: heatmap output shape {maps.shape}, expected (V, {len(KEYPOINTS)}, 64, 64)")
         pres = np.nan_to_num(presence.reshape(len(maps)).astype(np.float64), nan=0.0)
         return maps, np.clip(pres, 0.0, 1.0)
+
+
+def _heatmap_planes(g: onnx.GraphProto, name: str) -> tuple[str, int, bool]:
+    """(tensor, channel axis, needs NHWC -> NCHW transpose) to read the heatmaps `name` from:
+    the NCHW tensor in front of the converter's final NHWC Transpose (through Identity nodes)
+    when there is one, else `name` itself (NHWC)."""
+    producer = {o: n for n in g.node for o in n.output}
+    t = name
+    while t in producer and producer[t].op_type == "Identity":
+        t = producer[t].input[0]
+    node = producer.get(t)
+    if node is not None and node.op_type == "Transpose" and [a.ints for a in node.attribute if a.name == "perm"] == [[0, 2, 3, 1]]:
+        return node.input[0], 1, False
+    return name, 3, True
 
 
 def rotated_crops(
