@@ -22,7 +22,7 @@ from vmocap_core.bag import messages as M
 from vmocap_core.errors import VmocapError
 from vmocap_core.process import (
     CLOUD, DIAG, IMAGE, INFO, PcmAssembler, TrackerPipeline, channel_keypoints, feedback_of,
-    markers_from_message, markers_message, result_messages,
+    markers_from_message, markers_message, result_messages, set_kernel_threads,
 )
 from vmocap_core.sync import ApproximateSync
 
@@ -144,8 +144,10 @@ class VmocapNode(Node):
             if BUS.enabled and topic in BUS.publishers:
                 BUS.subscribers.setdefault(topic, []).append(guarded)
                 continue
+            # images and heatmaps: numpy views into the received bytes (no further copy)
+            copy = type_name != IMAGE
             self.create_subscription(msg_class(type_name), topic,
-                                     lambda data, g=guarded, t=type_name: g(cdr.decode(t, data)),
+                                     lambda data, g=guarded, t=type_name, c=copy: g(cdr.decode(t, data, copy=c)),
                                      qos(depth, latched=latched), raw=True)
 
     # -- diagnostics ---------------------------------------------------------------------
@@ -357,6 +359,7 @@ class MarkersNode(VmocapNode):
                                 int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
         self.pipe = TrackerPipeline(self.rig, config.tracker_dict(p))
         self.stage = self.pipe.markers
+        set_kernel_threads(p["threads"])  # callbacks run in this (the spinning) thread
         self.queue: deque = deque()
         self.awaiting: int | None = None
         self.awaiting_since = 0.0

@@ -292,12 +292,13 @@ def encode(type_name: str, msg: Any) -> bytes:
 
 
 class _In:
-    __slots__ = ("buf", "pos", "end")
+    __slots__ = ("buf", "pos", "end", "copy")
 
-    def __init__(self, buf: memoryview) -> None:
+    def __init__(self, buf: memoryview, copy: bool = True) -> None:
         self.buf = buf
         self.pos = 0
         self.end = len(buf)
+        self.copy = copy
 
     def align(self, n: int) -> None:
         self.pos += (-self.pos) % n
@@ -345,7 +346,7 @@ def _dec_struct(inp: _In, type_name: str) -> dict:
                 inp.align(size)
             raw = inp.take(count * size)
             if f.base in _BYTES:
-                msg[f.name] = bytes(raw)
+                msg[f.name] = bytes(raw) if inp.copy else raw.toreadonly()
             else:
                 dtype = np.dtype("<" + {"?": "u1"}.get(code, code))
                 arr = np.frombuffer(raw, dtype=dtype).copy()
@@ -357,11 +358,13 @@ def _dec_struct(inp: _In, type_name: str) -> dict:
     return msg
 
 
-def decode(type_name: str, data: bytes | memoryview) -> dict:
-    """Decode CDR bytes (with encapsulation header) of a `type_name` message into a dict."""
+def decode(type_name: str, data: bytes | memoryview, copy: bool = True) -> dict:
+    """Decode CDR bytes (with encapsulation header) of a `type_name` message into a dict.
+    copy=False: byte arrays (uint8[] such as Image.data) are read-only memoryviews into `data`
+    instead of copies (an image is not copied once more on its way to numpy)."""
     mv = memoryview(data)
     if len(mv) < 4:
         raise BagError(f"CDR message of {type_name} too short ({len(mv)} bytes)")
     if mv[1] != 1:
         raise BagError(f"{type_name}: only little-endian CDR is supported (header {bytes(mv[:4]).hex()})")
-    return _dec_struct(_In(mv[4:]), type_name)
+    return _dec_struct(_In(mv[4:], copy), type_name)
