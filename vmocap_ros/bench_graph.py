@@ -185,11 +185,15 @@ class Probe:
 
         self.node.create_subscription(msg_class("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", on_diag, qos(50), raw=True)
         self._M = M
+        from .run_node import make_executor
+
+        self.executor = make_executor()  # the probe shares the CPU with the graph: keep it cheap
+        self.executor.add_node(self.node)
 
     def spin_for(self, seconds: float) -> None:
         end = time.monotonic() + seconds
         while time.monotonic() < end:
-            self.rclpy.spin_once(self.node, timeout_sec=0.01)
+            self.executor.spin_once(timeout_sec=0.05)
 
     def clear(self, all_: bool = False) -> None:
         for v in self.samples.values():
@@ -199,6 +203,8 @@ class Probe:
             self.last_status = {}
 
     def close(self) -> None:
+        self.executor.remove_node(self.node)
+        self.executor.shutdown()
         self.node.destroy_node()
 
 

@@ -5,6 +5,7 @@ bags finalized), then shut rclpy down. Prints READY when all nodes exist."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from typing import Any
@@ -26,6 +27,22 @@ def parse_sets(items: list[str]) -> dict[str, dict[str, Any]]:
     return out
 
 
+def make_executor():
+    """rclpy's EventsExecutor (C++ event queue; per message it costs a fraction of the
+    SingleThreadedExecutor, which rebuilds a wait set over every entity on each spin) unless
+    VMOCAP_EXECUTOR=single_threaded or this rclpy lacks it."""
+    if os.environ.get("VMOCAP_EXECUTOR", "events") == "events":
+        try:
+            from rclpy.experimental import EventsExecutor
+
+            return EventsExecutor()
+        except ImportError:
+            pass
+    from rclpy.executors import SingleThreadedExecutor
+
+    return SingleThreadedExecutor()
+
+
 def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str, Any]] | None = None,
                ready: Any = None, local_bus: bool = True) -> int:
     from vmocap_core import graph_config
@@ -35,9 +52,7 @@ def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str
     cfg = graph_config.load(config_path)
     stop = StopFlag().install()
     rclpy = init_rclpy()
-    from rclpy.executors import SingleThreadedExecutor
-
-    executor = SingleThreadedExecutor()
+    executor = make_executor()
     nodes = []
     from .nodes import BUS, create
 
