@@ -90,3 +90,35 @@ def test_angles_roundtrip():
     sk = Skeleton()
     q = random_pose(sk, 4)
     assert np.allclose(sk.keypoint_positions(sk.from_angles(sk.to_angles(q))), sk.keypoint_positions(q), atol=1e-12)
+
+
+def test_compiled_kinematics_equal_pinocchio():
+    """The compiled forward kinematics / Jacobians (_ik_kernels) against Pinocchio's placements
+    and the numpy assembly, on random poses of a non-default subject."""
+    from vmocap_core import _ik_kernels
+    from vmocap_core.skeleton import BodyDimensions
+
+    assert _ik_kernels.AVAILABLE, "numba is pinned in requirements.lock"
+    sk = Skeleton(BodyDimensions(thigh=0.47, shoulder_forward=0.03, shoulder_drop=-0.02, waist_ratio=0.35))
+    for seed in range(5):
+        q = random_pose(sk, seed)
+        assert np.abs(sk.keypoint_positions(q) - sk.keypoint_positions_pinocchio(q)).max() < 1e-12
+        p, J = sk.keypoint_jacobians(q)
+        p_ref, J_ref = sk.keypoint_jacobians_numpy(q)
+        assert np.abs(p - p_ref).max() < 1e-12 and np.abs(J - J_ref).max() < 1e-12
+
+
+def test_compiled_lm_step_equals_the_normal_equations():
+    from vmocap_core import _ik_kernels
+
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(25, 3, 40))
+    r = rng.normal(size=(25, 3))
+    w = rng.uniform(0, 1, 25)
+    w[:5] = 0.0
+    Jf = J.reshape(75, 40)
+    H = Jf.T @ (Jf * np.repeat(w, 3)[:, None])
+    g = Jf.T @ (np.repeat(w, 3) * r.reshape(-1))
+    for reg in (1e-5, 0.0):
+        ref = np.linalg.solve(H + 1e-3 * np.diag(np.diag(H)) + reg * np.eye(40), g)
+        assert np.allclose(_ik_kernels.lm_step(J, r, w, 1e-3, reg), ref, rtol=1e-8, atol=1e-10)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _ik_kernels
 from .skeleton import Skeleton
 
 
@@ -62,11 +63,14 @@ def solve_ik(
     cost = float(w @ (r * r).sum(axis=1))
     it = 0
     for it in range(1, max_iterations + 1):
-        Jf = J.reshape(-1, J.shape[2])  # (3K, nv)
-        Jw = Jf * w3[:, None]
-        H = Jw.T @ Jf
-        g = Jw.T @ r.reshape(-1)
-        dq = np.linalg.solve(H + lam * np.diag(np.diag(H)) + regularization * eye, g)
+        if _ik_kernels.AVAILABLE:
+            dq = _ik_kernels.lm_step(J, r, w, lam, regularization)
+        else:
+            Jf = J.reshape(-1, J.shape[2])  # (3K, nv)
+            Jw = Jf * w3[:, None]
+            H = Jw.T @ Jf
+            g = Jw.T @ r.reshape(-1)
+            dq = np.linalg.solve(H + lam * np.diag(np.diag(H)) + regularization * eye, g)
         q_new = skeleton.integrate(q, dq)
         last = it == max_iterations and not line_search
         # The last plain step needs positions only (a Jacobian there would go unused).

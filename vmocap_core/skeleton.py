@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import pinocchio as pin
 
+from . import _ik_kernels
 from .keypoints import INDEX, KEYPOINTS
 
 JOINTS: tuple[str, ...] = (
@@ -194,6 +195,18 @@ class Skeleton:
         self._quat_q = np.array(quat_q)
         self._rotvec_v = np.concatenate(rotvec_v)
         self._hinge_v = np.array(hinge_v)
+        # The joint tree as plain arrays for the compiled forward kinematics (_ik_kernels).
+        kinds = {"JointModelFreeFlyer": _ik_kernels.FREE, "JointModelSpherical": _ik_kernels.SPHERICAL,
+                 "JointModelRY": _ik_kernels.REVOLUTE_Y}
+        nj = self.model.njoints
+        self._fk_tree = (
+            np.array([kinds.get(self.model.joints[j].shortname(), -1) for j in range(nj)], dtype=np.int64),
+            np.array(self.model.parents, dtype=np.int64),
+            np.array([max(self.model.joints[j].idx_q, 0) for j in range(nj)], dtype=np.int64),
+            np.array([self.model.jointPlacements[j].translation for j in range(nj)]),
+            self._parent.astype(np.int64),
+            np.ascontiguousarray(self._offset, dtype=np.float64),
+        )
 
     # ---- model construction -------------------------------------------------------------
     def _build(self) -> pin.Model:
@@ -310,13 +323,31 @@ class Skeleton:
 
     def keypoint_positions(self, q: np.ndarray) -> np.ndarray:
         """Forward kinematics: (25, 3) keypoints in KEYPOINTS order."""
+        if not _ik_kernels.AVAILABLE:
+            return self.keypoint_positions_pinocchio(q)
+        out = np.empty((len(KEYPOINTS), 3))
+        _ik_kernels.keypoints_fk(np.asarray(q, dtype=np.float64), *self._fk_tree, out)
+        return out
+
+    def keypoint_positions_pinocchio(self, q: np.ndarray) -> np.ndarray:
+        """keypoint_positions from Pinocchio's joint placements (the reference)."""
         pin.forwardKinematics(self.model, self.data, q)
         R, t = self._placements()
         return np.einsum("kij,kj->ki", R[self._parent], self._offset) + t[self._parent]
 
     def keypoint_jacobians(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Keypoints (25, 3) and their translational Jacobians (25, 3, 40) in the world frame."""
+        if not _ik_kernels.AVAILABLE:
+            return self.keypoint_jacobians_numpy(q)
         J6 = pin.computeJointJacobians(self.model, self.data, q)  # (6, 40), WORLD convention
+        p = self.keypoint_positions(q)
+        Jp = np.empty((p.shape[0], 3, self.nv))
+        _ik_kernels.point_jacobians(J6, p, self._support, Jp)
+        return p, Jp
+
+    def keypoint_jacobians_numpy(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """keypoint_jacobians with Pinocchio's placements and numpy (the reference)."""
+        J6 = pin.computeJointJacobians(self.model, self.data, q)
         R, t = self._placements()
         p = np.einsum("kij,kj->ki", R[self._parent], self._offset) + t[self._parent]
         # WORLD spatial Jacobian: a point p moves with v + w x p (cross product written out).
