@@ -163,7 +163,9 @@ def lattice_search(
         sc = k * spacing / kc
         best, _, _ = _search(sampler, centres, lattice_offsets(kc, sc))
         centres = best
-        k = min(k, int(np.ceil(sc / spacing / 2.0 - 1e-9)))  # the coarse winner lies within +-sc/2
+        # The coarse winner lies within +-sc/2 of the optimum; the fine lattice (+-k s) and the
+        # sub-lattice refinement (one more step) cover that with k = ceil(sc / 2s - 1).
+        k = min(k, max(1, int(np.ceil(sc / spacing / 2.0 - 1.0 - 1e-9))))
     offsets = lattice_offsets(k, spacing)
     best, score, nviews = _search(sampler, centres, offsets)
     if subcell:
