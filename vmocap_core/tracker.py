@@ -41,7 +41,7 @@ class TrackerConfig:
     # Lattice search (II-D)
     lattice_k: int = 5
     lattice_spacing: float = 0.02  # metres; sub-lattice refinement recovers the precision
-    coarse_to_fine: bool = True  # same volume, ~5x fewer samples; measured equal to the full search
+    coarse_to_fine: bool = True  # same volume, ~9x fewer samples; measured equal to the full search
     subcell: bool = True
     prediction: str = "previous"  # lattice centre: "previous" (paper) or "constant_velocity"
     min_views: int = 2  # a marker seen by fewer views gets weight 0
