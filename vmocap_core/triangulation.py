@@ -19,19 +19,16 @@ def undistort_all(rig: Rig, uv: np.ndarray) -> np.ndarray:
     return out
 
 
-def triangulate(rig: Rig, uv: np.ndarray, weights: np.ndarray, min_views: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted DLT for J points seen in C cameras.
-
-    uv: (C, J, 2) pixels; weights: (C, J) >= 0 (0 = not seen). Returns points (J, 3) (NaN
-    where fewer than `min_views` cameras have weight > 0) and the weighted mean reprojection
-    error in pixels (J,) (NaN likewise).
-    """
+def _sanitize(uv: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     uv = np.asarray(uv, dtype=np.float64)
     w = np.nan_to_num(np.asarray(weights, dtype=np.float64), nan=0.0)
     w = np.where(np.isfinite(uv).all(axis=-1), np.clip(w, 0.0, None), 0.0)
-    uv = np.nan_to_num(uv)
-    C, J = w.shape
-    xy = undistort_all(rig, uv)  # (C, J, 2)
+    return np.nan_to_num(uv), w
+
+
+def _dlt(rig: Rig, xy: np.ndarray, uv: np.ndarray, w: np.ndarray, min_views: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted DLT on normalized coordinates xy (C, J, 2); also returns the per-camera
+    reprojection errors (C, J) px."""
     Rt = np.concatenate([rig._R, rig._t[:, :, None]], axis=2)  # (C, 3, 4)
     # Rows x*P3 - P1 and y*P3 - P2 per camera, scaled by the camera's confidence.
     rows_x = xy[..., 0, None] * Rt[:, None, 2, :] - Rt[:, None, 0, :]  # (C, J, 4)
@@ -51,6 +48,18 @@ def triangulate(rig: Rig, uv: np.ndarray, weights: np.ndarray, min_views: int = 
         resid = (wf * err).sum(axis=0) / wf.sum(axis=0)
     resid[~enough] = np.nan
     pts[~np.isfinite(pts).all(axis=1)] = np.nan
+    return pts, resid, err
+
+
+def triangulate(rig: Rig, uv: np.ndarray, weights: np.ndarray, min_views: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted DLT for J points seen in C cameras.
+
+    uv: (C, J, 2) pixels; weights: (C, J) >= 0 (0 = not seen). Returns points (J, 3) (NaN
+    where fewer than `min_views` cameras have weight > 0) and the weighted mean reprojection
+    error in pixels (J,) (NaN likewise).
+    """
+    uv, w = _sanitize(uv, weights)
+    pts, resid, _ = _dlt(rig, undistort_all(rig, uv), uv, w, min_views)
     return pts, resid
 
 
@@ -60,15 +69,14 @@ def triangulate_robust(
     """Triangulate, then drop the worst camera per point while its reprojection error exceeds
     `max_error_px` and more than `min_views` cameras remain (a swapped or false peak in one
     view must not pull the point). Returns points (J, 3), residual px (J,)."""
-    w = np.array(weights, dtype=np.float64)
-    pts, resid = triangulate(rig, uv, w, min_views)
+    uv, w = _sanitize(uv, weights)
+    xy = undistort_all(rig, uv)  # once: only the weights change between rounds
+    pts, resid, err = _dlt(rig, xy, uv, w, min_views)
     for _ in range(max(0, len(rig) - min_views)):
-        proj, _ = rig.project(np.nan_to_num(pts))
-        err = np.where(w > 0, np.linalg.norm(proj - uv, axis=-1), -1.0)  # (C, J)
         bad = (resid > max_error_px) & ((w > 0).sum(axis=0) > min_views)
         if not bad.any():
             break
-        worst = err.argmax(axis=0)
+        worst = np.where(w > 0, err, -1.0).argmax(axis=0)
         w[worst[bad], np.nonzero(bad)[0]] = 0.0
-        pts, resid = triangulate(rig, uv, w, min_views)
+        pts, resid, err = _dlt(rig, xy, uv, w, min_views)
     return pts, resid
