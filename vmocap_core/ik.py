@@ -89,3 +89,17 @@ def solve_ik(
         if converged:
             break
     return IkResult(q, p, cost, it)
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the IK kernels now, with the argument types of
+    real calls, instead of on the first tracked frame (a fresh compile takes seconds)."""
+    global _warm
+    if not _warm:
+        sk = Skeleton()
+        q = sk.neutral()
+        solve_ik(sk, q, sk.keypoint_positions(q), np.ones(sk.keypoint_positions(q).shape[0]), max_iterations=2)
+        _warm = True

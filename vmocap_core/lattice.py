@@ -192,3 +192,18 @@ def _refine(sampler: PcmSampler, best: np.ndarray, score: np.ndarray, spacing: f
         delta = np.where(denom < -1e-9, 0.5 * (minus - plus) / denom, 0.0)
     delta = np.clip(delta, -1.0, 1.0) * spacing  # the bilinear argmax can be a step off
     return best + np.where(score[:, None] > 0, delta, 0.0)
+
+
+_warm = False
+
+
+def warm_up(rig: Rig) -> None:
+    """Compile (or load from numba's cache) the lattice kernel now, with the argument types of
+    real calls, instead of on the first tracked frame (a fresh compile takes seconds)."""
+    global _warm
+    if _warm or not _kernels.AVAILABLE or len(rig) == 0:
+        return
+    A = np.array([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])
+    pcm = PcmViews(np.zeros((1, 1, 4, 4), np.float32), A, [0], [0], [[True]], [1.0])
+    lattice_search(rig, pcm, np.zeros((1, 3)), k=3, spacing=0.02, coarse_to_fine=True, subcell=True)
+    _warm = True

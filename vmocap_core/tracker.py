@@ -24,9 +24,11 @@ import pinocchio as pin
 from .camera import Rig
 from .heatmaps import PcmViews
 from .ik import solve_ik
+from .ik import warm_up as warm_up_ik
 from .iir import LowPassFilter
 from .keypoints import INDEX, KEYPOINTS
 from .lattice import lattice_search
+from .lattice import warm_up as warm_up_lattice
 from .skeleton import JOINTS, BodyDimensions, Skeleton
 from .triangulation import triangulate_robust
 
@@ -140,6 +142,7 @@ class MarkerStage:
         self._low = 0
         self._weak = np.zeros(N_KP, dtype=np.int64)  # consecutive weak frames per keypoint
         self.timings: dict[str, float] = {}  # seconds spent in the last step, per stage
+        warm_up_lattice(rig)
 
     @property
     def tracking(self) -> bool:
@@ -417,6 +420,7 @@ class SkeletonStage:
         self.status = "initializing"
         self._joint_names = Skeleton().joint_names
         self.timings: dict[str, float] = {}
+        warm_up_ik()
 
     @property
     def joint_names(self) -> list[str]:
