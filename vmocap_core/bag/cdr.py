@@ -285,7 +285,7 @@ def encode(type_name: str, msg: Any) -> bytes:
     """CDR bytes (with encapsulation header) of `msg` (a dict) as `type_name`."""
     out = _Out()
     _enc_struct(out, type_name, msg)
-    return CDR_HEADER + b"".join(out.parts)
+    return b"".join([CDR_HEADER, *out.parts])  # one copy of the payload (an image's data is MBs)
 
 
 # ----------------------------------------------------------------------------------- decode
