@@ -1,18 +1,26 @@
-"""A camera source reading one camera's images from a rosbag2 MCAP file."""
+"""A camera source reading one camera's images from a rosbag2 MCAP file (raw
+sensor_msgs/Image, or sensor_msgs/CompressedImage decoded to BGR)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Iterator
 
-from ..bag import BagReader
+import numpy as np
+
+from ..bag import BagReader, cdr
 from ..bag import messages as M
 from ..errors import BagError, SourceError
 from .base import Frame, FrameSource
 
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+
 
 class BagFrameSource(FrameSource):
     """Frames of `camera` from the Image topic `topic` (default /vmocap/CAMERA/image_raw).
+    When the bag has no such topic but `topic`/compressed of type sensor_msgs/CompressedImage
+    (JPEG/PNG, as image_transport records it), that one is read and each frame decoded to a
+    BGR image; a frame that does not decode is skipped and counted in `bad_frames`.
 
     Recorded: `read` returns frames as fast as asked (pacing is the caller's: see
     vmocap_ros' camera node); `exhausted` turns True at the end unless `loop`.
@@ -30,12 +38,19 @@ class BagFrameSource(FrameSource):
         self._it: Iterator | None = None
         self._done = False
         self._seq = 0
+        self.compressed = False
+        self.bad_frames = 0
+        self.last_error = ""
 
     def open(self) -> None:
         try:
             self._reader = BagReader(self.path, recover=self.recover).open()
         except BagError as exc:
             raise SourceError(f"camera {self.name}: {exc}") from None
+        alt = self.topic + "/compressed"
+        if self.topic not in self._reader.topics and self._reader.topics.get(alt) == COMPRESSED:
+            self.topic = alt
+        self.compressed = self._reader.topics.get(self.topic) == COMPRESSED
         if self.topic not in self._reader.topics:
             topics = sorted(self._reader.topics)
             self.close()
@@ -60,19 +75,36 @@ class BagFrameSource(FrameSource):
     def read(self, timeout: float = 1.0) -> Frame | None:
         if self._it is None:
             raise SourceError(f"camera {self.name}: source not open")
-        for _ in range(2):
+        restarted = False
+        while True:
             try:
                 m = next(self._it)
             except StopIteration:
-                if not self.loop:
+                if not self.loop or restarted:  # restarted: nothing usable in the whole bag
                     self._done = True
                     return None
                 self._restart()
+                restarted = True
                 continue
             except BagError as exc:
                 raise SourceError(f"camera {self.name}: {exc}") from None
-            msg = m.decode()
+            try:
+                msg = cdr.decode(m.type, m.data, copy=False)  # m.data is this message's own copy
+                image = decode_compressed(msg) if self.compressed else M.image_array(msg)
+            except (BagError, SourceError) as exc:
+                self.bad_frames += 1
+                self.last_error = f"camera {self.name}: {exc}"
+                continue
             self._seq += 1
-            return Frame(self.name, M.stamp_ns(msg), M.image_array(msg), self._seq)
-        self._done = True
-        return None
+            return Frame(self.name, M.stamp_ns(msg), image, self._seq)
+
+
+def decode_compressed(msg: dict) -> np.ndarray:
+    """sensor_msgs/CompressedImage (JPEG, PNG, ...) -> BGR uint8 image."""
+    import cv2
+
+    data = np.frombuffer(msg["data"], dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    if img is None:
+        raise SourceError(f"compressed image ({msg.get('format') or 'unknown format'}, {data.size} bytes) does not decode")
+    return img
