@@ -63,6 +63,10 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("rate", 1.0, "playback speed of recorded sources (0: as fast as possible)", 0.0, 100.0),
         Param("loop", False, "restart recorded sources at their end"),
         Param("start_offset", 0.0, "skip this many seconds of a recording", 0.0, 1e6),
+        Param("wait_subscribers", 5.0, "recorded sources: before the first frame, wait up to this long (s) until "
+              "every image topic has a subscriber (frames sent before the PCM node matched are lost)", 0.0, 600.0),
+        Param("restamp", False, "recorded sources: stamp each frame with the wall-clock time it is published at "
+              "(as a live camera stamps its capture time; loops keep counting forward)"),
     ],
     "vmocap_pcm": [
         Param("source", "model", "where heatmaps come from", choices=("model", "synthetic")),

@@ -60,6 +60,10 @@ class LocalBus:
         self.publishers: set[str] = set()
         self.subscribers: dict[str, list[Callable[[dict], None]]] = {}
         self.pending: deque = deque()
+        # a node publishing from its own threads (the camera node's readers) sets this: the spin
+        # loop then wakes every poll_s to hand those messages over (executors cannot be woken
+        # from another thread without a guard condition, which the EventsExecutor lacks)
+        self.poll_s = 0.1
 
     def publish(self, topic: str, msg: dict) -> None:
         for cb in self.subscribers.get(topic, ()):
@@ -175,6 +179,11 @@ class CameraNode(VmocapNode):
         if self.rig is None:
             raise VmocapError("vmocap_camera needs a rig")
         self._stop = threading.Event()
+        self._epoch_lock = threading.Lock()
+        self._epoch: tuple[float, int, int] | None = None
+        self._image_topics: list[str] = []
+        self._matched = threading.Event()
+        self._first_match: float | None = None
         self._threads = []
         self.published = {c.name: 0 for c in self.rig}
         for cam in self.rig:
@@ -182,10 +191,32 @@ class CameraNode(VmocapNode):
             src.open()
             pub_img = self.publisher(IMAGE, self.topics.image(cam.name))
             pub_info = self.publisher(INFO, self.topics.camera_info(cam.name))
+            self._image_topics.append(self.topics.image(cam.name))
             th = threading.Thread(target=self._run, args=(src, cam, pub_img, pub_info), daemon=True)
             self._threads.append((th, src))
         for th, _ in self._threads:
             th.start()
+        if BUS.enabled:
+            BUS.poll_s = 0.002  # frames come from the reader threads: hand them over within 2 ms
+        self._wait_end = time.monotonic() + self.p["wait_subscribers"]
+        self._matched_timer = self.create_timer(0.05, self._check_matched)
+        self._check_matched()
+
+    def _check_matched(self) -> None:
+        """Recorded sources start 0.2 s after an image topic has a subscriber (one of our nodes
+        in this process or a matched DDS reader; the 0.2 s let a subscriber's other topics
+        match too), at most wait_subscribers seconds after start-up: frames published before
+        the PCM node has matched would be lost."""
+        if self._matched.is_set():
+            return
+        now = time.monotonic()
+        if self._first_match is None and any(self.count_subscribers(t) + len(BUS.subscribers.get(t, ()))
+                                             for t in self._image_topics):
+            self._first_match = now
+        if (self._first_match is not None and now >= self._first_match + 0.2) or now >= self._wait_end:
+            self._matched.set()
+            self._matched_timer.cancel()
+            self.get_logger().info("playing" + (" (no subscriber yet)" if self._first_match is None else ""))
 
     def _make_source(self, camera: str):
         kind, uri = self.p["source"], self.p["uri"]
@@ -201,23 +232,54 @@ class CameraNode(VmocapNode):
             raise VmocapError(f"camera source {kind!r} is not available (vmocap_core.sources.make_source missing)") from None
         return factory(kind, uri, camera)
 
+    def _epoch_of(self, stamp_ns: int) -> tuple[float, int, int]:
+        """The epoch shared by the camera threads: (monotonic, wall ns) at the first frame and
+        that frame's recorded stamp, so frames of one recorded instant are due (and, with
+        restamp, stamped) at one instant on every camera."""
+        with self._epoch_lock:
+            if self._epoch is None:
+                self._epoch = (time.monotonic(), time.time_ns(), stamp_ns)
+            return self._epoch
+
     def _run(self, src, cam, pub_img, pub_info) -> None:
-        rate = self.p["rate"]
-        t_wall0 = t_stamp0 = None
+        rate, restamp = self.p["rate"], self.p["restamp"]
+        shift = 0  # added to recorded stamps after each loop, so that time keeps going forward
+        prev = period = None
         while not self._stop.is_set():
-            frame = src.read(timeout=0.5)
+            try:
+                frame = src.read(timeout=0.5)
+            except VmocapError as exc:
+                self.problems[f"camera:{cam.name}"] = str(exc)
+                self.get_logger().error(str(exc))
+                return
+            bad = getattr(src, "bad_frames", 0)
+            if bad:
+                self.problems[f"frames:{cam.name}"] = f"{cam.name}: {bad} frames skipped ({src.last_error})"
             if frame is None:
                 if src.exhausted:
                     return
                 continue
-            if rate > 0 and src.exhausted is not None:
-                if t_wall0 is None:
-                    t_wall0, t_stamp0 = time.monotonic(), frame.stamp_ns
-                delay = t_wall0 + (frame.stamp_ns - t_stamp0) / 1e9 / rate - time.monotonic()
+            if not getattr(src, "live", False) and not self._matched.is_set():
+                while not self._matched.wait(0.05):
+                    if self._stop.is_set():
+                        return
+            t = frame.stamp_ns + shift
+            if prev is not None and t <= prev:  # the recording started over (loop)
+                shift += prev + (period or 1) - t
+                t = prev + (period or 1)
+            elif prev is not None:
+                period = t - prev
+            prev = t
+            mono0, wall0, t0 = self._epoch_of(t)
+            if rate > 0:
+                delay = mono0 + (t - t0) / 1e9 / rate - time.monotonic()
                 if delay > 0 and self._stop.wait(delay):
                     return
-            pub_img(M.image_msg(frame.image, frame.stamp_ns, cam.name))
-            pub_info(M.camera_info_msg(cam, frame.stamp_ns))
+                stamp = wall0 + int((t - t0) / rate) if restamp else t
+            else:
+                stamp = time.time_ns() if restamp else t
+            pub_img(M.image_msg(frame.image, stamp, cam.name))
+            pub_info(M.camera_info_msg(cam, stamp))
             self.published[cam.name] += 1
 
     def status(self) -> dict[str, Any]:

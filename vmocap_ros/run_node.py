@@ -68,7 +68,7 @@ def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str
         if ready is not None:
             ready()
         while not stop:
-            executor.spin_once(timeout_sec=0.0 if BUS.drain() else 0.1)
+            executor.spin_once(timeout_sec=0.0 if BUS.drain() else BUS.poll_s)
         # drain: deliver what is already in flight (e.g. the last outputs to the recorder)
         drain_end = time.monotonic() + DRAIN_S
         while time.monotonic() < drain_end:

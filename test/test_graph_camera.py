@@ -1,0 +1,152 @@
+"""Camera ingest from bags of sensor_msgs/CompressedImage (what `vmocap demo` records) and the
+camera node's live-like playback (restamp, loop), on real MCAP files and real rclpy nodes."""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from graph_helpers import domain_env, stop, vmocap, wait_ready, write_config
+from vmocap_core.bag import BagReader, BagWriter, cdr
+from vmocap_core.bag import messages as M
+
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+T0 = 1_000_000_000_000
+
+
+def compressed_bag(path: Path, rig, frames: int, fmt: str = ".png", corrupt: tuple[str, int] | None = None,
+                   fps: float = 30.0) -> dict[tuple[str, int], np.ndarray]:
+    """A bag of CompressedImage (+ CameraInfo) per camera of `rig`; returns the images by
+    (camera, stamp). `corrupt` = (camera, frame) gets bytes that do not decode."""
+    rng = np.random.default_rng(3)
+    images = {}
+    with BagWriter(path) as w:
+        for k in range(frames):
+            t = T0 + int(round(k * 1e9 / fps))
+            for c in rig:
+                img = rng.integers(0, 255, (c.height, c.width, 3), dtype=np.uint8)
+                ok, enc = cv2.imencode(fmt, img)
+                assert ok
+                data = b"\xff\xd8 not an image" if corrupt == (c.name, k) else enc.tobytes()
+                w.write(f"/vmocap/{c.name}/image_raw/compressed", COMPRESSED,
+                        {"header": M.header(t, c.name), "format": fmt[1:], "data": data}, t)
+                w.write(f"/vmocap/{c.name}/camera_info", "sensor_msgs/msg/CameraInfo", M.camera_info_msg(c, t), t)
+                images[(c.name, t)] = img if fmt == ".png" else cv2.imdecode(enc, cv2.IMREAD_COLOR)
+    return images
+
+
+def small_rig():
+    from vmocap_core.synthetic import benchmark_rig
+
+    return benchmark_rig(width=64, height=48)
+
+
+def test_bag_source_decodes_compressed_images_and_skips_corrupt_ones(tmp_path: Path) -> None:
+    from vmocap_core.sources.bag import BagFrameSource
+
+    rig = small_rig()
+    bag = tmp_path / "c.mcap"
+    images = compressed_bag(bag, rig, 5, corrupt=("cam0", 2))
+    src = BagFrameSource(bag, "cam0")  # default topic image_raw is absent: image_raw/compressed is used
+    src.open()
+    try:
+        assert src.compressed and src.topic == "/vmocap/cam0/image_raw/compressed"
+        frames = []
+        while (f := src.read()) is not None:
+            frames.append(f)
+    finally:
+        src.close()
+    assert src.exhausted
+    assert [f.stamp_ns for f in frames] == [T0 + int(round(k * 1e9 / 30)) for k in (0, 1, 3, 4)]
+    for f in frames:  # PNG: bit-identical BGR images
+        assert f.image.dtype == np.uint8 and f.image.shape == (48, 64, 3)
+        assert np.array_equal(f.image, images[("cam0", f.stamp_ns)])
+    assert src.bad_frames == 1 and "does not decode" in src.last_error
+
+
+def test_bag_source_loops_a_compressed_bag(tmp_path: Path) -> None:
+    from vmocap_core.sources.bag import BagFrameSource
+
+    rig = small_rig()
+    bag = tmp_path / "c.mcap"
+    compressed_bag(bag, rig, 3, fmt=".jpg")
+    src = BagFrameSource(bag, "cam1", loop=True)
+    src.open()
+    try:
+        stamps = [src.read().stamp_ns for _ in range(7)]
+    finally:
+        src.close()
+    assert stamps == [T0, T0 + 33333333, T0 + 66666667] * 2 + [T0]
+
+
+def test_cdr_decode_without_copy_views_the_buffer() -> None:
+    img = np.arange(48 * 64 * 3, dtype=np.uint8).reshape(48, 64, 3)
+    data = cdr.encode("sensor_msgs/msg/Image", M.image_msg(img, T0, "cam0"))
+    view = cdr.decode("sensor_msgs/msg/Image", data, copy=False)
+    copied = cdr.decode("sensor_msgs/msg/Image", data)
+    assert isinstance(view["data"], memoryview) and view["data"].readonly
+    assert isinstance(copied["data"], bytes)
+    arr = M.image_array(view)
+    assert np.array_equal(arr, img) and np.shares_memory(arr, np.frombuffer(data, np.uint8))
+    assert view == {**copied, "data": view["data"]} and bytes(view["data"]) == copied["data"]
+
+
+@pytest.mark.parametrize("mode", ["single_process", "processes"])
+def test_camera_node_plays_a_compressed_bag_restamped_in_a_loop(tmp_path: Path, mode: str) -> None:
+    """The camera node reads JPEG/PNG CompressedImage, publishes raw bgr8 Image; with restamp
+    and loop the stamps are the wall clock, equal across cameras, and keep increasing."""
+    rig = small_rig()
+    bag = tmp_path / "c.mcap"
+    images = compressed_bag(bag, rig, 4)  # 4 frames = 0.13 s of bag, played at 1x for several loops
+    from vmocap_core.rig_io import save_rig
+
+    rig_path = tmp_path / "rig.yaml"
+    save_rig(rig, rig_path)
+    out = tmp_path / "out.mcap"
+    topics = ["/vmocap/cam1/image_raw", "/vmocap/cam2/image_raw"]
+    cfg = write_config(tmp_path / "g.yaml", rig_path, [], ["vmocap_camera", "vmocap_recorder"], mode=mode, output=out,
+                       extra={"vmocap_camera": {"uri": str(bag), "rate": 1.0, "loop": True, "restamp": True,
+                                                 "wait_subscribers": 60.0},
+                              "vmocap_recorder": {"topics": topics}})
+    env = domain_env(31 if mode == "processes" else 32)
+    t_start = time.time_ns()
+    launch = vmocap(["launch", str(cfg)], env)
+    try:
+        # the camera plays once the recorder subscribed (it discovers topics every 0.5 s)
+        assert wait_ready(launch, ["vmocap_camera", "vmocap_recorder"]), stop(launch)
+        deadline = time.monotonic() + 60
+        while "playing" not in "".join(launch._lines) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert "playing" in "".join(launch._lines) and "no subscriber" not in "".join(launch._lines)
+        time.sleep(3.0)
+    finally:
+        log = stop(launch, signal.SIGINT)
+    t_end = time.time_ns()
+    assert launch.returncode == 0, log
+    by_cam = {}
+    with BagReader(out) as r:
+        for m in r.messages(topics):
+            d = m.decode()
+            by_cam.setdefault(d["header"]["frame_id"], []).append(d)
+    assert set(by_cam) == {"cam1", "cam2"}, log
+    bag_stamps = sorted(t for c, t in images if c == "cam1")
+    for cam, msgs in by_cam.items():
+        stamps = [M.stamp_ns(d) for d in msgs]
+        assert len(msgs) > 2 * len(bag_stamps), (cam, len(msgs))  # looped at least twice
+        assert all(b > a for a, b in zip(stamps, stamps[1:]))  # time keeps going forward
+        assert t_start < stamps[0] and stamps[-1] < t_end  # wall-clock stamps
+        steps = np.diff(stamps) / 1e6
+        assert np.all(np.abs(steps - 1000 / 30) < 1.0), steps  # one bag period apart, across loops too
+        for d in msgs:
+            assert d["encoding"] == "bgr8"
+            # k-th frame after the first one recorded: which bag frame it is follows from the stamps
+            k = round((M.stamp_ns(d) - stamps[0]) / (1e9 / 30))
+            first = next(i for i, t in enumerate(bag_stamps) if np.array_equal(M.image_array(msgs[0]), images[(cam, t)]))
+            assert np.array_equal(M.image_array(d), images[(cam, bag_stamps[(first + k) % len(bag_stamps)])])
+    common = set(M.stamp_ns(d) for d in by_cam["cam1"]) & set(M.stamp_ns(d) for d in by_cam["cam2"])
+    assert len(common) >= min(len(by_cam["cam1"]), len(by_cam["cam2"])) - 2  # one instant per frame set on all cameras
