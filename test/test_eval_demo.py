@@ -100,9 +100,9 @@ def test_demo_on_the_node_graph(tmp_path: Path) -> None:
     videos = video_paths(DEMO)
     rig = load_qualisys_rig(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
     save_rig(rig, tmp_path / "rig.yaml")
-    raw = tmp_path / "raw.mcap"
-    assert videos_to_bag(videos, rig, raw, max_frames=16, raw=True) == 16
-    recorded = run_graph(raw, tmp_path / "rig.yaml", rig, tmp_path, 16, rate=0.05)
+    bag = tmp_path / "demo.mcap"  # JPEG CompressedImage, as `vmocap demo` writes: the camera node decodes
+    assert videos_to_bag(videos, rig, bag, max_frames=16) == 16
+    recorded = run_graph(bag, tmp_path / "rig.yaml", rig, tmp_path, 16, rate=0.05)
     rec = recording_from_graph(recorded, rig, 16)
     tracking = np.array([s == "tracking" for s in rec["status"]])
     # The first frames can be lost while DDS matches the camera with the PCM node; the rest

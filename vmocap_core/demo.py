@@ -5,10 +5,9 @@ Steps (each reported on stderr):
    or ~/.cache/vmocap/pose2sim, shared with the calibration tests) and unpack the demo folder;
 2. convert its Qualisys calibration (Calib.qca.txt) to a vmocap rig file;
 3. convert the 4 synchronized 60 fps videos into a rosbag2 MCAP in bags/ (JPEG
-   sensor_msgs/CompressedImage + CameraInfo per camera, 50 MB; the graph's camera node reads
-   raw sensor_msgs/Image, so graph mode also writes bags/*_raw.mcap, ~0.9 GB with zstd);
+   sensor_msgs/CompressedImage + CameraInfo per camera, ~100 MB);
 4. run the pipeline on the bag: by default the ROS 2 node graph (`vmocap launch`: camera node
-   playing a raw-image copy of the bag, CNN PCM node, markers, skeleton, recorder); with
+   playing the bag, decoding its JPEGs to sensor_msgs/Image, CNN PCM node, markers, skeleton, recorder); with
    `--mode in-process` the same stages in this process: the real CNN (pcm.BlazePosePcm: detector
    to initialize, crops from the fed-back skeleton while tracking), MarkerStage (triangulation /
    lattice search), SkeletonStage (IK, IIR, second IK); outputs recorded into an MCAP;
@@ -122,8 +121,8 @@ def videos_to_bag(videos: dict[str, Path], rig: Rig, bag: Path, max_frames: int 
                   raw: bool = False) -> int:
     """Write the synchronized videos as JPEG CompressedImage + CameraInfo per camera
     (stamp = frame index / 60 fps). Returns the number of frame sets. raw=True writes
-    sensor_msgs/Image (bgr8) on NS/CAM/image_raw instead, what the graph's camera node reads
-    today (about 25 MB per frame set before the bag's zstd compression)."""
+    sensor_msgs/Image (bgr8) on NS/CAM/image_raw instead (about 25 MB per frame set before
+    the bag's zstd compression; the camera node reads either)."""
     import cv2
     from tqdm import tqdm
 
@@ -271,9 +270,10 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
 
 
 # ------------------------------------------------------------------------------ node graph
-def run_graph(raw_bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int, rate: float = 0.05) -> Path:
-    """The ROS 2 node graph (camera from the raw bag, CNN PCM node, markers, skeleton,
-    recorder) as `vmocap launch` processes; returns the recorded MCAP (outputs + PCMs).
+def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int, rate: float = 0.05) -> Path:
+    """The ROS 2 node graph (camera from the bag: JPEG CompressedImage decoded in the camera
+    node, or raw Image; CNN PCM node, markers, skeleton, recorder) as `vmocap launch`
+    processes; returns the recorded MCAP (outputs + PCMs).
 
     The bag is played at `rate` x real time so the CNN on this CPU keeps up (frames the PCM
     node cannot take are dropped by design: freshness over completeness)."""
@@ -294,7 +294,7 @@ def run_graph(raw_bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: 
     cfg = {
         "/**": {"ros__parameters": {"rig": str(rig_yaml), "cameras": [""], "namespace": topics.ns,
                                     "pcm_keypoints": [""], "use_sim_time": False}},
-        "vmocap_camera": {"ros__parameters": {"source": "bag", "uri": str(raw_bag), "rate": rate, "loop": False,
+        "vmocap_camera": {"ros__parameters": {"source": "bag", "uri": str(bag), "rate": rate, "loop": False,
                                               "start_offset": 0.0}},
         "vmocap_pcm": {"ros__parameters": {"source": "model", "model": "blazepose", "min_cameras": 2,
                                            "silent_after_ms": 5000.0, "use_feedback": True, "queue_depth": 50}},
@@ -624,7 +624,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-video", action="store_true", help="skip the overlay MP4 / contact sheet")
     parser.add_argument("--rebuild-bag", action="store_true", help="convert the videos again even if the bag exists")
     parser.add_argument("--mode", choices=("graph", "in-process"), default="graph",
-                        help="graph: the ROS 2 node graph (vmocap launch) on a raw-image bag (default); "
+                        help="graph: the ROS 2 node graph (vmocap launch) playing the bag (default); "
                              "in-process: the same stages in this process on the compressed bag (no DDS, faster)")
     parser.add_argument("--graph-rate", type=float, default=0.05, help="bag playback rate in graph mode (x real time)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -657,11 +657,8 @@ def run(args: argparse.Namespace) -> int:
         log(f"{n} frame sets -> {args.bag}")
     t0 = time.perf_counter()
     if args.mode == "graph":
-        raw_bag = args.bag.with_name(args.bag.stem + "_raw.mcap")
-        if not raw_bag.exists() or args.rebuild_bag or _count_frame_sets(raw_bag, rig, raw=True) != n:
-            videos_to_bag(videos, rig, raw_bag, args.frames, raw=True)
-        log(f"node graph on {raw_bag} at {args.graph_rate} x real time")
-        recorded = run_graph(raw_bag, args.out / "rig.yaml", rig, args.out, n, args.graph_rate)
+        log(f"node graph on {args.bag} at {args.graph_rate} x real time")
+        recorded = run_graph(args.bag, args.out / "rig.yaml", rig, args.out, n, args.graph_rate)
         rec = recording_from_graph(recorded, rig, n)
         mode = "ROS 2 node graph (vmocap launch: camera from bag, CNN PCM, markers, skeleton, recorder)"
     else:
