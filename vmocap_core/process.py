@@ -382,6 +382,22 @@ class BagPcmProvider:
         return PcmViews(src.maps, src.image_to_map, src.camera, src.keypoints, src.valid, src.presence, stamp_ns)
 
 
+def time_pipeline(frames: list[PcmViews], rig: Rig, tracker: dict[str, Any] | None, n: int,
+                  period_ns: int = 33_333_333) -> dict[str, float]:
+    """Per-frame-set time (ms) of TrackerPipeline.step over `n` frame sets handed out as the
+    graph's PCM node hands them out from a bag (`frames` looped, stamps one period apart):
+    the offline cost that the graph's end-to-end latency compares with."""
+    pipe = TrackerPipeline(rig, dict(tracker or {}))
+    ms = np.empty(n)
+    for k in range(n):
+        src = frames[k % len(frames)]
+        pcm = PcmViews(src.maps, src.image_to_map, src.camera, src.keypoints, src.valid, src.presence, k * period_ns)
+        t0 = time.perf_counter()
+        pipe.step(pcm)
+        ms[k] = 1e3 * (time.perf_counter() - t0)
+    return {"p50": float(np.percentile(ms, 50)), "p95": float(np.percentile(ms, 95)), "mean": float(ms.mean()), "n": n}
+
+
 class SyntheticPcmProvider:
     """Heatmaps rendered from a motion clip's ground truth (vmocap_core.synthetic), frame k of
     the clip for the k-th frame set; the input rotation follows the fed-back skeleton."""
