@@ -145,14 +145,17 @@ def camera_info_mismatch(msg: dict, camera: Camera, rtol: float = 1e-6) -> str |
 def pcm_msgs(views: PcmViews, rig: Rig) -> list[tuple[dict, dict]]:
     """One (Image, CameraInfo) pair per view (see the module docstring)."""
     V, J, H, W = views.maps.shape
+    # all views at once: (V, H, W, J + 1) interleaved, invalid channels NaN, presence last
+    stack = np.empty((V, H, W, J + 1), dtype=np.float32)
+    np.copyto(stack[..., :J], views.maps.transpose(0, 2, 3, 1))
+    invalid = ~np.asarray(views.valid, dtype=bool)
+    if invalid.any():
+        stack[..., :J] = np.where(invalid[:, None, None, :], np.float32(np.nan), stack[..., :J])
+    stack[..., J] = np.asarray(views.presence, dtype=np.float32)[:, None, None]
     out = []
     for v in range(V):
         cam = rig[int(views.camera[v])]
-        stack = np.empty((H, W, J + 1), dtype=np.float32)
-        stack[..., :J] = views.maps[v].transpose(1, 2, 0)
-        stack[..., :J][..., ~views.valid[v]] = np.nan
-        stack[..., J] = views.presence[v]
-        img = image_msg(stack, views.stamp_ns, cam.name, encoding=f"32FC{J + 1}")
+        img = image_msg(stack[v], views.stamp_ns, cam.name, encoding=f"32FC{J + 1}")
         A = np.vstack([views.image_to_map[v], [0.0, 0.0, 1.0]])
         info = camera_info_msg(cam, views.stamp_ns, K=A @ cam.K, size=(W, H))
         out.append((img, info))
@@ -164,7 +167,7 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
     if not pairs:
         raise HeatmapError("no PCM views in the frame set")
     J = len(keypoints)
-    maps, affines, cams, valid, presence = [], [], [], [], []
+    arrs, affines, cams = [], [], []
     for img, info in pairs:
         name = img["header"]["frame_id"]
         if name not in rig.names:
@@ -174,23 +177,28 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
             raise HeatmapError(f"PCM of {name}: {img['encoding']} but {J} keypoints + presence expected")
         if (info["width"], info["height"]) != (img["width"], img["height"]):
             raise HeatmapError(f"PCM of {name}: CameraInfo size differs from the heatmap's")
+        if arrs and arr.shape != arrs[0].shape:
+            raise HeatmapError(f"PCM of {name}: {arr.shape[1]}x{arr.shape[0]} differs from the other views' "
+                               f"{arrs[0].shape[1]}x{arrs[0].shape[0]}")
         cam = rig[name]
         Kmap = np.asarray(info["k"], dtype=np.float64).reshape(3, 3)
-        A = Kmap @ np.linalg.inv(cam.K)
-        m = arr[..., :J].transpose(2, 0, 1)
-        ok = ~np.isnan(m).all(axis=(1, 2))
-        maps.append(np.where(ok[:, None, None], m, 0.0))
-        affines.append(A[:2])
+        affines.append((Kmap @ np.linalg.inv(cam.K))[:2])
         cams.append(rig.names.index(name))
-        valid.append(ok)
-        presence.append(float(arr[0, 0, J]) if arr.size else 0.0)
+        arrs.append(arr)
+    # all views at once: one copy into (V, H, W, J + 1), then one transposing copy
+    stack = np.stack(arrs).astype(np.float32, copy=False)
+    V, H, W = stack.shape[:3]
+    maps = np.ascontiguousarray(stack[..., :J].transpose(0, 3, 1, 2))
+    valid = ~np.isnan(maps.reshape(V, J, H * W)).all(axis=2)  # (V, J): an all-NaN channel says nothing
+    maps[~valid] = 0.0
+    presence = stack[:, 0, 0, J].astype(np.float64) if H * W else np.zeros(len(arrs))
     return PcmViews(
-        maps=np.stack(maps).astype(np.float32),
+        maps=maps,
         image_to_map=np.stack(affines),
         camera=np.array(cams),
         keypoints=np.asarray(keypoints),
-        valid=np.stack(valid),
-        presence=np.array(presence),
+        valid=valid,
+        presence=presence,
         stamp_ns=stamp_ns(pairs[0][0]),
     )
 
