@@ -70,11 +70,12 @@ class LocalBus:
             self.pending.append((cb, msg))
 
     def drain(self) -> int:
-        n = 0
-        while self.pending:
+        """Hand over the messages queued so far (not those queued meanwhile: a producer thread
+        faster than the consumers must not starve the executor's timers and DDS events)."""
+        n = len(self.pending)
+        for _ in range(n):
             cb, msg = self.pending.popleft()
             cb(msg)
-            n += 1
         return n
 
 
@@ -113,7 +114,16 @@ class VmocapNode(Node):
     def publisher(self, type_name: str, topic: str, depth: int = STREAM_DEPTH, latched: bool = False) -> Callable[[dict], None]:
         pub = self.create_publisher(msg_class(type_name), topic, qos(depth, latched=latched))
         if not BUS.enabled:
-            return lambda msg: pub.publish(cdr.encode(type_name, msg))
+            if latched:  # transient local: kept for subscribers that match later
+                return lambda msg: pub.publish(cdr.encode(type_name, msg))
+
+            def publish_volatile(msg: dict) -> None:
+                # volatile: a sample without a matched reader goes nowhere; skip its encoding
+                # (e.g. the MarkerArray skeleton, 1.5 ms, when no RViz is listening)
+                if pub.get_subscription_count() > 0:
+                    pub.publish(cdr.encode(type_name, msg))
+
+            return publish_volatile
         BUS.publishers.add(topic)
 
         def publish(msg: dict) -> None:
