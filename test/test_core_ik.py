@@ -121,4 +121,21 @@ def test_compiled_lm_step_equals_the_normal_equations():
     g = Jf.T @ (np.repeat(w, 3) * r.reshape(-1))
     for reg in (1e-5, 0.0):
         ref = np.linalg.solve(H + 1e-3 * np.diag(np.diag(H)) + reg * np.eye(40), g)
-        assert np.allclose(_ik_kernels.lm_step(J, r, w, 1e-3, reg), ref, rtol=1e-8, atol=1e-10)
+        assert np.allclose(_ik_kernels.lm_step(J, r, w, 1e-3, reg, np.zeros(40), 0.0), ref, rtol=1e-8, atol=1e-10)
+
+
+def test_ik_prior_pulls_towards_the_prior_pose():
+    """The motion prior: weight 0 is plain IK, a large weight keeps the prior pose, and in
+    between the solution lies between the two (closer to the markers for a small weight)."""
+    sk = Skeleton()
+    q_prior = random_pose(sk, 4)
+    q_true = random_pose(sk, 5)
+    q_true[:3] = q_prior[:3] + [0.03, 0.0, -0.02]
+    target = sk.keypoint_positions(q_true)
+    w = np.ones(len(KEYPOINTS))
+    fit = lambda mu: solve_ik(sk, q_prior, target, w, max_iterations=30, line_search=True, prior=q_prior, prior_weight=mu)
+    d_true = [np.linalg.norm(fit(mu).keypoints - target, axis=1).mean() for mu in (0.0, 1e-4, 1e-2, 1e3)]
+    d_prior = [np.linalg.norm(pin.difference(sk.model, q_prior, fit(mu).q)) for mu in (0.0, 1e-4, 1e-2, 1e3)]
+    assert d_true[0] < 1e-3 and d_prior[-1] < 1e-3
+    assert d_true[0] < d_true[1] < d_true[2] < d_true[3]
+    assert d_prior[0] > d_prior[1] > d_prior[2] > d_prior[3]

@@ -109,8 +109,11 @@ def point_jacobians(J6: np.ndarray, p: np.ndarray, support: np.ndarray, out: np.
 
 
 @njit(cache=True, nogil=True)
-def lm_step(J: np.ndarray, r: np.ndarray, w: np.ndarray, lam: float, reg: float) -> np.ndarray:
-    """dq = (J^T W J + lam diag(J^T W J) + reg I)^-1 J^T W r for J (K, 3, nv), r (K, 3), w (K,).
+def lm_step(J: np.ndarray, r: np.ndarray, w: np.ndarray, lam: float, reg: float, prior: np.ndarray,
+            prior_weight: float) -> np.ndarray:
+    """dq = (J^T W J + lam diag(J^T W J) + (reg + mu) I)^-1 (J^T W r + mu d) for J (K, 3, nv),
+    r (K, 3), w (K,), where d (nv,) is the tangent vector to a prior configuration and mu its
+    weight (0: no prior).
 
     Plain loops instead of BLAS/LAPACK: as fast at this size (40 DOF), compiled in 2 s instead
     of 12 s, and a matrix that is not positive definite (reg = 0 with an unobserved DOF) gets
@@ -132,9 +135,12 @@ def lm_step(J: np.ndarray, r: np.ndarray, w: np.ndarray, lam: float, reg: float)
                 g[a] += jw * rc
                 for b in range(nv):
                     H[a, b] += jw * J[k, c, b]
+    if prior_weight > 0.0:
+        for a in range(nv):
+            g[a] += prior_weight * prior[a]
     # Cholesky factorization of H + lam diag(H) + reg I, then two triangular solves.
     L = np.zeros((nv, nv))
-    extra = reg
+    extra = reg + prior_weight
     for _ in range(12):
         ok = True
         for i in range(nv):

@@ -13,9 +13,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pinocchio as pin
 
 from . import _ik_kernels
 from .skeleton import Skeleton
+
+
+_NO_PRIOR = np.zeros(40)
 
 
 @dataclass
@@ -36,12 +40,18 @@ def solve_ik(
     damping: float = 1e-3,
     regularization: float = 1e-6,
     line_search: bool = False,
+    prior: np.ndarray | None = None,
+    prior_weight: float = 0.0,
 ) -> IkResult:
     """Fit the skeleton to weighted 3D targets (25, 3) starting from q0.
 
     Targets with weight 0 or non-finite coordinates are ignored. `line_search` accepts a step
     only if it lowers the cost (and raises the damping otherwise): use it far from the solution,
     e.g. at initialization; warm-started tracking converges in a few plain steps.
+    `prior` (a configuration, e.g. the pose predicted from the previous frames) adds
+    prior_weight * ||q - prior||^2 to the cost (tangent-space distance; the weighted residual
+    is in m^2 with weights normalized to sum 1): a motion prior that keeps per-frame marker
+    noise out of the pose.
     """
     w = np.asarray(weights, dtype=np.float64).copy()
     x = np.asarray(targets, dtype=np.float64)
@@ -63,14 +73,18 @@ def solve_ik(
     cost = float(w @ (r * r).sum(axis=1))
     it = 0
     for it in range(1, max_iterations + 1):
+        use_prior = prior is not None and prior_weight > 0.0
+        d = pin.difference(skeleton.model, q, prior) if use_prior else _NO_PRIOR
         if _ik_kernels.AVAILABLE:
-            dq = _ik_kernels.lm_step(J, r, w, lam, regularization)
+            dq = _ik_kernels.lm_step(J, r, w, lam, regularization, d, prior_weight if use_prior else 0.0)
         else:
             Jf = J.reshape(-1, J.shape[2])  # (3K, nv)
             Jw = Jf * w3[:, None]
             H = Jw.T @ Jf
             g = Jw.T @ r.reshape(-1)
-            dq = np.linalg.solve(H + lam * np.diag(np.diag(H)) + regularization * eye, g)
+            if use_prior:
+                g = g + prior_weight * d
+            dq = np.linalg.solve(H + lam * np.diag(np.diag(H)) + (regularization + (prior_weight if use_prior else 0.0)) * eye, g)
         q_new = skeleton.integrate(q, dq)
         last = it == max_iterations and not line_search
         # The last plain step needs positions only (a Jacobian there would go unused).
