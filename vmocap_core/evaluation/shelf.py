@@ -50,6 +50,7 @@ TRACKER_SETTINGS = {
     "lattice_spacing": 0.02,
     "coarse_to_fine": False,  # measured on Shelf: the full lattice is 0.5-1 PCP point better
     "prediction": "constant_velocity",  # 25 fps: limbs move up to ~10 cm per frame
+    "filter_order": 2,
     "filter_cutoff_hz": 10.0,  # 25 fps: a lower cutoff lags behind fast wrists
     "filter_lag_compensation": False,
     "init_frames": 3,
