@@ -65,7 +65,8 @@ def run_motion(motion: Motion, seed: int = 0, config: TrackerConfig | None = Non
     rig = benchmark_rig(centre)
     source = SyntheticPcmSource(rig, motion.positions, motion.present, seed=seed, fps=RATE_HZ)
     tracker = SpatiotemporalFilter(rig, config)
-    base_filter = LowPassFilter(config.filter_order, config.filter_cutoff_hz, RATE_HZ)
+    # The same low-pass filter as the method's (lag compensation included).
+    base_filter = LowPassFilter(config.filter_order, config.filter_cutoff_hz, RATE_HZ, config.filter_lag_compensation)
     T = len(source)
     method = np.full((T, 25, 3), np.nan)
     baseline = np.full((T, 25, 3), np.nan)
