@@ -281,15 +281,17 @@ class CameraNode(VmocapNode):
                 period = t - prev
             prev = t
             mono0, wall0, t0 = self._epoch_of(t)
+            stamp = wall0 + int((t - t0) / rate) if restamp and rate > 0 else t
+            # a recorded frame is converted while it waits for its time, and goes out on time
+            img, info = M.image_msg(frame.image, stamp, cam.name), M.camera_info_msg(cam, stamp)
             if rate > 0:
                 delay = mono0 + (t - t0) / 1e9 / rate - time.monotonic()
                 if delay > 0 and self._stop.wait(delay):
                     return
-                stamp = wall0 + int((t - t0) / rate) if restamp else t
-            else:
-                stamp = time.time_ns() if restamp else t
-            pub_img(M.image_msg(frame.image, stamp, cam.name))
-            pub_info(M.camera_info_msg(cam, stamp))
+            elif restamp:
+                img["header"] = info["header"] = M.header(time.time_ns(), cam.name)
+            pub_img(img)
+            pub_info(info)
             self.published[cam.name] += 1
 
     def status(self) -> dict[str, Any]:
