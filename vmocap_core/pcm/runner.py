@@ -21,6 +21,11 @@ import onnxruntime as ort
 from ..errors import ModelError
 
 PARALLEL_MODES = ("views", "intra")
+# onnxruntime's WeightBiasQuantization rewrites a float Conv that sits between DequantizeLinear and
+# QuantizeLinear into an int8 one with per-tensor weights; the int8 BlazePose keeps such layers in
+# float on purpose (depthwise kernels whose channels span 1e-2..5e2 are ruined per-tensor: measured
+# heatmap peaks moved by ~11 cells), so that rewrite is off. Float models do not have the pattern.
+DISABLED_OPTIMIZERS = ["WeightBiasQuantization"]
 DEFAULT_PARALLEL = "views"
 
 
@@ -32,7 +37,8 @@ def make_session(model: onnx.ModelProto, threads: int, name: object = "model") -
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     try:
-        return ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"],
+                                    disabled_optimizers=DISABLED_OPTIMIZERS)
     except Exception as exc:
         raise ModelError(f"{name}: onnxruntime cannot load it ({exc})") from exc
 
