@@ -34,6 +34,7 @@ class BlazePosePcm:
         frame sets) 1.05/1.1/1.15/1.2/1.25/1.4 gave 11.2/11.3/11.2/11.7/12.2/12.8 px median
         reprojection, and 1.0 lost the person (limbs left the crop).
     variant: "full" (default) or "lite" (faster; `vmocap models fetch --lite`).
+    precision: "int8" (default for full) or "float" (blazepose.resolve_precision; env VMOCAP_PCM_PRECISION).
     min_presence: views whose BlazePose presence is below it come out with valid=False.
     parallel: how the threads are used, "views" (default) or "intra" (runner.py).
     """
@@ -50,12 +51,13 @@ class BlazePosePcm:
         variant: str = "full",
         min_presence: float = 0.5,
         parallel: str = DEFAULT_PARALLEL,
+        precision: str | None = None,
     ) -> None:
         self.rig = rig
         self.rotation = rotation
         self.margin = float(margin)
         self.min_tilt = float(min_tilt)
-        self.landmark = BlazePoseLandmark(landmark_path, threads, variant, min_presence, parallel)
+        self.landmark = BlazePoseLandmark(landmark_path, threads, variant, min_presence, parallel, precision)
         self._parallel = parallel
         self._detector_path = detector_path
         self._threads = threads

@@ -1,0 +1,119 @@
+"""The int8 landmark model (pcm/quantize.py) against the float one on real images, and its build.
+
+Tolerances: on 86 real crops (Pose2Sim, Panoptic) the int8 heatmap peaks (3 x 3-weighted
+centroids) moved 0.036 cells median and 0.14 cells at the 95th percentile from the float ones,
+the presence output by at most 0.1; the demo's reprojection error did not grow. The bounds below
+are ~3x those figures: loose enough for another CPU's kernels, tight enough to catch a broken
+build (quantizing the whole network already gives 0.29 / 1.9 cells and a 0.5 presence change;
+the per-tensor-weight rewrite that runner.DISABLED_OPTIMIZERS switches off gives ~11 cells).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from vmocap_core.errors import ModelError
+from vmocap_core.pcm import fetch, quantize
+from vmocap_core.pcm.blazepose import BlazePoseLandmark, resolve_precision
+from vmocap_core.pcm.crops import Crops
+from vmocap_core.pcm.detector import PoseDetector
+
+PANOPTIC = Path(__file__).resolve().parents[2] / "shared" / "data" / "panoptic_demo"
+MESSI = Path("/usr/share/doc/opencv-doc/examples/data/messi5.jpg")
+MEDIAN_CELLS, P95_CELLS, PRESENCE = 0.12, 0.45, 0.25
+
+
+@pytest.fixture(scope="module")
+def models() -> tuple[PoseDetector, BlazePoseLandmark, BlazePoseLandmark]:
+    try:
+        fetch.fetch(quiet=True)
+        return PoseDetector(threads=1), BlazePoseLandmark(precision="float"), BlazePoseLandmark(precision="int8")
+    except ModelError as exc:
+        pytest.skip(f"PCM models unavailable (no network?): {exc}")
+
+
+@pytest.fixture(scope="module")
+def images() -> list[np.ndarray]:
+    files = sorted(PANOPTIC.glob("*/*_00004500.jpg"))
+    imgs = [cv2.imread(str(f)) for f in files] + ([cv2.imread(str(MESSI))] if MESSI.exists() else [])
+    if not imgs:
+        pytest.skip("no real images (../shared/data/panoptic_demo, opencv-doc's messi5.jpg)")
+    return imgs
+
+
+def _centroids(maps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(V, J, 2) 5 x 5-weighted centroids around the argmax (cells) and (V, J) peak values."""
+    V, J, h, w = maps.shape
+    flat = maps.reshape(V, J, -1)
+    y, x = np.divmod(flat.argmax(-1), w)
+    pad = np.pad(maps, ((0, 0), (0, 0), (2, 2), (2, 2)))
+    v, j = np.meshgrid(np.arange(V), np.arange(J), indexing="ij")
+    wsum, acc = np.zeros((V, J)), np.zeros((V, J, 2))
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            val = pad[v, j, y + dy + 2, x + dx + 2]
+            wsum += val
+            acc += val[..., None] * np.stack([x + dx, y + dy], -1)
+    return acc / np.maximum(wsum, 1e-12)[..., None], flat.max(-1)
+
+
+def test_default_precision_and_override(monkeypatch) -> None:
+    monkeypatch.delenv("VMOCAP_PCM_PRECISION", raising=False)
+    assert resolve_precision("full") == "int8" and resolve_precision("lite") == "float"
+    monkeypatch.setenv("VMOCAP_PCM_PRECISION", "float")
+    assert resolve_precision("full") == "float"
+    monkeypatch.setenv("VMOCAP_PCM_PRECISION", "int8")
+    assert resolve_precision("lite") == "float"  # no int8 lite: the environment does not break it
+    with pytest.raises(ModelError):
+        resolve_precision("lite", "int8")
+    with pytest.raises(ModelError):
+        resolve_precision("full", "int4")
+
+
+def test_int8_heatmaps_match_float_on_real_images(models, images) -> None:
+    det, flt, q = models
+    assert flt.path.name == "pose_landmark_full.onnx" and q.path.name == "pose_landmark_full_int8.onnx"
+    found = det.detect(images)
+    cams, rects = [], []
+    for c, dets in enumerate(found):
+        for d in dets[:3]:  # up to 3 people per Panoptic view
+            cams.append(c)
+            rects.append(d.crop())
+    assert len(cams) >= 5, "people found in the real images"
+    crops = Crops(cams, [r[0] for r in rects], [r[1] for r in rects], [r[2] for r in rects])
+    a, b = flt.infer(images, crops), q.infer(images, crops)
+    ca, va = _centroids(a.maps)
+    cb, _ = _centroids(b.maps)
+    confident = (va > 0.5) & flt.channel_valid[None]
+    shift = np.linalg.norm(cb - ca, axis=-1)[confident]
+    side = np.asarray(crops.side)[:, None].repeat(a.maps.shape[1], 1)[confident]
+    px = shift * side / a.maps.shape[-1]  # image pixels
+    dp = np.abs(a.presence - b.presence)
+    print(f"int8 vs float on {len(cams)} real crops, {shift.size} confident peaks: centroid shift median "
+          f"{np.median(shift):.3f} cells (p95 {np.percentile(shift, 95):.3f}, max {shift.max():.2f}); image px median "
+          f"{np.median(px):.2f}, p95 {np.percentile(px, 95):.2f}; max |heatmap diff| {np.abs(a.maps - b.maps).max():.3f}; "
+          f"presence diff max {dp.max():.3f}")
+    assert np.median(shift) <= MEDIAN_CELLS
+    assert np.percentile(shift, 95) <= P95_CELLS
+    assert dp.max() <= PRESENCE
+    assert np.array_equal(a.valid, b.valid), "the same views and keypoints are usable"
+
+
+def test_int8_build_is_deterministic(models, tmp_path: Path) -> None:
+    _, flt, q = models
+    quantize.build(flt.path, tmp_path / "again.onnx")
+    digest = lambda p: hashlib.sha256(Path(p).read_bytes()).hexdigest()  # noqa: E731
+    assert digest(tmp_path / "again.onnx") == digest(q.path)
+
+
+def test_build_refuses_a_calibration_for_another_model(models, tmp_path: Path) -> None:
+    _, flt, _ = models
+    other = tmp_path / "pose_landmark_full.onnx"
+    other.write_bytes(flt.path.read_bytes() + b"\0")
+    with pytest.raises(ModelError, match="recalibrate"):
+        quantize.build(other, tmp_path / "x.onnx", quantize.calibration_path("pose_landmark_full"))
