@@ -1,8 +1,11 @@
 """`vmocap bench pcm`: CNN (PCM) time per image and per 4-camera frame set at 1024 x 768.
 
 Tracking configuration (the headline figure): crops from a 3D skeleton projected into 4
-cameras (no detector), BlazePose landmark model, all views in one onnxruntime call, default
-threads; the time covers crops, warping, inference, decoding and building PcmViews.
+cameras (no detector), the default BlazePose landmark model (int8 build of the full model, see
+pcm/quantize.py; `model` / `precision` in the output say which), all views in one onnxruntime
+call, default threads; the time covers crops, warping, inference, decoding and building PcmViews.
+The same configuration with the float model is measured next to it, interleaved run by run so
+that both see the same load.
 Also measured: the landmark model per image and the detector per image / per frame set at 1
 and 2 threads, the lite landmark model when fetched, and the paper's "lower_body" rotation with
 an inverted person (2 views per camera; the default "all" keeps 1 view per camera).
@@ -85,6 +88,23 @@ def _time(fn: Callable[[], object], repeat: int, label: str, quiet: bool) -> dic
             "min": round(float(r.min()), 2), "max": round(float(r.max()), 2), "runs": int(r.size)}
 
 
+def _time_pair(a: Callable[[], object], b: Callable[[], object], repeat: int, label: str, quiet: bool) -> tuple[dict, dict]:
+    """Like _time for two functions, alternating them run by run (same load for both)."""
+    for _ in range(3):
+        a(), b()
+    runs: tuple[list[float], list[float]] = ([], [])
+    for _ in tqdm(range(repeat), desc=label, leave=False, disable=quiet):
+        for fn, r in zip((a, b), runs):
+            t0 = time.perf_counter()
+            fn()
+            r.append((time.perf_counter() - t0) * 1e3)
+    out = []
+    for r in map(np.array, runs):
+        out.append({"median": round(float(np.median(r)), 2), "p95": round(float(np.percentile(r, 95)), 2),
+                    "min": round(float(r.min()), 2), "max": round(float(r.max()), 2), "runs": int(r.size)})
+    return out[0], out[1]
+
+
 def measure(repeat: int = 30, threads: int = DEFAULT_THREADS, quiet: bool = False) -> dict:
     images = _images()
     rig = _rig()
@@ -92,8 +112,12 @@ def measure(repeat: int = 30, threads: int = DEFAULT_THREADS, quiet: bool = Fals
     result: dict = {"image_size": [W, H], "cameras": N_CAMERAS, "threads": threads, "loadavg_before": list(os.getloadavg())}
     # headline: tracking configuration (crops from the skeleton, default threads, paper rotation)
     pcm = BlazePosePcm(rig, threads=threads)
+    flt = BlazePosePcm(rig, threads=threads, precision="float")
     views = len(pcm.crops_from_skeleton(standing))
-    result["frame_set_ms"] = _time(lambda: pcm.infer(images, standing), repeat, "tracking frame set", quiet)
+    result["model"] = pcm.landmark.path.stem
+    result["precision"] = pcm.landmark.precision
+    result["frame_set_ms"], result["float_frame_set_ms"] = _time_pair(
+        lambda: pcm.infer(images, standing), lambda: flt.infer(images, standing), repeat, "tracking frame set, default + float", quiet)
     result["parallel"] = pcm.landmark.runner.parallel
     intra = BlazePosePcm(rig, threads=threads, parallel="intra")  # onnxruntime's own threads, for comparison
     result["frame_set_ms_intra_op"] = _time(lambda: intra.infer(images, standing), repeat, "tracking frame set, intra-op", quiet)
@@ -155,8 +179,10 @@ def run(args: argparse.Namespace) -> int:
         return 0
     f = lambda d: f"median {d['median']:.1f} ms, p95 {d['p95']:.1f}, min {d['min']:.1f} ({d['runs']} runs)"  # noqa: E731
     print(f"PCM timing at {W}x{H}, {N_CAMERAS} cameras (load average before {r['loadavg_before'][0]:.2f}, after {r['loadavg_after'][0]:.2f})")
-    print(f"tracking frame set ({r['views']} views, crops from the skeleton, {r['threads']} threads, parallel={r['parallel']}): {f(r['frame_set_ms'])}")
-    print(f"  the same with onnxruntime intra-op threads: {f(r['frame_set_ms_intra_op'])}")
+    print(f"tracking frame set ({r['views']} views, crops from the skeleton, {r['threads']} threads, parallel={r['parallel']}, "
+          f"model {r['model']}): {f(r['frame_set_ms'])}")
+    print(f"  the same with the float model (interleaved): {f(r['float_frame_set_ms'])}")
+    print(f"  the same with onnxruntime intra-op threads ({r['precision']}): {f(r['frame_set_ms_intra_op'])}")
     for t in ("threads_1", "threads_2"):
         print(f"landmark {t}: per image {f(r['landmark'][t]['per_image_ms'])}; 4 views {f(r['landmark'][t]['frame_set_ms'])}")
         print(f"detector {t}: per image {f(r['detector'][t]['per_image_ms'])}; 4 images {f(r['detector'][t]['frame_set_ms'])}")

@@ -11,14 +11,17 @@ NHWC layout pass for int8 convolutions fails on `axes`) and folds the explicit P
 Conv; then `onnxruntime.quantization.quantize_static` writes QDQ nodes (uint8 activations per
 tensor, MinMax ranges; int8 symmetric per-channel weights) for the nodes of INT8_SPAN only.
 
-Why only a span (measured on 86 real crops and on `vmocap demo`, README): quantizing everything
-runs the CNN ~1.5x faster but moves heatmap peaks by 0.29 cells median (1.2 crop px) and costs
-2 px of demo reprojection error (11.2 -> 13.2 px). The error comes mostly from the 128 x 128
-stem (per-tensor uint8 activations vs depthwise kernels whose channels span 1e-2..5e2) and from
-the decoder; the stem is also where float islands between int8 layers cost more than they save.
-The encoder between them (INT8_SPAN, ~40 % of the float CNN time) quantizes cleanly: peaks move
-0.05 cells median and the demo error is unchanged. The heatmap convolution (logits) and the
-presence branch (its flag decides whether a view is used) stay float.
+Why only a span (measured on 86 real crops, Pose2Sim and Panoptic, and on `vmocap demo`; heatmap
+peaks as 5 x 5-weighted centroids, in 64 x 64 map cells; README): quantizing the whole network
+runs the CNN ~1.5x faster but moves the peaks 0.29 cells median (1.9 at the 95th percentile) and
+costs 2 px of demo reprojection error (11.2 -> 13.2 px). Most of the error comes from the
+128 x 128 stem (per-tensor uint8 activations feeding depthwise kernels whose channels span
+1e-2..5e2) and from the decoder, and float islands inside the stem cost more time than int8
+saves there. INT8_SPAN, the encoder at 16 x 16 and 8 x 8 (~25 % of the float CNN time), moves
+the peaks 0.04 cells median (0.18 p95) for ~12 % less CNN time, demo error within 0.15 px;
+starting it one stage earlier (Conv_32) gave ~20 % but 0.35 cells p95 and up to +0.36 px. The
+heatmap convolution (logits) and the presence branch (its flag decides whether a view is used)
+stay float.
 """
 
 from __future__ import annotations
