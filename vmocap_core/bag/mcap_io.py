@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import io
 import logging
+import mmap
 import os
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -20,6 +22,7 @@ from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
+import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from ..errors import BagError
@@ -159,6 +162,7 @@ class BagReader:
         self.end_ns = 0
         self._f: Any = None
         self._summary: Any = None
+        self._mm: mmap.mmap | None = None
 
     # --------------------------------------------------------------------------- opening
     def open(self) -> "BagReader":
@@ -215,6 +219,12 @@ class BagReader:
         return name
 
     def close(self) -> None:
+        if self._mm is not None:
+            try:
+                self._mm.close()
+            except BufferError:  # zero-copy messages still refer to it: freed with the last of them
+                pass
+            self._mm = None
         if self._f is not None:
             self._f.close()
             self._f = None
@@ -226,8 +236,11 @@ class BagReader:
         self.close()
 
     # --------------------------------------------------------------------------- reading
-    def messages(self, topics: Iterable[str] | None = None, start_ns: int | None = None, end_ns: int | None = None) -> Iterator[BagMessage]:
-        """Messages of `topics` (all when None) in log-time order within [start_ns, end_ns)."""
+    def messages(self, topics: Iterable[str] | None = None, start_ns: int | None = None, end_ns: int | None = None,
+                 zero_copy: bool = False) -> Iterator[BagMessage]:
+        """Messages of `topics` (all when None) in log-time order within [start_ns, end_ns).
+        zero_copy=True: `data` is a read-only memoryview into the memory-mapped file (valid
+        while the reader is open) where the chunks are uncompressed, else bytes."""
         self.open()
         wanted = None if topics is None else set(topics)
         if wanted is not None:
@@ -239,6 +252,10 @@ class BagReader:
                 if (start_ns is None or m.log_time_ns >= start_ns) and (end_ns is None or m.log_time_ns < end_ns):
                     yield m
             return
+        indexed = self._indexed(wanted, start_ns, end_ns)
+        if indexed is not None:
+            yield from self._read_indexed(indexed, zero_copy)
+            return
         try:
             self._f.seek(0)
             reader = SeekingReader(self._f)
@@ -249,6 +266,63 @@ class BagReader:
                 yield BagMessage(ch.topic, self.topics[ch.topic], rec.log_time, rec.data)
         except (McapError, ValueError, OSError, EOFError) as exc:
             raise BagError(f"{self.path}: corrupt MCAP data ({type(exc).__name__}: {exc})") from None
+
+    # Uncompressed chunks are read in place: the summary's message indexes give every message's
+    # offset, and a memory map hands its bytes out with one copy (or none) instead of the
+    # mcap library's chunk read plus per-record copies (4.7 ms per 2.4 MB image under load).
+    _MSG = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log time, publish time
+
+    def _indexed(self, wanted: set[str] | None, start_ns: int | None, end_ns: int | None) -> list | None:
+        """(log_time, file offset, channel id) of the wanted messages in log-time (then file)
+        order, or None when the mcap library has to read (compressed or unindexed chunks)."""
+        s = self._summary
+        if s is None or not s.chunk_indexes:
+            return None
+        chans = {cid for cid, ch in s.channels.items() if wanted is None or ch.topic in wanted}
+        chunks = [ci for ci in s.chunk_indexes if chans & set(ci.message_index_offsets)
+                  and (end_ns is None or ci.message_start_time < end_ns)
+                  and (start_ns is None or ci.message_end_time >= start_ns)]
+        if any(ci.compression not in ("", "none") for ci in chunks):
+            return None
+        try:
+            if self._mm is None:
+                self._mm = mmap.mmap(self._f.fileno(), 0, access=mmap.ACCESS_READ)
+            mm = self._mm
+            entries = []
+            for ci in chunks:
+                # chunk record: opcode, length, start/end time, uncompressed size, crc, compression, records
+                (comp_len,) = struct.unpack_from("<I", mm, ci.chunk_start_offset + 37)
+                records = ci.chunk_start_offset + 41 + comp_len + 8
+                for cid, off in ci.message_index_offsets.items():
+                    if cid not in chans:
+                        continue
+                    op, _, ch, n = struct.unpack_from("<BQHI", mm, off)
+                    if op != 0x07 or ch != cid:
+                        raise BagError(f"{self.path}: corrupt MCAP message index at offset {off}")
+                    idx = np.frombuffer(mm, dtype="<u8", count=2 * (n // 16), offset=off + 15).reshape(-1, 2)
+                    entries.extend((int(t), records + int(o), cid) for t, o in idx
+                                   if (start_ns is None or t >= start_ns) and (end_ns is None or t < end_ns))
+        except (ValueError, struct.error, OSError) as exc:
+            raise BagError(f"{self.path}: corrupt MCAP index ({type(exc).__name__}: {exc})") from None
+        entries.sort()
+        return entries
+
+    def _read_indexed(self, entries: list, zero_copy: bool) -> Iterator[BagMessage]:
+        mm = self._mm
+        view = memoryview(mm).toreadonly()
+        channels = self._summary.channels
+        size = len(mm)
+        for t, pos, cid in entries:
+            try:
+                op, length, ch, _, log_time, _ = self._MSG.unpack_from(mm, pos)
+            except struct.error:
+                raise BagError(f"{self.path}: corrupt MCAP data (message offset {pos} beyond the file)") from None
+            end = pos + 9 + length
+            if op != 0x05 or ch != cid or log_time != t or end > size:
+                raise BagError(f"{self.path}: corrupt MCAP data (no message of channel {cid} at offset {pos})")
+            data = view[pos + 31 : end]
+            topic = channels[cid].topic
+            yield BagMessage(topic, self.topics[topic], log_time, data if zero_copy else bytes(data))
 
     def _stream_messages(self, wanted: set[str] | None) -> Iterator[BagMessage]:
         """Linear read that stops quietly at the first damaged record (recovery mode)."""

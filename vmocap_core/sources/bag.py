@@ -60,7 +60,9 @@ class BagFrameSource(FrameSource):
     def _restart(self) -> None:
         assert self._reader is not None
         start = self._reader.start_ns + self.start_offset_ns if self.start_offset_ns else None
-        self._it = iter(self._reader.messages([self.topic], start_ns=start))
+        # zero copy: an uncompressed bag's image is a view into the memory-mapped file until the
+        # camera node copies it into its message
+        self._it = iter(self._reader.messages([self.topic], start_ns=start, zero_copy=True))
 
     def close(self) -> None:
         if self._reader is not None:
@@ -89,7 +91,7 @@ class BagFrameSource(FrameSource):
             except BagError as exc:
                 raise SourceError(f"camera {self.name}: {exc}") from None
             try:
-                msg = cdr.decode(m.type, m.data, copy=False)  # m.data is this message's own copy
+                msg = cdr.decode(m.type, m.data, copy=False)
                 image = decode_compressed(msg) if self.compressed else M.image_array(msg)
             except (BagError, SourceError) as exc:
                 self.bad_frames += 1
