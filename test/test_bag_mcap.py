@@ -192,3 +192,43 @@ def test_camera_info_mismatch_is_reported() -> None:
     bad = dict(good, k=np.asarray(good["k"]) * 1.01)
     assert "K differs" in M.camera_info_mismatch(bad, cam)
     assert "1024x768" in M.camera_info_mismatch(dict(good, width=640), cam)
+
+
+@pytest.mark.parametrize("compression", ["none", "zstd"])
+def test_indexed_reader_equals_the_mcap_library(tmp_path: Path, compression: str) -> None:
+    """Uncompressed chunks are read in place (message indexes + memory map), compressed ones
+    by the mcap library: both give the library's messages, order and time range."""
+    from mcap.reader import SeekingReader
+
+    path = tmp_path / "b.mcap"
+    with BagWriter(path, compression=compression, chunk_size=4096) as w:
+        for k in range(40):  # two topics with equal stamps (file order decides ties)
+            t = 1_000_000_000 + (k // 2) * 33_333_333
+            w.write("/vmocap/cam0/image_raw", "sensor_msgs/msg/Image", _image(k), t)
+            w.write("/vmocap/joint_states", "sensor_msgs/msg/JointState", M.joint_state_msg(t, ["a"], [k]), t)
+    lo, hi = 1_000_000_000 + 3 * 33_333_333, 1_000_000_000 + 11 * 33_333_333
+    with open(path, "rb") as f:
+        ref = [(ch.topic, rec.log_time, rec.data) for _, ch, rec in SeekingReader(f).iter_messages(log_time_order=True)]
+    with BagReader(path) as r:
+        got = [(m.topic, m.log_time_ns, m.data) for m in r.messages()]
+        part = [(m.topic, m.log_time_ns, bytes(m.data)) for m in r.messages(["/vmocap/cam0/image_raw"], lo, hi)]
+        views = list(r.messages(["/vmocap/cam0/image_raw"], zero_copy=True))
+        assert all(isinstance(m.data, bytes) for m in r.messages())
+        assert all(isinstance(m.data, memoryview if compression == "none" else bytes) for m in views)
+        first = M.image_array(cdr.decode(views[0].type, views[0].data, copy=False))
+        assert np.array_equal(first, M.image_array(_image(0)))
+    assert got == ref
+    assert part == [x for x in ref if x[0] == "/vmocap/cam0/image_raw" and lo <= x[1] < hi] and len(part) == 16
+
+
+def test_indexed_reader_reports_a_corrupt_message_offset(tmp_path: Path) -> None:
+    path = tmp_path / "b.mcap"
+    _write(path, compression="none")
+    data = bytearray(path.read_bytes())
+    with BagReader(path) as r:
+        pos = r._indexed({"/vmocap/cam0/image_raw"}, None, None)[5][1]
+    data[pos] = 0x42  # not a message record any more
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with BagReader(bad) as r, pytest.raises(BagError, match="corrupt MCAP data"):
+        list(r.messages(["/vmocap/cam0/image_raw"]))
