@@ -274,7 +274,7 @@ class MarkerStage:
         centres = markers.copy()
         centres[cand] = pts[ok]
         masked = PcmViews(pcm.maps, pcm.image_to_map, pcm.camera, pcm.keypoints, only, pcm.presence, pcm.stamp_ns)
-        alt = lattice_search(self.rig, masked, centres, k=2, spacing=cfg.lattice_spacing, subcell=cfg.subcell)
+        alt = lattice_search(self.rig, masked, centres, k=1, spacing=cfg.lattice_spacing, subcell=cfg.subcell)
         alt.markers, alt.weights, alt.n_views = alt.markers[cand], alt.weights[cand], alt.n_views[cand]
         better = alt.weights > weights[cand]
         markers, weights, n_views = markers.copy(), weights.copy(), n_views.copy()
