@@ -90,8 +90,6 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("silent_after_ms", 500.0, "a view without heatmaps this long is reported silent", 1.0, 1e6),
         Param("feedback_timeout_ms", 200.0, "wait this long for the previous frame's skeleton (0: never wait)", 0.0, 1e5),
         Param("views", [""], "PCM view names (topics NS/pcm/VIEW/...); empty: one per camera, named as it"),
-        Param("threads", 1, "threads of the compiled lattice kernel (numba); 1 is fastest when other nodes "
-              "share the CPU (a parallel region waits for its slowest thread)", 1, 64),
         Param("queue_depth", 3, "subscription depth per PCM topic and frame sets queued while the "
               "lattice search waits for feedback (beyond it the oldest are dropped and counted)", 1, 1000),
     ],

@@ -118,20 +118,6 @@ class TrackerPipeline:
         return m, r
 
 
-def set_kernel_threads(n: int) -> int:
-    """Threads of the compiled lattice kernel in the calling thread (numba, OpenMP layer).
-    On a shared CPU one thread is fastest: a parallel region lasts as long as its slowest
-    thread, and with the other nodes running that thread is often descheduled (measured on
-    2 cores under load: lattice step 13 ms with 2 threads, 1.8 ms with 1). Returns the count."""
-    try:
-        import numba
-    except ImportError:
-        return 1
-    n = max(1, min(int(n), numba.config.NUMBA_NUM_THREADS))
-    numba.set_num_threads(n)
-    return n
-
-
 def feedback_of(result: Any) -> np.ndarray | None:
     """What the skeleton stage feeds back to the lattice search (None: re-initialize)."""
     return result.raw_keypoints if result.status == "tracking" else None

@@ -363,9 +363,8 @@ def run(args: argparse.Namespace) -> int:
     if args.images == "synthetic":
         from vmocap_core.process import process_bag
 
-        from vmocap_core.process import BagPcmProvider, channel_keypoints, set_kernel_threads, time_pipeline
+        from vmocap_core.process import BagPcmProvider, channel_keypoints, time_pipeline
 
-        set_kernel_threads(1)  # as the graph's vmocap_markers
         off = process_bag(bag, work / "offline_out.mcap", rig, tracker={"fps": float(args.fps)}, keypoints=kps, progress=False)
         offline_ms = round(off["ms_per_frame"], 2)
         # steady state, as the graph sees it: the bag's frame sets looped for as many frame sets

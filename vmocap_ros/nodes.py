@@ -22,7 +22,7 @@ from vmocap_core.bag import messages as M
 from vmocap_core.errors import VmocapError
 from vmocap_core.process import (
     CLOUD, DIAG, IMAGE, INFO, PcmAssembler, TrackerPipeline, channel_keypoints, feedback_of,
-    markers_from_message, markers_message, result_messages, set_kernel_threads,
+    markers_from_message, markers_message, result_messages,
 )
 from vmocap_core.sync import ApproximateSync
 
@@ -433,7 +433,6 @@ class MarkersNode(VmocapNode):
                                 int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
         self.pipe = TrackerPipeline(self.rig, config.tracker_dict(p))
         self.stage = self.pipe.markers
-        set_kernel_threads(p["threads"])  # callbacks run in this (the spinning) thread
         self.queue: deque = deque()
         self.awaiting: int | None = None
         self.awaiting_since = 0.0
