@@ -64,42 +64,46 @@ def solve_ik(
         p = skeleton.keypoint_positions(q0)
         return IkResult(q0.copy(), p, float("nan"), 0)
     w = w / wsum  # scale-free damping
-    w3 = np.repeat(w, 3)
+    mu = float(prior_weight) if prior is not None and prior_weight > 0.0 else 0.0
     q = np.asarray(q0, dtype=np.float64).copy()
     lam = damping
-    eye = np.eye(skeleton.nv)
+
+    def objective(q_: np.ndarray, r_: np.ndarray) -> tuple[float, float, np.ndarray]:
+        """(weighted mean squared residual, that + the prior term, tangent vector to the prior)."""
+        data = float(w @ (r_ * r_).sum(axis=1))
+        if not mu:
+            return data, data, _NO_PRIOR
+        d_ = pin.difference(skeleton.model, q_, prior)
+        return data, data + mu * float(d_ @ d_), d_
+
     p, J = skeleton.keypoint_jacobians(q)
     r = x - p
-    cost = float(w @ (r * r).sum(axis=1))
+    cost, total, d = objective(q, r)
     it = 0
     for it in range(1, max_iterations + 1):
-        use_prior = prior is not None and prior_weight > 0.0
-        d = pin.difference(skeleton.model, q, prior) if use_prior else _NO_PRIOR
         if _ik_kernels.AVAILABLE:
-            dq = _ik_kernels.lm_step(J, r, w, lam, regularization, d, prior_weight if use_prior else 0.0)
+            dq = _ik_kernels.lm_step(J, r, w, lam, regularization, d, mu)
         else:
             Jf = J.reshape(-1, J.shape[2])  # (3K, nv)
-            Jw = Jf * w3[:, None]
+            Jw = Jf * np.repeat(w, 3)[:, None]
             H = Jw.T @ Jf
-            g = Jw.T @ r.reshape(-1)
-            if use_prior:
-                g = g + prior_weight * d
-            dq = np.linalg.solve(H + lam * np.diag(np.diag(H)) + (regularization + (prior_weight if use_prior else 0.0)) * eye, g)
+            g = Jw.T @ r.reshape(-1) + mu * d
+            dq = np.linalg.solve(H + lam * np.diag(np.diag(H)) + (regularization + mu) * np.eye(len(g)), g)
         q_new = skeleton.integrate(q, dq)
         last = it == max_iterations and not line_search
         # The last plain step needs positions only (a Jacobian there would go unused).
         p_new, J_new = (skeleton.keypoint_positions(q_new), J) if last else skeleton.keypoint_jacobians(q_new)
         r_new = x - p_new
-        cost_new = float(w @ (r_new * r_new).sum(axis=1))
-        if line_search and cost_new > cost:
+        cost_new, total_new, d_new = objective(q_new, r_new)
+        if line_search and total_new > total:
             lam *= 10.0
             if lam > 1e6:
                 break
             continue
         if line_search:
             lam = max(lam / 3.0, 1e-9)
-        converged = cost - cost_new < tolerance * max(cost, 1e-12) or float(np.abs(dq).max()) < 1e-7
-        q, p, J, r, cost = q_new, p_new, J_new, r_new, cost_new
+        converged = total - total_new < tolerance * max(total, 1e-12) or float(np.abs(dq).max()) < 1e-7
+        q, p, J, r, cost, total, d = q_new, p_new, J_new, r_new, cost_new, total_new, d_new
         if converged:
             break
     return IkResult(q, p, cost, it)
