@@ -199,3 +199,18 @@ def test_real_v4l2_device():
             if f is not None:
                 break
         assert f is not None and f.image.shape[:2] == (src.size[1], src.size[0])
+
+
+def test_playback_stamps_keep_going_forward_across_loops_and_pace_all_cameras_from_one_epoch():
+    from vmocap_core.sources.clock import LoopedStamps, PlaybackClock
+
+    stamps = LoopedStamps()
+    recorded = [100, 110, 120, 100, 110, 120]  # a 3-frame recording played twice
+    assert [stamps(t) for t in recorded] == [100, 110, 120, 130, 140, 150]
+    clock = PlaybackClock(rate=0.5, restamp=True)
+    assert clock.schedule(100, 5.0, 1_000) == (1_000, 5.0)  # the first frame fixes the epoch
+    # another camera's frame 10 ns later in the recording: stamped and due at half speed
+    stamp, due = clock.schedule(110, 9.0, 9_999)
+    assert stamp == 1_020 and abs(due - (5.0 + 20e-9)) < 1e-12
+    assert PlaybackClock(rate=0.0, restamp=True).schedule(110, 1.0, 7) == (110, None)  # not paced
+    assert PlaybackClock(rate=2.0, restamp=False).schedule(110, 1.0, 7)[0] == 110

@@ -24,6 +24,7 @@ from vmocap_core.process import (
     CLOUD, DIAG, IMAGE, INFO, PcmAssembler, TrackerPipeline, channel_keypoints, feedback_of,
     markers_from_message, markers_message, result_messages,
 )
+from vmocap_core.sources.clock import LoopedStamps, PlaybackClock
 from vmocap_core.sync import ApproximateSync
 
 from .common import Topics, declare, msg_class, qos
@@ -189,8 +190,7 @@ class CameraNode(VmocapNode):
         if self.rig is None:
             raise VmocapError("vmocap_camera needs a rig")
         self._stop = threading.Event()
-        self._epoch_lock = threading.Lock()
-        self._epoch: tuple[float, int, int] | None = None
+        self._playback = PlaybackClock(self.p["rate"], self.p["restamp"])
         self._image_topics: list[str] = []
         self._matched = threading.Event()
         self._first_match: float | None = None
@@ -242,19 +242,8 @@ class CameraNode(VmocapNode):
             raise VmocapError(f"camera source {kind!r} is not available (vmocap_core.sources.make_source missing)") from None
         return factory(kind, uri, camera)
 
-    def _epoch_of(self, stamp_ns: int) -> tuple[float, int, int]:
-        """The epoch shared by the camera threads: (monotonic, wall ns) at the first frame and
-        that frame's recorded stamp, so frames of one recorded instant are due (and, with
-        restamp, stamped) at one instant on every camera."""
-        with self._epoch_lock:
-            if self._epoch is None:
-                self._epoch = (time.monotonic(), time.time_ns(), stamp_ns)
-            return self._epoch
-
     def _run(self, src, cam, pub_img, pub_info) -> None:
-        rate, restamp = self.p["rate"], self.p["restamp"]
-        shift = 0  # added to recorded stamps after each loop, so that time keeps going forward
-        prev = period = None
+        stamps = LoopedStamps()
         while not self._stop.is_set():
             try:
                 frame = src.read(timeout=0.5)
@@ -273,22 +262,14 @@ class CameraNode(VmocapNode):
                 while not self._matched.wait(0.05):
                     if self._stop.is_set():
                         return
-            t = frame.stamp_ns + shift
-            if prev is not None and t <= prev:  # the recording started over (loop)
-                shift += prev + (period or 1) - t
-                t = prev + (period or 1)
-            elif prev is not None:
-                period = t - prev
-            prev = t
-            mono0, wall0, t0 = self._epoch_of(t)
-            stamp = wall0 + int((t - t0) / rate) if restamp and rate > 0 else t
+            stamp, due = self._playback.schedule(stamps(frame.stamp_ns), time.monotonic(), time.time_ns())
             # a recorded frame is converted while it waits for its time, and goes out on time
             img, info = M.image_msg(frame.image, stamp, cam.name), M.camera_info_msg(cam, stamp)
-            if rate > 0:
-                delay = mono0 + (t - t0) / 1e9 / rate - time.monotonic()
+            if due is not None:
+                delay = due - time.monotonic()
                 if delay > 0 and self._stop.wait(delay):
                     return
-            elif restamp:
+            elif self._playback.restamp:
                 img["header"] = info["header"] = M.header(time.time_ns(), cam.name)
             pub_img(img)
             pub_info(info)

@@ -12,6 +12,7 @@ jitter. Drift (ppm) is the clock-rate difference.
 from __future__ import annotations
 
 import collections
+import threading
 
 import numpy as np
 
@@ -71,3 +72,49 @@ class ClockMapper:
     @property
     def pairs(self) -> int:
         return len(self._pairs)
+
+
+class LoopedStamps:
+    """Recorded stamps of one camera made increasing across loops of a recording: when the
+    recording starts over, stamps go on one frame period after the last one."""
+
+    def __init__(self) -> None:
+        self._shift = 0
+        self._prev: int | None = None
+        self._period: int | None = None
+
+    def __call__(self, stamp_ns: int) -> int:
+        t = stamp_ns + self._shift
+        if self._prev is not None and t <= self._prev:  # the recording started over
+            step = self._period or 1
+            self._shift += self._prev + step - t
+            t = self._prev + step
+        elif self._prev is not None:
+            self._period = t - self._prev
+        self._prev = t
+        return t
+
+
+class PlaybackClock:
+    """When recorded frames are due and how they are stamped, shared by the threads of all
+    cameras (thread-safe): the first frame fixes the epoch (monotonic and wall time, and its
+    recorded stamp), so frames of one recorded instant are due, and with `restamp` stamped, at
+    one instant on every camera. rate: x real time (0 = as fast as read, no pacing)."""
+
+    def __init__(self, rate: float, restamp: bool) -> None:
+        self.rate = float(rate)
+        self.restamp = bool(restamp)
+        self._lock = threading.Lock()
+        self._epoch: tuple[float, int, int] | None = None
+
+    def schedule(self, t_ns: int, now_mono: float, now_wall_ns: int) -> tuple[int, float | None]:
+        """(stamp to publish, monotonic time the frame is due or None when not paced) of a
+        frame with recorded stamp t_ns (after LoopedStamps)."""
+        with self._lock:
+            if self._epoch is None:
+                self._epoch = (now_mono, now_wall_ns, t_ns)
+            mono0, wall0, t0 = self._epoch
+        if self.rate <= 0:
+            return t_ns, None
+        stamp = wall0 + int((t_ns - t0) / self.rate) if self.restamp else t_ns
+        return stamp, mono0 + (t_ns - t0) / 1e9 / self.rate
