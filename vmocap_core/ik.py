@@ -119,5 +119,6 @@ def warm_up() -> None:
     if not _warm:
         sk = Skeleton()
         q = sk.neutral()
-        solve_ik(sk, q, sk.keypoint_positions(q), np.ones(sk.keypoint_positions(q).shape[0]), max_iterations=2)
+        p = sk.keypoint_positions(q)
+        solve_ik(sk, q, p, np.ones(len(p)), max_iterations=2)
         _warm = True

@@ -332,6 +332,10 @@ class Skeleton:
     def keypoint_positions_pinocchio(self, q: np.ndarray) -> np.ndarray:
         """keypoint_positions from Pinocchio's joint placements (the reference)."""
         pin.forwardKinematics(self.model, self.data, q)
+        return self._keypoints_of_data()
+
+    def _keypoints_of_data(self) -> np.ndarray:
+        """Keypoints (25, 3) from the joint placements in self.data (after Pinocchio's FK)."""
         R, t = self._placements()
         return np.einsum("kij,kj->ki", R[self._parent], self._offset) + t[self._parent]
 
@@ -347,9 +351,8 @@ class Skeleton:
 
     def keypoint_jacobians_numpy(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """keypoint_jacobians with Pinocchio's placements and numpy (the reference)."""
-        J6 = pin.computeJointJacobians(self.model, self.data, q)
-        R, t = self._placements()
-        p = np.einsum("kij,kj->ki", R[self._parent], self._offset) + t[self._parent]
+        J6 = pin.computeJointJacobians(self.model, self.data, q)  # also updates the placements
+        p = self._keypoints_of_data()
         # WORLD spatial Jacobian: a point p moves with v + w x p (cross product written out).
         v, w = J6[:3], J6[3:]  # (3, 40)
         px, py, pz = p[:, 0, None], p[:, 1, None], p[:, 2, None]

@@ -55,12 +55,11 @@ class TrackerConfig:
     second_ik_iterations: int = 1  # second IK (to the smoothed positions, which move little)
     ik_damping: float = 1e-3
     ik_regularization: float = 1e-5
-    second_ik_regularization: float = 1e-5
     # Motion prior of the first IK (our addition): weight of the squared tangent-space distance
     # to the previous frame's pose, against the weighted mean squared marker residual (m^2),
     # given for 60 fps and scaled by (fps / 60)^2 (the motion per frame scales with 1 / fps).
-    # Synthetic benchmark: regular 37.8 -> 30.9 mm with the filter below; Shelf (25 fps) PCP
-    # 97.24 -> 97.49 %. A constant-velocity prediction as prior was worse (it extrapolates noise).
+    # Synthetic benchmark: regular 37.8 -> 30.7 mm with the filter below; Shelf (25 fps) PCP
+    # 97.24 -> 97.40 %. A constant-velocity prediction as prior was worse (it extrapolates noise).
     ik_prior_weight: float = 2e-3
     second_ik_restart_m: float = 0.02  # RMS fit error of the second IK that triggers a restart
     # Low-pass filter (II-F)
@@ -92,7 +91,7 @@ class TrackerConfig:
     def validate(self) -> None:
         if self.fps <= 0 or self.lattice_k < 0 or self.lattice_spacing <= 0:
             raise ValueError("fps, lattice_k and lattice_spacing must be positive")
-        if self.ik_prior_weight < 0 or self.ik_regularization < 0 or self.second_ik_regularization < 0:
+        if self.ik_prior_weight < 0 or self.ik_regularization < 0:
             raise ValueError("IK weights and regularizations must be >= 0")
         if self.prediction not in ("previous", "constant_velocity"):
             raise ValueError(f"prediction must be 'previous' or 'constant_velocity', not {self.prediction!r}")
@@ -463,12 +462,12 @@ class SkeletonStage:
         smooth = self._filter(first.keypoints)
         t2 = time.perf_counter()
         second = solve_ik(sk, self._q_out, smooth, np.ones(N_KP), cfg.second_ik_iterations,
-                          damping=cfg.ik_damping, regularization=cfg.second_ik_regularization)
+                          damping=cfg.ik_damping, regularization=cfg.ik_regularization)
         if second.cost > cfg.second_ik_restart_m**2:
             # The smoothed targets lie near the first IK's pose: restart from it when the
             # warm start is caught in another branch (e.g. an arm twisted at a joint limit).
             retry = solve_ik(sk, first.q, smooth, np.ones(N_KP), cfg.second_ik_iterations,
-                             damping=cfg.ik_damping, regularization=cfg.second_ik_regularization)
+                             damping=cfg.ik_damping, regularization=cfg.ik_regularization)
             if retry.cost < second.cost:
                 second = retry
         self._q_out = second.q
