@@ -108,12 +108,14 @@ class VmocapNode(Node):
         self.age = Stat()  # capture stamp -> end of processing, ms (wall clock)
         self.problems: dict[str, str] = {}
         self._pending_subs: list = []
+        self._dds_pubs: dict[str, Any] = {}  # topic -> rclpy publisher, for matched-subscriber counts
         self._diag = self.create_publisher(msg_class(DIAG), Topics.diagnostics, qos(10))
         self.create_timer(1.0, self._publish_diagnostics)
 
     # -- raw messages --------------------------------------------------------------------
     def publisher(self, type_name: str, topic: str, depth: int = STREAM_DEPTH, latched: bool = False) -> Callable[[dict], None]:
         pub = self.create_publisher(msg_class(type_name), topic, qos(depth, latched=latched))
+        self._dds_pubs[topic] = pub
         if not BUS.enabled:
             if latched:  # transient local: kept for subscribers that match later
                 return lambda msg: pub.publish(cdr.encode(type_name, msg))
@@ -174,6 +176,9 @@ class VmocapNode(Node):
         values.update({f"proc_ms_{k}": v for k, v in self.proc.summary().items()})
         values.update({f"age_ms_{k}": v for k, v in self.age.summary().items()})
         values.update({k: str(v) for k, v in self.status().items()})
+        # matched DDS subscribers per output: volatile outputs published before a subscriber
+        # matched are gone, so whoever records or controls can check it is connected
+        values.update({f"subscribers:{t}": str(pub.get_subscription_count()) for t, pub in self._dds_pubs.items()})
         level = 1 if self.problems else 0
         message = "; ".join(sorted(self.problems.values()))[:500] or "ok"
         self._diag.publish(cdr.encode(DIAG, M.diagnostics_msg(time.time_ns(), [(level, self.get_name(), message, values)])))
