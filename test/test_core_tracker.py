@@ -20,7 +20,7 @@ def test_short_synthetic_run_is_accurate_and_rigid():
     m.positions = m.positions[:150]
     run = run_motion(m, seed=3)
     s = score_run(run)
-    assert s["init_frames"] < 15
+    assert s["init_frames"] < 15 + 30  # initialization, then 0.5 s of identification
     assert s["method"]["mpjpe_mm"] < 60.0
     assert s["method"]["mpjpe_mm"] < s["baseline"]["mpjpe_mm"]
     assert s["method"]["bone_length_std_m"] < 1e-9
@@ -32,14 +32,39 @@ def test_lost_person_triggers_reinitialization_without_exceptions():
     src = SyntheticPcmSource(rig, m.positions, m.present, seed=0)
     tracker = SpatiotemporalFilter(rig, TrackerConfig(fps=60.0, lost_frames=5))
     statuses = []
-    for t in range(120):
+    for t in range(150):
         pcm = src.render(t)
-        if 40 <= t < 60:  # the person leaves every view
+        if 60 <= t < 80:  # the person leaves every view
             pcm = PcmViews(np.zeros_like(pcm.maps), pcm.image_to_map, pcm.camera, pcm.keypoints, pcm.valid, np.zeros(4), pcm.stamp_ns)
         statuses.append(tracker.step(pcm).status)
-    assert statuses[30] == "tracking"
-    assert "lost" in statuses[40:60] and statuses[58] != "tracking"
-    assert statuses[-1] == "tracking"  # picked up again
+    assert statuses[50] == "tracking"
+    assert "lost" in statuses[60:80] and statuses[78] != "tracking"
+    assert "identifying" in statuses[80:] and statuses[-1] == "tracking"  # picked up again
+
+
+def test_identification_phase_improves_link_lengths():
+    """The 0.5 s identification phase (statuses "identifying", no output) ends with link
+    lengths nearer the truth than the 5-frame provisional fit, and the output's bones are
+    constant from its first frame."""
+    from vmocap_core.skeleton import BONES
+    from vmocap_core.keypoints import INDEX
+
+    m = punch()
+    m.positions = m.positions[:120]
+    err = {}
+    for seconds in (0.0, 0.5):
+        run = run_motion(m, seed=3, config=TrackerConfig(fps=60.0, identify_seconds=seconds))
+        if seconds:
+            first_id = run.status.index("identifying")
+            assert set(run.status[first_id:run.first_tracked]) == {"identifying"}
+            # 30 frames of markers (the provisional fit's own included); output from the 30th
+            assert run.first_tracked - first_id == 29 and np.isnan(run.method[first_id]).all()
+        out, gt = run.method[run.first_tracked:], m.positions[run.first_tracked:]
+        bones = [(INDEX[a], INDEX[b]) for a, b in BONES.values() if m.present[INDEX[a]] and m.present[INDEX[b]]]
+        length = lambda p, a, b: np.linalg.norm(p[:, a] - p[:, b], axis=-1)
+        assert max(np.ptp(length(out, a, b)) for a, b in bones) < 1e-9
+        err[seconds] = np.mean([abs(length(out, a, b)[0] - np.median(length(gt, a, b))) for a, b in bones])
+    assert err[0.5] < 0.7 * err[0.0], err
 
 
 def test_keypoint_seen_by_one_camera_gets_weight_zero():

@@ -120,7 +120,9 @@ class TrackerPipeline:
 
 def feedback_of(result: Any) -> np.ndarray | None:
     """What the skeleton stage feeds back to the lattice search (None: re-initialize)."""
-    return result.raw_keypoints if result.status == "tracking" else None
+    from .tracker import FEEDBACK_STATUSES
+
+    return result.raw_keypoints if result.status in FEEDBACK_STATUSES else None
 
 
 def markers_message(markers: Any) -> dict:

@@ -54,6 +54,9 @@ TRACKER_SETTINGS = {
     "filter_cutoff_hz": 10.0,  # 25 fps: a lower cutoff lags behind fast wrists
     "filter_lag_compensation": False,
     "init_frames": 3,
+    # People walk in and out: output from the first agreeing frames counts more than exact link
+    # lengths (measured: 0.5 s of identification, PCP 97.40 -> 95.9 %, id 3 97.0 -> 91.2 %).
+    "identify_seconds": 0.0,
     "init_max_reprojection_px": 15.0,
     "lost_frames": 8,
 }
