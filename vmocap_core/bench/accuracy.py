@@ -127,11 +127,13 @@ def _pool(results: list[dict[str, object]], who: str) -> dict[str, float | None]
     groups: dict[str, dict[str, float | None]] = {}
     for g in ("head", "upper_body", "lower_body"):
         rows = [r[who]["groups"][g] for r in results if r[who]["groups"][g] is not None]
-        if rows:
+        groups[g] = None
+        if rows:  # a clip never tracked has n = 0 and None figures: it adds nothing
             gn = np.array([row["n"] for row in rows], float)
-            groups[g] = {k: float(sum(row[k] * w for row, w in zip(rows, gn)) / gn.sum()) for k in keys}
-        else:
-            groups[g] = None
+            ok = [(row, w) for row, w in zip(rows, gn) if w > 0 and all(row[k] is not None for k in keys)]
+            if ok:
+                total = sum(w for _, w in ok)
+                groups[g] = {k: float(sum(row[k] * w for row, w in ok) / total) for k in keys}
     out["groups"] = groups  # type: ignore[assignment]
     out["bone_length_std_m"] = max(r[who]["bone_length_std_m"] for r in results)
     return out
