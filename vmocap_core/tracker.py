@@ -27,6 +27,7 @@ from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
 from .iir import LowPassFilter
 from .keypoints import INDEX, KEYPOINTS
+from .one_euro import OneEuroFilter
 from .lattice import lattice_search
 from .lattice import warm_up as warm_up_lattice
 from .skeleton import JOINTS, BodyDimensions, Skeleton
@@ -67,9 +68,18 @@ class TrackerConfig:
     # 97.24 -> 97.40 %. A constant-velocity prediction as prior was worse (it extrapolates noise).
     ik_prior_weight: float = 2e-3
     second_ik_restart_m: float = 0.02  # RMS fit error of the second IK that triggers a restart
-    # Low-pass filter (II-F)
-    # First order at 3 Hz with lag compensation: on the synthetic benchmark the second-order
-    # 6 Hz filter overshot fast motions (run 48 vs 34 mm with the prior above).
+    # Low-pass filter (II-F): "one_euro" (our default, one_euro.py: first order, cutoff rising
+    # with each keypoint's speed) or "butterworth" (the paper's fixed IIR, the settings below).
+    # Synthetic benchmark against the best Butterworth found (first order, 3 Hz, lag
+    # compensation; 2.5-6 Hz were no better): regular 28.7 -> 28.1 mm, inverted 26.3 -> 25.3 mm,
+    # mean joint acceleration (jitter) 85.6 -> 82.9 m/s^2. beta 15-20 gave 27.6 mm but +8-18 %
+    # jitter.
+    filter_kind: str = "one_euro"
+    filter_min_cutoff_hz: float = 1.0
+    filter_beta: float = 10.0  # Hz of cutoff per m/s
+    filter_derivative_cutoff_hz: float = 2.0
+    # Butterworth: first order at 3 Hz with lag compensation; on the synthetic benchmark the
+    # second-order 6 Hz filter overshot fast motions (run 48 vs 34 mm with the prior above).
     filter_order: int = 1
     filter_cutoff_hz: float = 3.0
     filter_lag_compensation: bool = True
@@ -110,6 +120,9 @@ class TrackerConfig:
             raise ValueError(f"prediction must be 'previous' or 'constant_velocity', not {self.prediction!r}")
         if not 0 < self.filter_cutoff_hz < self.fps / 2:
             raise ValueError("filter_cutoff_hz must be below half the frame rate")
+        if self.filter_kind not in ("one_euro", "butterworth"):
+            raise ValueError(f"filter_kind must be 'one_euro' or 'butterworth', not {self.filter_kind!r}")
+        make_filter(self)  # the filter's own checks (cutoffs, order)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -124,6 +137,13 @@ class Markers:
     weights: np.ndarray  # (25,), 0 where unknown
     kind: str  # "triangulated" | "lattice" | "none"
     score: float = 0.0  # mean weight per view over the observed keypoints (0..1)
+
+
+def make_filter(config: TrackerConfig) -> LowPassFilter | OneEuroFilter:
+    """The low-pass of II-F that `config` asks for (fresh state)."""
+    if config.filter_kind == "one_euro":
+        return OneEuroFilter(config.filter_min_cutoff_hz, config.filter_beta, config.fps, config.filter_derivative_cutoff_hz)
+    return LowPassFilter(config.filter_order, config.filter_cutoff_hz, config.fps, config.filter_lag_compensation)
 
 
 # Statuses whose raw keypoints are fed back to the lattice search (the others re-initialize);
@@ -446,8 +466,7 @@ class SkeletonStage:
         self._identify: list[np.ndarray] | None = None  # markers of the identification phase
         self._q_raw: np.ndarray | None = None
         self._q_out: np.ndarray | None = None
-        self._filter = LowPassFilter(self.config.filter_order, self.config.filter_cutoff_hz, self.config.fps,
-                                     self.config.filter_lag_compensation)
+        self._filter = make_filter(self.config)
         self.status = "initializing"
         self._joint_names = Skeleton().joint_names
         self.timings: dict[str, float] = {}

@@ -21,12 +21,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..iir import LowPassFilter
 from ..metrics import bone_length_std, jitter, table_one
 from ..motion import Motion, extend, load_motion, resample
 from ..skeleton import BONES
 from ..synthetic import SyntheticPcmSource, benchmark_rig
-from ..tracker import SpatiotemporalFilter, TrackerConfig
+from ..tracker import SpatiotemporalFilter, TrackerConfig, make_filter
 from ..triangulation import triangulate_robust
 
 RATE_HZ = 60.0
@@ -66,7 +65,7 @@ def run_motion(motion: Motion, seed: int = 0, config: TrackerConfig | None = Non
     source = SyntheticPcmSource(rig, motion.positions, motion.present, seed=seed, fps=RATE_HZ)
     tracker = SpatiotemporalFilter(rig, config)
     # The same low-pass filter as the method's (lag compensation included).
-    base_filter = LowPassFilter(config.filter_order, config.filter_cutoff_hz, RATE_HZ, config.filter_lag_compensation)
+    base_filter = make_filter(config)
     T = len(source)
     method = np.full((T, 25, 3), np.nan)
     baseline = np.full((T, 25, 3), np.nan)
