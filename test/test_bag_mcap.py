@@ -183,6 +183,35 @@ def test_pcm_message_roundtrip_exact() -> None:
     assert np.allclose((K @ d)[:2], expect, atol=1e-9) and xc[2] > 0
 
 
+def test_pcm_messages_without_data_decode_like_the_data() -> None:
+    """In one process vmocap_pcm hands its PcmViews to vmocap_markers inside data-less Image
+    dicts: the decoded frame set equals, bit for bit, the one decoded from the data."""
+    from vmocap_core.heatmaps import PcmViews, stride_affine
+    from vmocap_core.synthetic import benchmark_rig
+
+    rig = benchmark_rig()
+    rng = np.random.default_rng(3)
+    maps = rng.random((3, 4, 12, 16))
+    maps[2, 3] = np.nan  # a channel said valid but all NaN: invalid after decoding
+    maps[0, 0, 5, 7] = np.nan  # one NaN cell stays
+    views = PcmViews(maps=maps, image_to_map=np.stack([stride_affine(16)] * 3), camera=[2, 0, 1], keypoints=[0, 1, 7, 9],
+                     valid=[[True, False, True, True], [True, True, True, True], [False, True, True, True]],
+                     presence=[0.1, 1.0, 1 / 3], stamp_ns=7)
+    kp = np.array([0, 1, 7, 9])
+    with_data = M.pcm_views(M.pcm_msgs(views, rig), rig, kp)
+    pairs = M.pcm_msgs(views, rig, data=False)
+    assert all("data" not in img and M.PCM_VIEW in img for img, _ in pairs)
+    without = M.pcm_views(pairs, rig, kp)
+    for field in ("maps", "image_to_map", "camera", "keypoints", "valid", "presence"):
+        a, b = getattr(with_data, field), getattr(without, field)
+        assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), field
+    assert not without.valid[2, 3] and without.stamp_ns == 7
+    # a mixed frame set (one view decoded from bytes) is the same too
+    full = M.pcm_msgs(views, rig)
+    mixed = M.pcm_views([full[0], pairs[1], pairs[2]], rig, kp)
+    assert np.array_equal(mixed.maps, with_data.maps, equal_nan=True) and np.array_equal(mixed.presence, with_data.presence)
+
+
 def test_camera_info_mismatch_is_reported() -> None:
     from vmocap_core.synthetic import benchmark_rig
 

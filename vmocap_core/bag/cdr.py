@@ -1,7 +1,9 @@
 """A small CDR (XCDR1, little endian) codec for the ROS 2 message types vmocap uses.
 
 ROS-free: messages are plain dicts keyed by field name (missing fields encode as zero/empty),
-numeric arrays decode to numpy arrays, uint8/byte arrays to `bytes`. The byte layout is the
+numeric arrays decode to numpy arrays, uint8/byte arrays to `bytes`. For encoding, an array of
+a struct made of one numeric type (geometry_msgs/Point, std_msgs/ColorRGBA) may be given as a
+numpy array (N, fields) instead of a list of dicts. The byte layout is the
 one rmw_fastrtps and rosbag2 use (4-byte encapsulation header 00 01 00 00, primitives aligned to
 their size relative to the end of the header, strings as uint32 length incl. NUL + bytes + NUL,
 sequences as uint32 count + elements), so bags written here play on a real ROS 2 graph and
@@ -230,8 +232,11 @@ def _enc_string(out: _Out, value: Any) -> None:
 def _enc_prim_array(out: _Out, base: str, value: Any, n: int) -> None:
     code, size = _PRIM[base]
     if base in _BYTES:
+        # byte views are joined into the output as they are: their payload is copied once, in encode()
         if isinstance(value, np.ndarray):
-            data = value.astype(np.uint8, copy=False).tobytes()
+            data = memoryview(np.ascontiguousarray(value.astype(np.uint8, copy=False))).cast("B")
+        elif isinstance(value, memoryview):
+            data = value if value.format == "B" and value.ndim == 1 else value.cast("B")
         elif value is None:
             data = b""
         else:
@@ -267,6 +272,8 @@ def _enc_struct(out: _Out, type_name: str, msg: Any) -> None:
                 _enc_struct(out, f.base, value)
         elif f.base in _PRIM:
             _enc_prim_array(out, f.base, value, f.array)
+        elif isinstance(value, np.ndarray) and _flat_struct(f.base) is not None:
+            _enc_flat_struct_array(out, f.base, value, f.array)
         else:
             items = list(value or [])
             if f.array >= 0:
@@ -274,11 +281,63 @@ def _enc_struct(out: _Out, type_name: str, msg: Any) -> None:
             else:
                 out.align(4)
                 out.put(struct.pack("<I", len(items)))
+            if f.base == "string":
+                if items:
+                    out.align(4)
+                    out.put(_string_block(items))
+                continue
             for item in items:
-                if f.base == "string":
-                    _enc_string(out, item)
-                else:
-                    _enc_struct(out, f.base, item)
+                _enc_struct(out, f.base, item)
+
+
+_STRING_BLOCKS: dict[tuple, bytes] = {}
+
+
+def _string_block(items: list) -> bytes:
+    """CDR of consecutive strings from a 4-aligned position (their layout does not depend on
+    where that is), remembered: a JointState's 40 names are the same every frame."""
+    key = tuple(items)
+    block = _STRING_BLOCKS.get(key)
+    if block is None:
+        out = _Out()
+        for item in key:
+            _enc_string(out, item)
+        block = b"".join(out.parts)
+        if len(_STRING_BLOCKS) < 256:
+            _STRING_BLOCKS[key] = block
+    return block
+
+
+_FLAT: dict[str, tuple[str, int] | None] = {}
+
+
+def _flat_struct(type_name: str) -> tuple[str, int] | None:
+    """(primitive, count) of a struct made of one numeric primitive only (Point: float64 x 3,
+    ColorRGBA: float32 x 4), whose CDR array is just the numbers back to back; else None."""
+    if type_name not in _FLAT:
+        fs = fields_of(type_name)
+        bases = {f.base for f in fs}
+        flat = len(bases) == 1 and all(f.array is None for f in fs) and next(iter(bases)) in _PRIM
+        _FLAT[type_name] = (fs[0].base, len(fs)) if flat and fs[0].base not in _BYTES | {"bool"} else None
+    return _FLAT[type_name]
+
+
+def _enc_flat_struct_array(out: _Out, type_name: str, value: np.ndarray, n: int) -> None:
+    """An array of flat structs given as a numpy array (N, fields): one block of numbers,
+    no per-element Python work."""
+    base, k = _flat_struct(type_name)  # type: ignore[misc]
+    code, size = _PRIM[base]
+    arr = np.ascontiguousarray(value, dtype=np.dtype("<" + code)).reshape(-1, k)
+    count = len(arr)
+    if n >= 0:
+        if count != n:
+            raise BagError(f"fixed array of {type_name} needs {n} elements, got {count}")
+    else:
+        out.align(4)
+        out.put(struct.pack("<I", count))
+    if count:
+        out.align(size)
+        out.put(memoryview(arr).cast("B"))
 
 
 def encode(type_name: str, msg: Any) -> bytes:

@@ -71,7 +71,9 @@ def clock_msg(ns: int) -> dict:
 _IMAGE_ENC = {"mono8": (np.uint8, 1), "bgr8": (np.uint8, 3), "rgb8": (np.uint8, 3), "mono16": (np.uint16, 1)}
 
 
-def image_msg(image: np.ndarray, ns: int, frame_id: str, encoding: str | None = None) -> dict:
+def image_msg(image: np.ndarray, ns: int, frame_id: str, encoding: str | None = None, copy: bool = True) -> dict:
+    """copy=False: `data` is a read-only byte view of the image (no copy of its megabytes), for
+    a caller that never writes to the image again (camera frames, a freshly built stack)."""
     img = np.ascontiguousarray(image)
     if encoding is None:
         encoding = "bgr8" if img.ndim == 3 else "mono8"
@@ -83,7 +85,7 @@ def image_msg(image: np.ndarray, ns: int, frame_id: str, encoding: str | None = 
         "encoding": encoding,
         "is_bigendian": 0,
         "step": img.strides[0],
-        "data": img.tobytes(),
+        "data": img.tobytes() if copy else memoryview(img).cast("B").toreadonly(),
     }
 
 
@@ -111,9 +113,11 @@ def image_array(msg: dict) -> np.ndarray:
 
 def camera_info_msg(camera: Camera, ns: int, K: np.ndarray | None = None, size: tuple[int, int] | None = None) -> dict:
     """CameraInfo of a rig camera (or, with K/size, of a heatmap seen as a camera)."""
-    rational = bool(np.any(camera.dist[5:] != 0))
+    rational = bool(camera.dist[5:].any())
     K = camera.K if K is None else np.asarray(K, dtype=np.float64)
     w, h = (camera.width, camera.height) if size is None else size
+    P = np.zeros((3, 4))
+    P[:, :3] = K
     return {
         "header": header(ns, camera.name),
         "height": int(h),
@@ -122,7 +126,7 @@ def camera_info_msg(camera: Camera, ns: int, K: np.ndarray | None = None, size: 
         "d": camera.dist if rational else camera.dist[:5],
         "k": K.ravel(),
         "r": np.eye(3).ravel(),
-        "p": np.hstack([K, np.zeros((3, 1))]).ravel(),
+        "p": P.ravel(),
     }
 
 
@@ -142,20 +146,32 @@ def camera_info_mismatch(msg: dict, camera: Camera, rtol: float = 1e-6) -> str |
 
 
 # ------------------------------------------------------------------------------- heatmaps
-def pcm_msgs(views: PcmViews, rig: Rig) -> list[tuple[dict, dict]]:
-    """One (Image, CameraInfo) pair per view (see the module docstring)."""
+# In-process only (never encoded): the (PcmViews, view index) an Image dict without `data`
+# stands for, so a receiver in the same process reads the maps without their interleaving
+PCM_VIEW = "_vmocap_pcm_view"
+
+
+def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, dict]]:
+    """One (Image, CameraInfo) pair per view (see the module docstring). data=False: the
+    Images carry no `data` but refer to `views` (PCM_VIEW), for receivers in this process
+    only (`pcm_views` reads them; CDR would encode them empty)."""
     V, J, H, W = views.maps.shape
-    # all views at once: (V, H, W, J + 1) interleaved, invalid channels NaN, presence last
-    stack = np.empty((V, H, W, J + 1), dtype=np.float32)
-    np.copyto(stack[..., :J], views.maps.transpose(0, 2, 3, 1))
-    invalid = ~np.asarray(views.valid, dtype=bool)
-    if invalid.any():
-        stack[..., :J] = np.where(invalid[:, None, None, :], np.float32(np.nan), stack[..., :J])
-    stack[..., J] = np.asarray(views.presence, dtype=np.float32)[:, None, None]
+    if data:
+        # all views at once: (V, H, W, J + 1) interleaved, invalid channels NaN, presence last
+        stack = np.empty((V, H, W, J + 1), dtype=np.float32)
+        np.copyto(stack[..., :J], views.maps.transpose(0, 2, 3, 1))
+        invalid = ~np.asarray(views.valid, dtype=bool)
+        if invalid.any():
+            stack[..., :J] = np.where(invalid[:, None, None, :], np.float32(np.nan), stack[..., :J])
+        stack[..., J] = np.asarray(views.presence, dtype=np.float32)[:, None, None]
     out = []
     for v in range(V):
         cam = rig[int(views.camera[v])]
-        img = image_msg(stack[v], views.stamp_ns, cam.name, encoding=f"32FC{J + 1}")
+        if data:
+            img = image_msg(stack[v], views.stamp_ns, cam.name, encoding=f"32FC{J + 1}", copy=False)  # stack is ours
+        else:
+            img = {"header": header(views.stamp_ns, cam.name), "height": H, "width": W, "encoding": f"32FC{J + 1}",
+                   "is_bigendian": 0, "step": 4 * W * (J + 1), PCM_VIEW: (views, v)}
         A = np.vstack([views.image_to_map[v], [0.0, 0.0, 1.0]])
         info = camera_info_msg(cam, views.stamp_ns, K=A @ cam.K, size=(W, H))
         out.append((img, info))
@@ -163,38 +179,60 @@ def pcm_msgs(views: PcmViews, rig: Rig) -> list[tuple[dict, dict]]:
 
 
 def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarray) -> PcmViews:
-    """Inverse of `pcm_msgs`: (Image, CameraInfo) pairs of one frame set -> PcmViews."""
+    """Inverse of `pcm_msgs`: (Image, CameraInfo) pairs of one frame set -> PcmViews. An
+    Image that refers to its PcmViews (PCM_VIEW) gives the same values as its data would."""
     if not pairs:
         raise HeatmapError("no PCM views in the frame set")
-    J = len(keypoints)
-    arrs, affines, cams = [], [], []
+    J, V = len(keypoints), len(pairs)
+    H, W = pairs[0][0]["height"], pairs[0][0]["width"]
+    names = rig.names
+    cams = []
     for img, info in pairs:
         name = img["header"]["frame_id"]
-        if name not in rig.names:
-            raise HeatmapError(f"PCM view of unknown camera {name!r} (rig has {rig.names})")
-        arr = image_array(img)
-        if arr.ndim != 3 or arr.shape[2] != J + 1:
+        if name not in names:
+            raise HeatmapError(f"PCM view of unknown camera {name!r} (rig has {names})")
+        if img["encoding"] != f"32FC{J + 1}":
             raise HeatmapError(f"PCM of {name}: {img['encoding']} but {J} keypoints + presence expected")
         if (info["width"], info["height"]) != (img["width"], img["height"]):
             raise HeatmapError(f"PCM of {name}: CameraInfo size differs from the heatmap's")
-        if arrs and arr.shape != arrs[0].shape:
-            raise HeatmapError(f"PCM of {name}: {arr.shape[1]}x{arr.shape[0]} differs from the other views' "
-                               f"{arrs[0].shape[1]}x{arrs[0].shape[0]}")
-        cam = rig[name]
-        Kmap = np.asarray(info["k"], dtype=np.float64).reshape(3, 3)
-        affines.append((Kmap @ np.linalg.inv(cam.K))[:2])
-        cams.append(rig.names.index(name))
-        arrs.append(arr)
-    # all views at once: one copy into (V, H, W, J + 1), then one transposing copy
-    stack = np.stack(arrs).astype(np.float32, copy=False)
-    V, H, W = stack.shape[:3]
-    maps = np.ascontiguousarray(stack[..., :J].transpose(0, 3, 1, 2))
-    valid = ~np.isnan(maps.reshape(V, J, H * W)).all(axis=2)  # (V, J): an all-NaN channel says nothing
+        if (img["height"], img["width"]) != (H, W):
+            raise HeatmapError(f"PCM of {name}: {img['width']}x{img['height']} differs from the other views' {W}x{H}")
+        cams.append(names.index(name))
+    sources = [img.get(PCM_VIEW) for img, _ in pairs]
+    whole = sources[0] is not None and sources[0][0].n_views == V and all(
+        s is not None and s[0] is sources[0][0] and s[1] == i for i, s in enumerate(sources))
+    if whole:  # every view of one PcmViews, in order (in-process): what its data would hold
+        views = sources[0][0]
+        maps = views.maps.astype(np.float32, copy=True)
+        maps[~np.asarray(views.valid, dtype=bool)] = np.nan
+        presence = np.asarray(views.presence, dtype=np.float32).astype(np.float64)
+    else:
+        maps = np.empty((V, J, H, W), dtype=np.float32)
+        presence = np.zeros(V)
+        for i, ((img, _), source) in enumerate(zip(pairs, sources)):
+            if source is None:
+                arr = image_array(img)  # (H, W, J + 1), channels interleaved
+                maps[i] = arr[..., :J].transpose(2, 0, 1)
+                if H * W:
+                    presence[i] = arr[0, 0, J]
+            else:
+                views, v = source
+                maps[i] = views.maps[v]
+                maps[i][~np.asarray(views.valid[v], dtype=bool)] = np.nan
+                presence[i] = np.float32(views.presence[v])
+    # (V, J): an all-NaN channel says nothing; only a channel whose first cell is NaN can be one
+    flat = maps.reshape(V * J, H * W)
+    valid = np.full(V * J, H * W > 0)  # an empty map says nothing either
+    if H * W:
+        maybe = np.flatnonzero(np.isnan(flat[:, 0]))
+        valid[maybe] = ~np.isnan(flat[maybe]).all(axis=1)
+    valid = valid.reshape(V, J)
     maps[~valid] = 0.0
-    presence = stack[:, 0, 0, J].astype(np.float64) if H * W else np.zeros(len(arrs))
+    Kmap = np.stack([np.asarray(info["k"], dtype=np.float64).reshape(3, 3) for _, info in pairs])
+    Kcam = np.stack([rig[c].K for c in cams])
     return PcmViews(
         maps=maps,
-        image_to_map=np.stack(affines),
+        image_to_map=(Kmap @ np.linalg.inv(Kcam))[:, :2],
         camera=np.array(cams),
         keypoints=np.asarray(keypoints),
         valid=valid,
@@ -274,8 +312,8 @@ def skeleton_markers(ns: int, keypoints: np.ndarray | None) -> dict:
     ok = np.isfinite(K).all(axis=1)
     bones = _BONE_IDX[ok[_BONE_IDX].all(axis=1)].ravel()
 
-    def pts(idx: np.ndarray) -> list[dict]:
-        return [{"x": float(x), "y": float(y), "z": float(z)} for x, y, z in K[idx]]
+    def pts(idx: np.ndarray) -> np.ndarray:
+        return K[idx]  # (N, 3): geometry_msgs/Point[] encoded as one block (see cdr)
 
     common = {"header": header(ns, WORLD_FRAME), "ns": "vmocap", "pose": {"orientation": {"w": 1.0}}}
     return {
