@@ -17,7 +17,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -139,17 +139,22 @@ def markers_from_message(msg: dict) -> Any:
     return Markers(M.stamp_ns(msg), P, S, kind)
 
 
-def result_messages(topics: Topics, result: Any) -> list[tuple[str, str, dict]]:
-    """(topic, type, message) of one TrackResult, in publishing order (feedback first: the
-    lattice search of the next frame waits for it)."""
+def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] | None = None) -> Iterator[tuple[str, str, dict]]:
+    """(topic, type, message) of one TrackResult in publishing order: the feedback first (the
+    lattice search of the next frame waits for it), then joint_states (what controllers wait
+    for), then keypoints and the MarkerArray. Each message is built when it is taken, and not
+    at all where `wanted(topic)` is False (nobody listens)."""
     t = result.stamp_ns
     tracking = result.status == "tracking"
-    out = [(topics.feedback, CLOUD, M.keypoint_cloud(t, feedback_of(result)))]
-    if tracking:
-        out.append((topics.joint_states, JOINTS, M.joint_state_msg(t, result.joint_names, result.q)))
-    out.append((topics.keypoints, CLOUD, M.keypoint_cloud(t, result.keypoints if tracking else None, result.scores)))
-    out.append((topics.skeleton, MARKER_ARRAY, M.skeleton_markers(t, result.keypoints if tracking else None)))
-    return out
+    want = wanted or (lambda topic: True)
+    if want(topics.feedback):
+        yield topics.feedback, CLOUD, M.keypoint_cloud(t, feedback_of(result))
+    if tracking and want(topics.joint_states):
+        yield topics.joint_states, JOINTS, M.joint_state_msg(t, result.joint_names, result.q)
+    if want(topics.keypoints):
+        yield topics.keypoints, CLOUD, M.keypoint_cloud(t, result.keypoints if tracking else None, result.scores)
+    if want(topics.skeleton):
+        yield topics.skeleton, MARKER_ARRAY, M.skeleton_markers(t, result.keypoints if tracking else None)
 
 
 def pcm_topics(bag_topics: dict[str, str], topics: Topics, views: list[str] | None) -> list[str]:
@@ -238,9 +243,8 @@ def process_bag(
 def _write_outputs(writer: BagWriter, topics: Topics, markers, result, stamp_ns: int, stats: dict[str, Any]) -> None:
     """One frame set's graph outputs (markers and results, not the internal feedback) and counts."""
     writer.write(topics.markers, CLOUD, markers_message(markers), stamp_ns)
-    for topic, ty, msg in result_messages(topics, result):
-        if topic != topics.feedback:
-            writer.write(topic, ty, msg, stamp_ns)
+    for topic, ty, msg in result_messages(topics, result, wanted=lambda topic: topic != topics.feedback):
+        writer.write(topic, ty, msg, stamp_ns)
     stats["frames"] += 1
     stats["tracking"] += result.status == "tracking"
 
