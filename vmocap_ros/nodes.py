@@ -6,6 +6,9 @@ pipeline uses: graph and `vmocap process` compute from identical inputs.
 
 from __future__ import annotations
 
+import functools
+import heapq
+import itertools
 import threading
 import time
 from collections import deque
@@ -61,26 +64,133 @@ class LocalBus:
         self.publishers: set[str] = set()
         self.subscribers: dict[str, list[Callable[[dict], None]]] = {}
         self.pending: deque = deque()
-        # a node publishing from its own threads (the camera node's readers) sets this: the spin
-        # loop then wakes every poll_s to hand those messages over (executors cannot be woken
-        # from another thread without a guard condition, which the EventsExecutor lacks)
+        # a message published from another thread (the camera node's readers) wakes the spin
+        # loop's executor at once (`wake`, set by the spin loop); poll_s is only a fallback
         self.poll_s = 0.1
+        self.wake: Callable[[], None] | None = None
+        self.spin_thread = threading.get_ident()
+        self._wake_pending = False
 
     def publish(self, topic: str, msg: dict) -> None:
-        for cb in self.subscribers.get(topic, ()):
+        subs = self.subscribers.get(topic)
+        if not subs:
+            return
+        for cb in subs:
             self.pending.append((cb, msg))
+        if self.wake is not None and not self._wake_pending and threading.get_ident() != self.spin_thread:
+            self._wake_pending = True  # one wake-up per drain, not per message
+            self.wake()
 
-    def drain(self) -> int:
-        """Hand over the messages queued so far (not those queued meanwhile: a producer thread
-        faster than the consumers must not starve the executor's timers and DDS events)."""
-        n = len(self.pending)
-        for _ in range(n):
-            cb, msg = self.pending.popleft()
-            cb(msg)
-        return n
+    def drain(self, max_s: float = 0.0) -> bool:
+        """Hand over the messages queued so far, and those the callbacks queue meanwhile (a
+        frame set's way from node to node) for up to max_s seconds: the executor's timers and
+        DDS events wait meanwhile (a spin_once between two hand-overs costs ~70 us). True
+        when messages are left."""
+        end = time.monotonic() + max_s
+        while True:
+            self._wake_pending = False  # before counting: a message queued after this wakes again
+            n = len(self.pending)
+            for _ in range(n):
+                cb, msg = self.pending.popleft()
+                cb(msg)
+            if not self.pending or time.monotonic() >= end:
+                return bool(self.pending)
 
 
 BUS = LocalBus()
+
+
+class Output:
+    """One output topic of a node; calling it publishes a message dict. In-process nodes
+    (LocalBus) get the dict itself; over DDS it goes as CDR bytes, encoded only when a DDS
+    reader matched, except on a transient-local (latched) topic of a node without local bus:
+    kept for readers that match later. Volatile samples without a reader go nowhere, so their
+    encoding is skipped (the MarkerArray alone costs ~0.4 ms). `prepare` + `send` split the
+    work: a recorded camera frame is encoded while it waits for its due time."""
+
+    __slots__ = ("type_name", "topic", "pub", "latched", "local")
+
+    def __init__(self, type_name: str, topic: str, pub: Any, latched: bool) -> None:
+        self.type_name, self.topic, self.pub, self.latched = type_name, topic, pub, latched
+        self.local = BUS.enabled  # our nodes in this process subscribe locally, not over DDS
+
+    def dds_wanted(self) -> bool:
+        return (self.latched and not self.local) or self.pub.get_subscription_count() > 0
+
+    def wanted(self) -> bool:
+        """Does anyone take this topic (a local node or a DDS reader)? Else skip building it."""
+        return bool(self.local and BUS.subscribers.get(self.topic)) or self.dds_wanted()
+
+    def prepare(self, msg: dict) -> tuple[dict, bytes | None]:
+        return msg, (cdr.encode(self.type_name, msg) if self.dds_wanted() else None)
+
+    def send(self, prepared: tuple[dict, bytes | None]) -> None:
+        msg, data = prepared
+        if self.local:
+            BUS.publish(self.topic, msg)
+        if data is not None:
+            self.pub.publish(data)
+
+    def __call__(self, msg: dict) -> None:
+        self.send(self.prepare(msg))
+
+
+class DueQueue:
+    """Publications due at a monotonic time, made by the spin loop (run_node.spin_nodes) when
+    they are due: a recorded camera's frames, prepared (and CDR-encoded) by its reader thread
+    beforehand, go out in one burst per instant from the thread that handles them next, instead
+    of every camera's reader thread waking at the same instant and queueing for the GIL (the
+    last of 4 cameras went out ~2 ms late on 2 cores). Without a spin loop (`wake` None) the
+    reader threads publish themselves."""
+
+    def __init__(self) -> None:
+        self._heap: list = []
+        self._lock = threading.Lock()
+        self._seq = itertools.count()
+        self.wake: Callable[[], None] | None = None  # set by the spin loop
+        self._sleep_until = float("inf")
+        self._when_idle: list[tuple[float, Callable[[], None]]] = []
+
+    def when_idle(self, fn: Callable[[], None], at_latest: float) -> None:
+        """Call fn once the spin loop has nothing left to hand over, or at the monotonic time
+        at_latest at the latest (checked between callbacks). From the spin loop's thread only."""
+        self._when_idle.append((at_latest, fn))
+
+    def run_idle(self, idle: bool) -> None:
+        if not self._when_idle:
+            return
+        now = time.monotonic()
+        waiting = []
+        for at_latest, fn in self._when_idle:
+            if idle or at_latest <= now:
+                fn()
+            else:
+                waiting.append((at_latest, fn))
+        self._when_idle = waiting
+
+    def put(self, due: float, send: Callable[[], None]) -> None:
+        with self._lock:
+            heapq.heappush(self._heap, (due, next(self._seq), send))
+            wake = due < self._sleep_until
+            if wake:
+                self._sleep_until = due
+        if wake and self.wake is not None:
+            self.wake()
+
+    def run_due(self, poll_s: float) -> float:
+        """Send what is due; the time (s) the spin loop may sleep before the next is due."""
+        while True:
+            with self._lock:
+                now = time.monotonic()
+                if not self._heap or self._heap[0][0] > now:
+                    wait = min(poll_s, self._heap[0][0] - now) if self._heap else poll_s
+                    self._sleep_until = now + wait
+                    return wait
+                send = heapq.heappop(self._heap)[2]
+            send()
+
+
+DUE = DueQueue()
 
 
 class VmocapNode(Node):
@@ -113,30 +223,12 @@ class VmocapNode(Node):
         self.create_timer(1.0, self._publish_diagnostics)
 
     # -- raw messages --------------------------------------------------------------------
-    def publisher(self, type_name: str, topic: str, depth: int = STREAM_DEPTH, latched: bool = False) -> Callable[[dict], None]:
+    def publisher(self, type_name: str, topic: str, depth: int = STREAM_DEPTH, latched: bool = False) -> "Output":
         pub = self.create_publisher(msg_class(type_name), topic, qos(depth, latched=latched))
         self._dds_pubs[topic] = pub
-        if not BUS.enabled:
-            if latched:  # transient local: kept for subscribers that match later
-                return lambda msg: pub.publish(cdr.encode(type_name, msg))
-
-            def publish_volatile(msg: dict) -> None:
-                # volatile: a sample without a matched reader goes nowhere; skip its encoding
-                # (e.g. the MarkerArray skeleton, 1.5 ms, when no RViz is listening)
-                if pub.get_subscription_count() > 0:
-                    pub.publish(cdr.encode(type_name, msg))
-
-            return publish_volatile
-        BUS.publishers.add(topic)
-
-        def publish(msg: dict) -> None:
-            BUS.publish(topic, msg)
-            # over DDS only when someone outside this process's nodes subscribes (our own
-            # nodes take it locally and have no DDS subscription on this topic)
-            if pub.get_subscription_count() > 0:
-                pub.publish(cdr.encode(type_name, msg))
-
-        return publish
+        if BUS.enabled:
+            BUS.publishers.add(topic)
+        return Output(type_name, topic, pub, latched)
 
     def subscribe(self, type_name: str, topic: str, cb: Callable[[dict], None], depth: int = STREAM_DEPTH,
                   latched: bool = False) -> None:
@@ -211,8 +303,6 @@ class CameraNode(VmocapNode):
             self._threads.append((th, src))
         for th, _ in self._threads:
             th.start()
-        if BUS.enabled:
-            BUS.poll_s = 0.002  # frames come from the reader threads: hand them over within 2 ms
         self._wait_end = time.monotonic() + self.p["wait_subscribers"]
         self._matched_timer = self.create_timer(0.05, self._check_matched)
         self._check_matched()
@@ -247,8 +337,10 @@ class CameraNode(VmocapNode):
             raise VmocapError(f"camera source {kind!r} is not available (vmocap_core.sources.make_source missing)") from None
         return factory(kind, uri, camera)
 
-    def _run(self, src, cam, pub_img, pub_info) -> None:
+    def _run(self, src, cam, pub_img: Output, pub_info: Output) -> None:
         stamps = LoopedStamps()
+        slot = threading.Semaphore(1)  # one frame of this camera waits for its time, the next is read meanwhile
+        last_due: float | None = None
         while not self._stop.is_set():
             try:
                 frame = src.read(timeout=0.5)
@@ -268,17 +360,41 @@ class CameraNode(VmocapNode):
                     if self._stop.is_set():
                         return
             stamp, due = self._playback.schedule(stamps(frame.stamp_ns), time.monotonic(), time.time_ns())
-            # a recorded frame is converted while it waits for its time, and goes out on time
-            img, info = M.image_msg(frame.image, stamp, cam.name), M.camera_info_msg(cam, stamp)
-            if due is not None:
-                delay = due - time.monotonic()
-                if delay > 0 and self._stop.wait(delay):
+            # the message refers to the frame's pixels (sources never reuse a frame's array)
+            img, info = M.image_msg(frame.image, stamp, cam.name, copy=False), M.camera_info_msg(cam, stamp)
+            if due is None:
+                if self._playback.restamp:
+                    img["header"] = info["header"] = M.header(time.time_ns(), cam.name)
+                self._send(cam.name, pub_img.prepare(img), pub_info.prepare(info), pub_img, pub_info)
+                continue
+            # a recorded frame is converted (and encoded for DDS readers) while it waits for its time
+            prepared = (pub_img.prepare(img), pub_info.prepare(info))
+            while not slot.acquire(timeout=0.1):  # the previous frame of this camera is still due
+                if self._stop.is_set():
                     return
-            elif self._playback.restamp:
-                img["header"] = info["header"] = M.header(time.time_ns(), cam.name)
-            pub_img(img)
-            pub_info(info)
-            self.published[cam.name] += 1
+            if DUE.wake is not None:  # the spin loop sends it when due, and frees the slot
+                period = due - last_due if last_due is not None else 0.0
+                last_due = due
+                DUE.put(due, functools.partial(self._send_due, cam.name, prepared, pub_img, pub_info, slot, due + 0.5 * period))
+                continue
+            delay = due - time.monotonic()
+            if delay > 0 and self._stop.wait(delay):
+                return
+            self._send(cam.name, *prepared, pub_img, pub_info)
+            slot.release()
+
+    def _send_due(self, cam: str, prepared: tuple, pub_img: Output, pub_info: Output, slot: threading.Semaphore,
+                  release_at: float) -> None:
+        self._send(cam, *prepared, pub_img, pub_info)
+        # this camera's reader thread reads its next frame once the graph is done with this
+        # frame set (or half a period later): woken meanwhile, it would take the GIL from it
+        DUE.when_idle(slot.release, release_at)
+
+    def _send(self, cam: str, img: tuple, info: tuple, pub_img: Output, pub_info: Output) -> None:
+        pub_img.send(img)
+        pub_info.send(info)
+        self.published[cam] += 1
+        self.age.add((time.time_ns() - M.stamp_ns(img[0])) / 1e6)  # how late the frame went out
 
     def status(self) -> dict[str, Any]:
         return {"published": self.published}
@@ -304,7 +420,8 @@ class PcmNode(VmocapNode):
         self.provider = self._make_provider()
         self.feedback: np.ndarray | None = None
         self.info_mismatch: dict[str, str] = {}
-        self._pubs: dict[str, tuple[Callable, Callable]] = {}
+        self._info_seen: dict[str, tuple] = {}  # camera -> the CameraInfo last compared with the rig
+        self._pubs: dict[str, tuple[Output, Output]] = {}
         for name in names:
             self.subscribe(IMAGE, self.topics.image(name), lambda m, n=name: self._on_image(n, m), depth=p["queue_depth"])
             self.subscribe(INFO, self.topics.camera_info(name), lambda m, n=name: self._on_info(n, m))
@@ -341,6 +458,11 @@ class PcmNode(VmocapNode):
         return provider
 
     def _on_info(self, cam: str, msg: dict) -> None:
+        # a camera sends the same CameraInfo every frame: compare with the rig only when it changed
+        seen = (msg["width"], msg["height"], msg["distortion_model"], np.asarray(msg["k"]).tobytes(), np.asarray(msg["d"]).tobytes())
+        if self._info_seen.get(cam) == seen:
+            return
+        self._info_seen[cam] = seen
         problem = M.camera_info_mismatch(msg, self.rig[cam])
         if problem and cam not in self.info_mismatch:
             self.get_logger().warning(problem + " (the rig is used)")
@@ -383,7 +505,10 @@ class PcmNode(VmocapNode):
             if self.wait > 0 and self.p["use_feedback"]:
                 self.awaiting, self.awaiting_since = fs.stamp_ns, time.monotonic()
             seen: dict[str, int] = {}
-            for img, info in M.pcm_msgs(pcm, self.rig):
+            # without a DDS reader of the heatmaps (all nodes in one process), our vmocap_markers
+            # gets the maps themselves: no interleaving into Image data and back (~1 ms a set)
+            data = any(pi.dds_wanted() for pi, _ in self._pubs.values())
+            for img, info in M.pcm_msgs(pcm, self.rig, data=data):
                 cam_name = img["header"]["frame_id"]
                 k = seen.get(cam_name, 0)
                 seen[cam_name] = k + 1
@@ -392,7 +517,10 @@ class PcmNode(VmocapNode):
                     self._pubs[view] = (self.publisher(IMAGE, self.topics.pcm(view)), self.publisher(INFO, self.topics.pcm_info(view)))
                 pi, pc = self._pubs[view]
                 pc(info)
-                pi(img)
+                if data:
+                    pi(img)
+                else:
+                    pi.send((img, None))  # to our nodes only
             if pcm.n_views == 0 and self.awaiting is not None:
                 self.awaiting = None  # nothing published: no skeleton will answer this frame
             self.frames += 1
@@ -499,7 +627,8 @@ class SkeletonNode(VmocapNode):
     def _on_markers(self, msg: dict) -> None:
         t0 = time.perf_counter()
         result = self.stage.step(markers_from_message(msg))
-        for topic, _ty, out in result_messages(self.topics, result):
+        # feedback, then joint_states; outputs nobody subscribes to are not even built
+        for topic, _ty, out in result_messages(self.topics, result, wanted=lambda topic: self.pubs[topic].wanted()):
             self.pubs[topic](out)
         self.counts["frames"] += 1
         self.counts["tracking"] += result.status == "tracking"

@@ -7,12 +7,14 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import threading
 import time
 from typing import Any
 
 import yaml
 
 DRAIN_S = 0.5  # after SIGINT/SIGTERM, keep handling messages in flight this long
+LOCAL_S = 0.05  # in-process hand-overs in a row before the executor gets its turn
 
 
 def parse_sets(items: list[str]) -> dict[str, dict[str, Any]]:
@@ -25,6 +27,10 @@ def parse_sets(items: list[str]) -> dict[str, dict[str, Any]]:
             raise SystemExit(f"--set wants NODE.PARAM=VALUE, got {item!r}")
         out.setdefault(node, {})[param] = yaml.safe_load(value)
     return out
+
+
+def _nothing() -> None:
+    pass
 
 
 def make_executor():
@@ -43,6 +49,18 @@ def make_executor():
     return SingleThreadedExecutor()
 
 
+def spin_round(executor: Any, poll_s: float) -> None:
+    """One turn of the spin loop: what is due goes out (recorded camera frames), then our nodes
+    in this process hand their messages on, then the executor (DDS, timers) gets its turn,
+    sleeping until something is due or arrives when nothing is left to do."""
+    from .nodes import BUS, DUE
+
+    wait = DUE.run_due(poll_s)
+    busy = BUS.drain(max_s=LOCAL_S)
+    DUE.run_idle(idle=not busy)
+    executor.spin_once(timeout_sec=0.0 if busy else wait)
+
+
 def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str, Any]] | None = None,
                ready: Any = None, local_bus: bool = True) -> int:
     from vmocap_core import graph_config
@@ -54,9 +72,12 @@ def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str
     rclpy = init_rclpy()
     executor = make_executor()
     nodes = []
-    from .nodes import BUS, create
+    from .nodes import BUS, DUE, create
 
     BUS.enabled = len(names) > 1 and local_bus
+    BUS.spin_thread = threading.get_ident()
+    # a task posted from another thread wakes a waiting spin_once at once (both executors)
+    BUS.wake = DUE.wake = lambda: executor.create_task(_nothing)
     try:
         for name in names:
             node = create(name, cfg, (overrides or {}).get(name))
@@ -68,17 +89,18 @@ def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str
         if ready is not None:
             ready()
         while not stop:
-            executor.spin_once(timeout_sec=0.0 if BUS.drain() else BUS.poll_s)
+            spin_round(executor, BUS.poll_s)
         # drain: deliver what is already in flight (e.g. the last outputs to the recorder)
         drain_end = time.monotonic() + DRAIN_S
         while time.monotonic() < drain_end:
-            executor.spin_once(timeout_sec=0.0 if BUS.drain() else 0.05)
+            spin_round(executor, 0.05)
     finally:
         for node in reversed(nodes):
             try:
                 node.close()
             except Exception as exc:  # noqa: BLE001 - keep closing the others
                 print(f"{node.get_name()}: close failed: {exc}", file=sys.stderr)
+        BUS.wake = DUE.wake = None
         for node in nodes:
             executor.remove_node(node)
             node.destroy_node()
