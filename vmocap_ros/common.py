@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import importlib
 import os
 import signal
@@ -102,9 +103,24 @@ class StopFlag:
         return self.event.is_set()
 
 
+def keep_freed_buffers() -> None:
+    """Let glibc keep freed megabyte buffers for reuse instead of unmapping them: by default
+    each 2.4 MB image buffer (CDR, rclpy's bytes, DDS payloads) is mapped afresh and every
+    page faults on first touch. Receiving a 1024x768 image over DDS cost 8.5 ms of CPU
+    (1700 page faults) instead of 3.0 ms; sending it 4.1 instead of 3.7 ms."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:  # not glibc
+        return
+    m_trim_threshold, m_mmap_threshold = -1, -3
+    libc.mallopt(m_mmap_threshold, 32 << 20)  # buffers up to 32 MB come from the heap ...
+    libc.mallopt(m_trim_threshold, 256 << 20)  # ... which keeps up to 256 MB free for reuse
+
+
 def init_rclpy(args: list[str] | None = None) -> Any:
     """rclpy.init without its signal handlers (StopFlag handles SIGINT/SIGTERM)."""
     prepare_env()
+    keep_freed_buffers()
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
