@@ -1,14 +1,21 @@
 """`vmocap bench graph [--json]`: rate, drops and latency of the node graph.
 
 A synthetic bag (4 cameras, 1024x768 bgr8, 30 Hz; benchmark rig, walk clip) is played in a
-loop by `vmocap play --restamp` (capture stamp = the moment the player publishes the frame
-set) through vmocap_pcm -> vmocap_markers -> vmocap_skeleton, once with each node in its own
-process and once with all three in one process (the player is always its own process).
-A probe node in this process measures, from the capture stamp, the age of:
-  cam0/camera_info (transport), pcm/cam0 (after PCM), markers (after the lattice search),
-  joint_states (end to end);
-the achieved output rate, the frame sets that never came out (dropped %), and the CPU per
-node (callback CPU time from the nodes' diagnostics, % of one core).
+loop, by the graph's own vmocap_camera node (`--feed camera`, default: capture stamp = the
+moment the frame set is due) or by `vmocap play --restamp` in its own process (`--feed
+player`), through vmocap_pcm -> vmocap_markers -> vmocap_skeleton, once with each node in its
+own process and once with all of them in one process.
+A probe node in this process receives joint_states (end-to-end latency, as a controller sees
+it) and keypoints (frame sets out, also while not tracking); the age after each stage comes
+from the nodes' own /diagnostics (capture stamp -> end of the node's processing, last 300
+frame sets): the camera node (or, with the player, cam0/camera_info at the probe:
+"transport"), vmocap_pcm, vmocap_markers, vmocap_skeleton. The probe subscribes to nothing
+else, because our nodes encode and send a topic over DDS only when a DDS reader matched: a
+probe on the heatmaps would add their encoding to what it measures.
+Reported: the output rate, the frame sets that never came out (dropped %: gaps in the
+evenly spaced output stamps with the camera feed, player frame sets missing at the output
+with the player), and the CPU per node (callback CPU time from the nodes' diagnostics, % of
+one core) and per process.
 PCM: `--pcm bag` (default) hands out heatmaps recorded in the bag (no CNN cost), `synthetic`
 renders them per frame set, `model` runs the CNN (vmocap_core.pcm) when it is available.
 """
@@ -16,6 +23,7 @@ renders them per frame set, `model` runs the CNN (vmocap_core.pcm) when it is av
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import os
 import signal
@@ -145,19 +153,23 @@ def _config(work: Path, mode: str, rig_path: Path, kps: list[str], args: argpars
 
 
 class Probe:
-    """Subscribes to the stage outputs and records (receive wall time, capture stamp)."""
+    """Records (receive wall time, capture stamp) of the graph's outputs and the nodes'
+    /diagnostics. A measurement must not change what it measures: a node encodes and sends a
+    topic over DDS only when a DDS reader matched, so the probe subscribes to the small
+    outputs a controller takes (joint_states, keypoints) and, with the player feed, to the
+    player's camera_info (the player pays for that); per-stage ages come from the nodes' own
+    diagnostics (each node's `age`: capture stamp -> end of its processing)."""
 
-    def __init__(self, rclpy, cameras: list[str]) -> None:
+    def __init__(self, rclpy, cameras: list[str], input_topic: bool) -> None:
         from vmocap_core.bag import cdr
-        from vmocap_core.bag import messages as M
 
         from .common import Topics, msg_class, qos
 
         self.rclpy = rclpy
         self.node = rclpy.create_node("vmocap_bench_probe")
         t = Topics("/vmocap")
-        self.samples: dict[str, list[tuple[int, int]]] = {k: [] for k in ("transport", "pcm", "markers", "joint_states", "keypoints")}
-        self.diag: dict[str, list[tuple[int, float]]] = {}
+        self.samples: dict[str, list[tuple[int, int]]] = {k: [] for k in ("transport", "joint_states", "keypoints")}
+        self.diag: dict[str, list[tuple[int, dict[str, str]]]] = {}  # node -> (monotonic ns, values)
         self.recording = False
         self.min_stamp = 0  # ignore outputs of frames captured before the current mode started
 
@@ -176,9 +188,8 @@ class Probe:
 
             self.node.create_subscription(msg_class(ty), topic, cb, qos(50, latched=latched), raw=True)
 
-        sub("transport", "sensor_msgs/msg/CameraInfo", t.camera_info(cameras[0]))
-        sub("pcm", "sensor_msgs/msg/CameraInfo", t.pcm_info(cameras[0]))
-        sub("markers", "sensor_msgs/msg/PointCloud2", t.markers, latched=True)
+        if input_topic:
+            sub("transport", "sensor_msgs/msg/CameraInfo", t.camera_info(cameras[0]))
         sub("joint_states", "sensor_msgs/msg/JointState", t.joint_states)
         sub("keypoints", "sensor_msgs/msg/PointCloud2", t.keypoints)
 
@@ -187,12 +198,9 @@ class Probe:
             for s in d["status"]:
                 vals = {v["key"]: v["value"] for v in s["values"]}
                 if "cpu_s" in vals:
-                    self.diag.setdefault(s["name"], []).append((time.monotonic_ns(), float(vals["cpu_s"])))
-                    self.last_status = getattr(self, "last_status", {})
-                    self.last_status[s["name"]] = vals
+                    self.diag.setdefault(s["name"], []).append((time.monotonic_ns(), vals))
 
         self.node.create_subscription(msg_class("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", on_diag, qos(50), raw=True)
-        self._M = M
         from .run_node import make_executor
 
         self.executor = make_executor()  # the probe shares the CPU with the graph: keep it cheap
@@ -208,7 +216,6 @@ class Probe:
             v.clear()
         if all_:
             self.diag.clear()
-            self.last_status = {}
 
     def close(self) -> None:
         self.executor.remove_node(self.node)
@@ -223,12 +230,33 @@ def _lat(samples: list[tuple[int, int]]) -> dict[str, float]:
     return {"p50": round(float(np.percentile(a, 50)), 2), "p95": round(float(np.percentile(a, 95)), 2), "n": int(a.size)}
 
 
-def _cpu(diag: list[tuple[int, float]], t0: int, t1: int) -> float:
-    pts = [(t, c) for t, c in diag if t0 <= t <= t1]
+def _in_window(diag: list[tuple[int, dict[str, str]]], t0: int, t1: int) -> list[dict[str, str]]:
+    return [v for t, v in diag if t0 <= t <= t1]
+
+
+def _cpu(diag: list[tuple[int, dict[str, str]]], t0: int, t1: int) -> float:
+    pts = [(t, float(v["cpu_s"])) for t, v in diag if t0 <= t <= t1]
     if len(pts) < 2:
         return float("nan")
     (ta, ca), (tb, cb) = pts[0], pts[-1]
     return round(100.0 * (cb - ca) / ((tb - ta) / 1e9), 1)
+
+
+def _node_age(vals: dict[str, str] | None) -> dict[str, float]:
+    """A node's own latency figure (capture stamp -> end of its processing, over its last
+    300 frame sets) from its diagnostics."""
+    if not vals or "age_ms_p50" not in vals:
+        return {"p50": float("nan"), "p95": float("nan"), "n": 0}
+    return {"p50": round(float(vals["age_ms_p50"]), 2), "p95": round(float(vals["age_ms_p95"]), 2), "n": int(vals["age_ms_n"])}
+
+
+def _missing_periods(stamps: list[int], period_ns: float) -> int:
+    """Frame sets missing between the first and the last of evenly spaced stamps (the camera
+    node stamps the frame set due at epoch + k periods)."""
+    s = np.unique(np.asarray(stamps, dtype=np.int64))
+    if s.size < 2:
+        return 0
+    return int(np.maximum(np.rint(np.diff(s) / period_ns) - 1, 0).sum())
 
 
 def _proc_cpu_s(pid: int) -> float:
@@ -265,7 +293,7 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         probe.min_stamp = time.time_ns()
         probe.recording = True
         deadline = time.monotonic() + 90
-        while not (probe.samples["keypoints"] and probe.samples["transport"]) and time.monotonic() < deadline:
+        while not (probe.samples["keypoints"] and (probe.samples["transport"] or player is None)) and time.monotonic() < deadline:
             probe.spin_for(0.2)
             if launch.poll() is not None or (player is not None and player.poll() is not None):
                 raise RuntimeError("graph or player exited early:\n" + (launch.communicate()[0] if launch.poll() is not None else player.communicate()[0]))
@@ -283,8 +311,8 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         process_cpu = {n: round(100.0 * (cpu1[n] - cpu0[n]) / ((t1 - t0) / 1e9), 1) for n in cpu0}
         probe.recording = False
         s = {k: list(v) for k, v in probe.samples.items()}
-        diag = {n: list(v) for n, v in probe.diag.items()}
-        status = dict(getattr(probe, "last_status", {}))
+        diag = {n: _in_window(list(v), t0, t1) for n, v in probe.diag.items()}
+        status = {n: v[-1] for n, v in diag.items() if v}
     finally:
         procs = [p for p in (player, launch) if p is not None]
         for p in procs:
@@ -296,23 +324,40 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.communicate()
-    # frame sets the player published in the window (camera_info of cam0, as delivered) vs out
-    sets_in = {st for _, st in s["transport"]}
-    sets_out = {st for _, st in s["keypoints"]}
-    # a frame set published near the end may still be in flight: count only those well before
-    horizon = max((st for st in sets_in), default=0) - int(0.3e9)
-    considered = {st for st in sets_in if st <= horizon}
-    dropped = 100.0 * len(considered - sets_out) / max(len(considered), 1)
     seconds = (t1 - t0) / 1e9
+    sets_out = {st for _, st in s["keypoints"]}
+    if player is not None:
+        # frame sets the player published in the window (camera_info of cam0, as delivered) vs out
+        sets_in = {st for _, st in s["transport"]}
+        # a frame set published near the end may still be in flight: count only those well before
+        horizon = max((st for st in sets_in), default=0) - int(0.3e9)
+        considered = {st for st in sets_in if st <= horizon}
+        missing, expected = len(considered - sets_out), len(considered)
+        input_rate = len(sets_in) / seconds
+        transport = _lat(s["transport"])  # the player's camera_info at the probe
+    else:
+        # the camera node stamps frame set k at epoch + k periods: a gap in the output stamps is
+        # a frame set that never came out
+        missing = _missing_periods(sorted(sets_out), 1e9 / args.fps)
+        expected = len(sets_out) + missing
+        cam = [(t, ast.literal_eval(v["published"])) for t, v in probe.diag.get("vmocap_camera", []) if t0 <= t <= t1]
+        input_rate = float("nan")
+        if len(cam) >= 2:  # frames the camera node sent per camera and second
+            (ta, a), (tb, b) = cam[0], cam[-1]
+            input_rate = float(np.mean([b[c] - a[c] for c in a])) / ((tb - ta) / 1e9)
+        transport = _node_age(status.get("vmocap_camera"))  # capture (due) stamp -> sent by the camera node
+    dropped = 100.0 * missing / max(expected, 1)
     pcm_name = args.pcm if args.pcm != "model" else (args.model or "blazepose")
     return {
         "rate_hz": round(len(sets_out) / seconds, 2),
-        "input_rate_hz": round(len(sets_in) / seconds, 2),
+        "input_rate_hz": round(input_rate, 2),
         "dropped_pct": round(dropped, 2),
         "latency_ms": _lat(s["joint_states"]),
-        "stages_ms": {"transport": _lat(s["transport"]), "pcm": _lat(s["pcm"]), "markers": _lat(s["markers"]),
+        # age after each stage: the nodes' own figures; joint_states as a controller receives it
+        "stages_ms": {"transport": transport, "pcm": _node_age(status.get("vmocap_pcm")),
+                      "markers": _node_age(status.get("vmocap_markers")), "skeleton": _node_age(status.get("vmocap_skeleton")),
                       "joint_states": _lat(s["joint_states"])},
-        "cpu_pct": {n: _cpu(v, t0, t1) for n, v in diag.items() if n in NODES},  # callbacks only
+        "cpu_pct": {n: _cpu(probe.diag.get(n, []), t0, t1) for n in NODES if n in diag},  # callbacks only
         "process_cpu_pct": process_cpu,  # whole processes (rclpy executor and DDS threads included)
         "proc_ms_p50": {n: float(status[n].get("proc_ms_p50", "nan")) for n in NODES if n in status},
         "pcm": pcm_name,
@@ -347,7 +392,7 @@ def run(args: argparse.Namespace) -> int:
     from .common import init_rclpy
 
     rclpy = init_rclpy()
-    probe = Probe(rclpy, rig.names)
+    probe = Probe(rclpy, rig.names, input_topic=args.feed == "player")
     results = {}
     try:
         for mode in args.modes:
