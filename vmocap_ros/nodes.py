@@ -293,6 +293,7 @@ class CameraNode(VmocapNode):
         self._first_match: float | None = None
         self._threads = []
         self.published = {c.name: 0 for c in self.rig}
+        self.late_dropped = {c.name: 0 for c in self.rig}  # restamped replay: frames a period late, skipped
         for cam in self.rig:
             src = self._make_source(cam.name)
             src.open()
@@ -341,6 +342,7 @@ class CameraNode(VmocapNode):
         stamps = LoopedStamps()
         slot = threading.Semaphore(1)  # one frame of this camera waits for its time, the next is read meanwhile
         last_due: float | None = None
+        prev_due: float | None = None  # due time of the frame read before (sent or not)
         while not self._stop.is_set():
             try:
                 frame = src.read(timeout=0.5)
@@ -372,6 +374,14 @@ class CameraNode(VmocapNode):
             while not slot.acquire(timeout=0.1):  # the previous frame of this camera is still due
                 if self._stop.is_set():
                     return
+            period, prev_due = (due - prev_due if prev_due is not None else 0.0), due
+            if self._playback.restamp and period > 0 and time.monotonic() - due > 2 * period:
+                # replayed as a live camera: a frame two periods late is superseded, as a live
+                # camera's frame would be; sending it would let a graph slower than the camera
+                # (the CNN) fall further behind without bound (measured: 2.9 s p50 latency)
+                slot.release()
+                self.late_dropped[cam.name] += 1
+                continue
             if DUE.wake is not None:  # the spin loop sends it when due, and frees the slot
                 period = due - last_due if last_due is not None else 0.0
                 last_due = due
@@ -397,7 +407,7 @@ class CameraNode(VmocapNode):
         self.age.add((time.time_ns() - M.stamp_ns(img[0])) / 1e6)  # how late the frame went out
 
     def status(self) -> dict[str, Any]:
-        return {"published": self.published}
+        return {"published": self.published, "late_dropped": self.late_dropped}
 
     def close(self) -> None:
         self._stop.set()
