@@ -214,3 +214,14 @@ def test_playback_stamps_keep_going_forward_across_loops_and_pace_all_cameras_fr
     assert stamp == 1_020 and abs(due - (5.0 + 20e-9)) < 1e-12
     assert PlaybackClock(rate=0.0, restamp=True).schedule(110, 1.0, 7) == (110, None)  # not paced
     assert PlaybackClock(rate=2.0, restamp=False).schedule(110, 1.0, 7)[0] == 110
+
+
+def test_playback_replayed_as_live_skips_frames_two_periods_late():
+    from vmocap_core.sources.clock import PlaybackClock
+
+    live = PlaybackClock(rate=1.0, restamp=True)
+    assert not live.superseded(due=10.0, period=0.033, now_mono=10.05)  # 1.5 periods late: sent
+    assert live.superseded(due=10.0, period=0.033, now_mono=10.07)  # over 2 periods: skipped
+    assert not live.superseded(due=10.0, period=0.0, now_mono=11.0)  # first frame (no period yet)
+    # a recording played with its own stamps (deterministic processing) never skips
+    assert not PlaybackClock(rate=1.0, restamp=False).superseded(due=10.0, period=0.033, now_mono=12.0)

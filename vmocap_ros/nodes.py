@@ -375,10 +375,7 @@ class CameraNode(VmocapNode):
                 if self._stop.is_set():
                     return
             period, prev_due = (due - prev_due if prev_due is not None else 0.0), due
-            if self._playback.restamp and period > 0 and time.monotonic() - due > 2 * period:
-                # replayed as a live camera: a frame two periods late is superseded, as a live
-                # camera's frame would be; sending it would let a graph slower than the camera
-                # (the CNN) fall further behind without bound (measured: 2.9 s p50 latency)
+            if self._playback.superseded(due, period, time.monotonic()):  # replayed as live: skipped
                 slot.release()
                 self.late_dropped[cam.name] += 1
                 continue

@@ -118,3 +118,9 @@ class PlaybackClock:
             return t_ns, None
         stamp = wall0 + int((t_ns - t0) / self.rate) if self.restamp else t_ns
         return stamp, mono0 + (t_ns - t0) / 1e9 / self.rate
+
+    def superseded(self, due: float, period: float, now_mono: float) -> bool:
+        """Replayed as a live camera (`restamp`): is a frame due at `due` (monotonic s) already
+        more than two frame periods late? A live camera's newer frames would have replaced it;
+        sending it lets a graph slower than the camera (the CNN) fall behind without bound."""
+        return self.restamp and period > 0 and now_mono - due > 2.0 * period
