@@ -124,6 +124,11 @@ class TrackerConfig:
             raise ValueError(f"filter_kind must be 'one_euro' or 'butterworth', not {self.filter_kind!r}")
         make_filter(self)  # the filter's own checks (cutoffs, order)
 
+    @property
+    def identify_frames(self) -> int:
+        """Frames of the identification phase (identify_seconds at this frame rate)."""
+        return round(self.identify_seconds * self.fps)
+
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
@@ -548,7 +553,7 @@ class SkeletonStage:
         sk, fit = fitted
         self.skeleton = sk
         self._q_raw = fit.q.copy()
-        if round(cfg.identify_seconds * cfg.fps) > 0:
+        if cfg.identify_frames > 0:
             self._identify = []
             return self._identifying(markers, fit.keypoints)
         return self._start_tracking(markers, sk, fit)
@@ -558,7 +563,7 @@ class SkeletonStage:
         the skeleton on all of them and start tracking (the provisional one stays otherwise)."""
         cfg = self.config
         self._identify.append(np.where((markers.weights > 0)[:, None], markers.positions, np.nan))
-        if len(self._identify) >= round(cfg.identify_seconds * cfg.fps):
+        if len(self._identify) >= cfg.identify_frames:
             frames = np.array(self._identify)
             self._identify = None
             fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, self._q_raw)
