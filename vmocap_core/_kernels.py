@@ -139,3 +139,169 @@ def score_lattice(
                     val = math.log1p((val if val < 1.0 else 1.0) / log_eps) * log_norm
                 scores[j, l] += val
                 nviews[j, l] += 1
+
+
+@njit(cache=True, inline="always")
+def _to_map(R: np.ndarray, t: np.ndarray, dist: np.ndarray, M: np.ndarray, v: int,
+            X: float, Y: float, Z: float) -> tuple[float, float, bool]:
+    """World point -> map coordinates of view v (pinhole + OpenCV distortion + the view's
+    affine), and whether it is in front of the camera."""
+    x = R[v, 0, 0] * X + R[v, 0, 1] * Y + R[v, 0, 2] * Z + t[v, 0]
+    y = R[v, 1, 0] * X + R[v, 1, 1] * Y + R[v, 1, 2] * Z + t[v, 1]
+    z = R[v, 2, 0] * X + R[v, 2, 1] * Y + R[v, 2, 2] * Z + t[v, 2]
+    if z <= 1e-6:
+        return 0.0, 0.0, False
+    x /= z
+    y /= z
+    k1, k2, p1, p2, k3, k4, k5, k6 = dist[v, 0], dist[v, 1], dist[v, 2], dist[v, 3], dist[v, 4], dist[v, 5], dist[v, 6], dist[v, 7]
+    r2 = x * x + y * y
+    radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return M[v, 0, 0] * xd + M[v, 0, 1] * yd + M[v, 0, 2], M[v, 1, 0] * xd + M[v, 1, 1] * yd + M[v, 1, 2], True
+
+
+@njit(cache=True, inline="always")
+def _log_cell(maps: np.ndarray, v: int, j: int, y: int, x: int) -> float:
+    return math.log(max(_cell(maps, v, j, y, x), 1e-6))
+
+
+@njit(cache=True, inline="always")
+def _vertex(left: float, centre: float, right: float) -> float:
+    """Vertex offset of the parabola through (-1, left), (0, centre), (1, right), in [-0.5, 0.5]."""
+    den = left - 2.0 * centre + right
+    if not (den < -1e-12):
+        return 0.0
+    return min(0.5, max(-0.5, 0.5 * (left - right) / den))
+
+
+@njit(cache=True, nogil=True)
+def refine_markers(
+    markers: np.ndarray,  # (J, 3) float64 lattice markers, channel order
+    R: np.ndarray,  # (V, 3, 3)
+    t: np.ndarray,  # (V, 3)
+    dist: np.ndarray,  # (V, 8)
+    M: np.ndarray,  # (V, 2, 3) distorted normalized coords -> map coords
+    maps: np.ndarray,  # (V, J, H, W) float32
+    valid: np.ndarray,  # (V, J) bool
+    camera: np.ndarray,  # (V,) int64 camera of each view
+    cell_px: np.ndarray,  # (V,) image pixels per map cell
+    radius: int,
+    min_value: float,
+    max_error_px: float,
+    min_views: int,
+    out: np.ndarray,  # out (J, 3)
+    ok: np.ndarray,  # out (J,) bool
+) -> None:
+    """peak_refinement.py: per keypoint, each view's PCM maximum near the projected marker,
+    the strongest view per camera, then Gauss-Newton on the weighted squared reprojection error
+    in image pixels (weight = peak value), dropping the worst camera while the weighted mean
+    error exceeds max_error_px."""
+    V, J, H, W = maps.shape
+    n_cam = 0
+    for v in range(V):
+        n_cam = max(n_cam, camera[v] + 1)
+    obs = np.zeros((V, 2))
+    wv = np.zeros(V)
+    best = np.empty(n_cam, dtype=np.int64)
+    use = np.empty(V, dtype=np.int64)
+    err = np.zeros(V)
+    h = 1e-4  # metres, numerical derivative step
+    for j in range(J):
+        out[j, 0], out[j, 1], out[j, 2] = markers[j, 0], markers[j, 1], markers[j, 2]
+        ok[j] = False
+        if not (math.isfinite(markers[j, 0]) and math.isfinite(markers[j, 1]) and math.isfinite(markers[j, 2])):
+            continue
+        for c in range(n_cam):
+            best[c] = -1
+        for v in range(V):
+            wv[v] = 0.0
+            if not valid[v, j]:
+                continue
+            mx, my, front = _to_map(R, t, dist, M, v, markers[j, 0], markers[j, 1], markers[j, 2])
+            if not front or not (mx > -radius - 1.0 and mx < W + radius and my > -radius - 1.0 and my < H + radius):
+                continue
+            cx, cy = int(math.floor(mx + 0.5)), int(math.floor(my + 0.5))
+            x0, x1 = max(1, cx - radius), min(W - 2, cx + radius)
+            y0, y1 = max(1, cy - radius), min(H - 2, cy + radius)
+            top, px, py = -1.0, -1, -1
+            for yy in range(y0, y1 + 1):
+                for xx in range(x0, x1 + 1):
+                    val = _cell(maps, v, j, yy, xx)
+                    if val > top:
+                        top, px, py = val, xx, yy
+            if px < 0 or top < min_value:
+                continue
+            c0 = _log_cell(maps, v, j, py, px)
+            obs[v, 0] = px + _vertex(_log_cell(maps, v, j, py, px - 1), c0, _log_cell(maps, v, j, py, px + 1))
+            obs[v, 1] = py + _vertex(_log_cell(maps, v, j, py - 1, px), c0, _log_cell(maps, v, j, py + 1, px))
+            wv[v] = top
+            c = camera[v]
+            if best[c] < 0 or top > wv[best[c]]:
+                best[c] = v
+        n = 0
+        for c in range(n_cam):
+            if best[c] >= 0:
+                use[n] = best[c]
+                n += 1
+        while n >= min_views:
+            X, Y, Z = markers[j, 0], markers[j, 1], markers[j, 2]
+            for _ in range(4):  # Gauss-Newton from the lattice marker (a few cm away at most)
+                a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+                b0 = b1 = b2 = 0.0
+                for i in range(n):
+                    v = use[i]
+                    mx, my, front = _to_map(R, t, dist, M, v, X, Y, Z)
+                    if not front:
+                        continue
+                    s = cell_px[v]
+                    rx, ry = (obs[v, 0] - mx) * s, (obs[v, 1] - my) * s
+                    gx0, gy0, _f = _to_map(R, t, dist, M, v, X + h, Y, Z)
+                    gx1, gy1, _f = _to_map(R, t, dist, M, v, X, Y + h, Z)
+                    gx2, gy2, _f = _to_map(R, t, dist, M, v, X, Y, Z + h)
+                    jx0, jx1, jx2 = (gx0 - mx) * s / h, (gx1 - mx) * s / h, (gx2 - mx) * s / h
+                    jy0, jy1, jy2 = (gy0 - my) * s / h, (gy1 - my) * s / h, (gy2 - my) * s / h
+                    w = wv[v]
+                    a00 += w * (jx0 * jx0 + jy0 * jy0)
+                    a01 += w * (jx0 * jx1 + jy0 * jy1)
+                    a02 += w * (jx0 * jx2 + jy0 * jy2)
+                    a11 += w * (jx1 * jx1 + jy1 * jy1)
+                    a12 += w * (jx1 * jx2 + jy1 * jy2)
+                    a22 += w * (jx2 * jx2 + jy2 * jy2)
+                    b0 += w * (jx0 * rx + jy0 * ry)
+                    b1 += w * (jx1 * rx + jy1 * ry)
+                    b2 += w * (jx2 * rx + jy2 * ry)
+                # 3x3 symmetric solve by cofactors (two rays make it well conditioned)
+                c00 = a11 * a22 - a12 * a12
+                c01 = a02 * a12 - a01 * a22
+                c02 = a01 * a12 - a02 * a11
+                det = a00 * c00 + a01 * c01 + a02 * c02
+                if not (abs(det) > 1e-12):
+                    break
+                c11 = a00 * a22 - a02 * a02
+                c12 = a01 * a02 - a00 * a12
+                c22 = a00 * a11 - a01 * a01
+                X += (c00 * b0 + c01 * b1 + c02 * b2) / det
+                Y += (c01 * b0 + c11 * b1 + c12 * b2) / det
+                Z += (c02 * b0 + c12 * b1 + c22 * b2) / det
+            # weighted mean reprojection error (px); drop the worst camera while too large
+            sw = se = 0.0
+            worst, worst_e = -1, -1.0
+            for i in range(n):
+                v = use[i]
+                mx, my, front = _to_map(R, t, dist, M, v, X, Y, Z)
+                e = math.hypot(obs[v, 0] - mx, obs[v, 1] - my) * cell_px[v] if front else 1e9
+                err[i] = e
+                sw += wv[v]
+                se += wv[v] * e
+                if e > worst_e:
+                    worst, worst_e = i, e
+            resid = se / sw if sw > 0 else 1e9
+            if resid <= max_error_px and math.isfinite(X + Y + Z):
+                out[j, 0], out[j, 1], out[j, 2] = X, Y, Z
+                ok[j] = True
+                break
+            if n <= min_views:
+                break
+            use[worst] = use[n - 1]
+            n -= 1

@@ -30,6 +30,8 @@ from .keypoints import INDEX, KEYPOINTS
 from .one_euro import OneEuroFilter
 from .lattice import lattice_search
 from .lattice import warm_up as warm_up_lattice
+from .peak_refinement import refine_markers
+from .peak_refinement import warm_up as warm_up_refinement
 from .skeleton import JOINTS, BodyDimensions, Skeleton
 from .triangulation import triangulate_robust
 
@@ -53,6 +55,12 @@ class TrackerConfig:
     # worse (Shelf MPJPE 57.3 -> 59.1 mm, eps 0.3: 58.1; demo 11.63 -> 12.01 px), so off.
     lattice_log_eps: float = 0.0
     min_views: int = 2  # a marker seen by fewer views gets weight 0
+    # Our addition (peak_refinement.py): move each lattice marker to the robust triangulation of
+    # the views' own PCM peaks within `refine_radius_cells` of its projection (False = the
+    # lattice argmax, as in the paper). W stays the lattice sum.
+    refine_markers: bool = True
+    refine_radius_cells: int = 5
+    refine_max_error_px: float = 12.0
     reacquire_weight: float = 1.0  # a marker weaker than this triggers a search at its PCM peaks
     reacquire_radius: float = 0.6  # metres from the previous keypoint a re-acquired one may lie
     reacquire_after: int = 2  # consecutive weak frames before the search at the PCM peaks
@@ -110,6 +118,8 @@ class TrackerConfig:
         return cfg
 
     def validate(self) -> None:
+        if self.refine_radius_cells < 1 or self.refine_max_error_px <= 0:
+            raise ValueError("refine_radius_cells must be >= 1 and refine_max_error_px > 0")
         if self.fps <= 0 or self.lattice_k < 0 or self.lattice_spacing <= 0 or self.lattice_log_eps < 0:
             raise ValueError("fps, lattice_k and lattice_spacing must be positive, lattice_log_eps >= 0")
         if self.identify_seconds < 0:
@@ -196,6 +206,7 @@ class MarkerStage:
         self._weak = np.zeros(N_KP, dtype=np.int64)  # consecutive weak frames per keypoint
         self.timings: dict[str, float] = {}  # seconds spent in the last step, per stage
         warm_up_lattice(rig)
+        warm_up_refinement(rig)
 
     @property
     def tracking(self) -> bool:
@@ -274,6 +285,10 @@ class MarkerStage:
         if weak.any():
             markers, weights, n_views = self._reacquire(pcm, weak, markers, weights, n_views)
         seen = n_views >= cfg.min_views
+        if cfg.refine_markers and seen.any():
+            refined, ok = refine_markers(self.rig, pcm, markers, cfg.refine_radius_cells,
+                                         max_error_px=cfg.refine_max_error_px, min_views=cfg.min_views)
+            markers = np.where((ok & seen)[:, None], refined, markers)
         out = _nan_markers(pcm.stamp_ns, "lattice")
         out.positions[pcm.keypoints] = markers
         out.weights[pcm.keypoints] = np.where(seen, weights, 0.0)

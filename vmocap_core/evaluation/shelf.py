@@ -53,6 +53,10 @@ TRACKER_SETTINGS = {
     # The default speed-adaptive filter (measured: PCP 97.72 %, MPJPE 57.0 mm; the Butterworth
     # tuned for Shelf before, second order at 10 Hz without lag compensation: 97.40 %, 57.3 mm).
     "init_frames": 3,
+    # Our peak refinement (peak_refinement.py) is off here: measured on Shelf, PCP 97.72 ->
+    # 97.44 %, MPJPE 57.0 -> 57.9 mm (radius 2 cells: 97.57 %); several people's peaks share
+    # the maps, so a view's window catches a neighbour's peak more often than on one person.
+    "refine_markers": False,
     # People walk in and out: output from the first agreeing frames counts more than exact link
     # lengths (measured: 0.5 s of identification, PCP 97.40 -> 95.9 %, id 3 97.0 -> 91.2 %).
     "identify_seconds": 0.0,
