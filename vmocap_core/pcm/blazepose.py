@@ -91,8 +91,8 @@ MIN_TILT = np.deg2rad(20.0)  # below this, the upright and rotated crops nearly 
 
 
 VARIANTS = ("full", "lite")  # lite: `vmocap models fetch --lite`, same outputs, ~2x faster, less accurate
-# "int8": pose_landmark_full_int8.onnx (quantize.py: the encoder between stem and decoder in int8,
-# same demo accuracy, ~20 % less CNN time); "float": the converted model as it is.
+# "int8": pose_landmark_full_int8.onnx (quantize.py: everything after the 128 x 128 stem up to the
+# 8 x 8 encoder in int8, same demo accuracy, ~1/3 less CNN time); "float": the converted model as it is.
 PRECISIONS = ("int8", "float")
 INT8_VARIANTS = ("full",)  # lite has no int8 build
 PRECISION_ENV = "VMOCAP_PCM_PRECISION"  # overrides the default precision (e.g. =float) in every process

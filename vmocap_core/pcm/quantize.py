@@ -2,37 +2,64 @@
 
 `vmocap models fetch` turns `pose_landmark_full.onnx` into `pose_landmark_full_int8.onnx` with
 `build()`: no images and no network, deterministic (the same bytes on every run with the pinned
-onnx / onnxruntime), a few seconds. What is learnt from images lives in a small committed file,
-`vmocap_core/data/pcm/<model>_int8.json` (activation ranges), written by `calibrate()` from real
-crops (`python -m vmocap_core.pcm.quantize calibrate`: the Pose2Sim demo videos, detector crops).
+onnx / onnxruntime), a few seconds. What is learnt from images lives in a committed file,
+`vmocap_core/data/pcm/<model>_int8.json`, written by `calibrate()` from real crops
+(`python -m vmocap_core.pcm.quantize calibrate`: the Pose2Sim demo videos, detector crops):
+equalization scales, activation ranges and the GPTQ rounding of the small convolutions.
 
-Steps: `prepare()` names the nodes, turns Resize(sizes, axes) into Resize(scales) (onnxruntime's
-NHWC layout pass for int8 convolutions fails on `axes`) and folds the explicit Pads into the next
-Conv; then `onnxruntime.quantization.quantize_static` writes QDQ nodes (uint8 activations per
-tensor, MinMax ranges; int8 symmetric per-channel weights) for the nodes of INT8_SPAN only.
+Steps of `build()`:
+- `prepare()` names the nodes, folds the explicit Pads into the next Conv and turns each bilinear
+  Resize into two MatMuls with the same interpolation weights (onnxruntime's NCHW Resize took
+  0.8-0.9 ms of a crop for the 32 -> 64 upsampling; the float function is unchanged, heatmaps
+  within 3e-6);
+- `equalize()`: cross-layer equalization (Nagel et al. 2019) of the residual streams (Conv outputs
+  without activation joined by Adds, read only by Convs): channel c of every producer is scaled
+  by s_c, the readers' input channel c by 1 / s_c, which is exact in float (heatmaps within 6e-5);
+  s_c widens the narrow channels to the per-tensor uint8 range. The ReLU6 tensors are not
+  rescaled: most of their channels reach the clip at 6, and scaling a channel past the
+  calibrated maximum changes the float function on other images (p95 0.1 cells on Panoptic);
+- `onnxruntime.quantization.quantize_static` writes QDQ nodes (uint8 activations per tensor,
+  MinMax ranges; int8 symmetric per-channel weights) for INT8_SPAN minus KEEP_FLOAT;
+- GPTQ (Frantar et al. 2022) replaces rounding to nearest for the convolutions with at most
+  GPTQ_MAX_INPUTS inputs per output: each weight column is rounded in turn and its error pushed
+  onto the columns not yet rounded and the bias, using the second moments of the layer's input on
+  the calibration crops. The calibration file stores the resulting int8 offsets from onnxruntime's
+  own rounding and the corrected biases, so the build needs no data and no linear algebra.
 
-Why only a span (measured on 86 real crops, Pose2Sim and Panoptic, and on `vmocap demo`; heatmap
-peaks as 5 x 5-weighted centroids, in 64 x 64 map cells; README): quantizing the whole network
-runs the CNN ~1.5x faster but moves the peaks 0.29 cells median (1.9 at the 95th percentile) and
-costs 2 px of demo reprojection error (11.2 -> 13.2 px). Most of the error comes from the
-128 x 128 stem (per-tensor uint8 activations feeding depthwise kernels whose channels span
-1e-2..5e2) and from the decoder, and float islands inside the stem cost more time than int8
-saves there. INT8_SPAN, the encoder at 16 x 16 and 8 x 8 (~25 % of the float CNN time), moves
-the peaks 0.04 cells median (0.18 p95) for ~12 % less CNN time, demo error within 0.15 px;
-starting it one stage earlier (Conv_32) gave ~20 % but 0.35 cells p95 and up to +0.36 px. The
-heatmap convolution (logits) and the presence branch (its flag decides whether a view is used)
-stay float.
+Measured (heatmap peaks as 5 x 5-weighted centroids, in 64 x 64 map cells, against the float
+model on 88 real crops: 38 Panoptic detector crops, never used for calibration, and 50 Pose2Sim
+frames; one single-threaded 256 x 256 crop, interleaved runs at load ~2.5):
+- INT8_SPAN = Conv_6..Conv_108 (everything after the 128 x 128 stem up to the 8 x 8 encoder; the
+  decoder, heatmap and presence heads stay float): 0.049 cells median, 0.35 p95 (Panoptic alone
+  0.052 / 0.48); 12.0 ms per crop vs 15.8 for the previous build (16 x 16 and 8 x 8 only: 0.039 /
+  0.24) and 18.0 float. Demo median reprojection error 10.6 px (`vmocap demo --mode in-process`;
+  node graph 10.7) vs 11.6 with the previous build and 11.5 float: peak shifts of this size are
+  below what the demo resolves (its figure moves by +-0.5 px with them, either way).
+- without GPTQ (rounding to nearest; skip branch in int8 too) 0.097 / 0.61; GPTQ on the larger
+  16 x 16 and 8 x 8 layers as well 0.048 / 0.32 (+110 KB of calibration file); GPTQ only on the
+  128 - 32 px layers (<= 8192 weights) 0.054 / 0.40.
+- the stem stays float: in int8 its 3 -> 24 convolution and 24-channel depthwise one run 2x
+  slower (1.7 vs 0.8 ms each) and move the peaks most (+0.10 / +0.14 cells median each).
+- KEEP_FLOAT, the 64 x 64 skip branch into the decoder (Conv_25 depthwise, Conv_27): quantizing
+  it raised the p95 from 0.19 to 0.40 cells in an incremental test, and that depthwise
+  convolution runs slower in int8 (0.4 vs 0.14 ms).
+- what limits the accuracy now is the uint8 grid of the 24- and 32-channel residual streams at
+  64 x 64 and 32 x 32 (ranges +-100..300, spread evenly over them, so no range choice helps);
+  starting the int8 span at Conv_32 (32 x 32) gives 0.036 / 0.18 but only ~7 % less time than the
+  previous build. Whole network in int8 (plain rounding): 0.33 / 1.7 cells, +2 px demo error.
 """
 
 from __future__ import annotations
 
 import argparse
+import base64
 import hashlib
 import json
 import logging
 import sys
 import tempfile
 import time
+import zlib
 from pathlib import Path
 from typing import Sequence
 
@@ -42,14 +69,21 @@ from onnx import numpy_helper, shape_inference
 
 from ..errors import ModelError
 
-QUANTIZER_VERSION = "1"  # bump when build() changes its output
+QUANTIZER_VERSION = "2"  # bump when build() changes its output
 DATA_DIR = Path(__file__).resolve().parents[1] / "data" / "pcm"
 INPUT = "input_1"
 # model -> (first, last) Conv/Add of the prepared graph quantized, in graph order (with the ReLU6
 # after each): the encoder after the 128 x 128 stem, before the decoder (module doc).
 INT8_SPAN: dict[str, tuple[str, str]] = {
-    "pose_landmark_full": ("Conv_59", "Conv_108"),
+    "pose_landmark_full": ("Conv_6", "Conv_108"),
 }
+# convolutions inside the span that stay float: the 64 x 64 skip branch into the decoder (module doc)
+KEEP_FLOAT: dict[str, tuple[str, ...]] = {
+    "pose_landmark_full": ("Conv_25", "Conv_27"),
+}
+# GPTQ rounding for the convolutions with at most this many inputs per output (all but the 1 x 1
+# convolutions reading 384-864 channels; module doc)
+GPTQ_MAX_INPUTS = 200
 
 
 def calibration_path(name: str) -> Path:
@@ -73,7 +107,7 @@ def prepare(model: onnx.ModelProto) -> onnx.ModelProto:
     for n in g.node:
         for i in n.input:
             consumers.setdefault(i, []).append(n)
-    drop = []
+    drop, resize_as_matmul = [], []
     for k, n in enumerate(g.node):
         n.name = n.name or f"{n.op_type}_{k}"
         if n.op_type == "Resize" and len(n.input) == 4 and n.input[3] in inits:
@@ -82,11 +116,10 @@ def prepare(model: onnx.ModelProto) -> onnx.ModelProto:
             axes = [list(a.ints) for a in n.attribute if a.name == "axes"]
             if len(shape) != 4 or not all(shape[2:]) or axes not in ([[2, 3]], []) or sizes.size != 2:
                 raise ModelError(f"{n.name}: unexpected Resize (sizes {sizes}, input shape {shape}, axes {axes})")
-            scales = np.array([1.0, 1.0, sizes[0] / shape[2], sizes[1] / shape[3]], np.float32)
-            g.initializer.append(numpy_helper.from_array(scales, n.input[3] + "_scales"))
-            n.input[2], n.input[3] = n.input[3] + "_scales", ""
-            for a in [a for a in n.attribute if a.name == "axes"]:
-                n.attribute.remove(a)
+            attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
+            if attrs.get("mode") != b"linear" or attrs.get("coordinate_transformation_mode") != b"half_pixel":
+                raise ModelError(f"{n.name}: only bilinear half_pixel Resize is supported ({attrs})")
+            resize_as_matmul.append((n, int(shape[2]), int(shape[3]), int(sizes[0]), int(sizes[1])))
         if n.op_type == "Pad" and len(n.input) == 2 and n.input[1] in inits and len(consumers.get(n.output[0], [])) == 1:
             conv = consumers[n.output[0]][0]
             pads = numpy_helper.to_array(inits[n.input[1]])
@@ -103,6 +136,8 @@ def prepare(model: onnx.ModelProto) -> onnx.ModelProto:
                 drop.append(n)
     for n in drop:
         g.node.remove(n)
+    for n, h, w, out_h, out_w in resize_as_matmul:
+        _resize_to_matmul(g, n, h, w, out_h, out_w)
     used = {i for n in g.node for i in n.input}
     for t in [t for t in g.initializer if t.name not in used]:  # the replaced sizes and pads
         g.initializer.remove(t)
@@ -110,11 +145,233 @@ def prepare(model: onnx.ModelProto) -> onnx.ModelProto:
     return m
 
 
+def linear_resize_matrix(n_in: int, n_out: int) -> np.ndarray:
+    """(n_out, n_in) weights of ONNX Resize mode=linear, coordinate_transformation_mode=half_pixel
+    along one axis: output i samples x = (i + 0.5) n_in / n_out - 0.5, clamped to the edge pixels."""
+    A = np.zeros((n_out, n_in), np.float64)
+    for i in range(n_out):
+        x = min(max((i + 0.5) * n_in / n_out - 0.5, 0.0), n_in - 1.0)
+        i0 = int(np.floor(x))
+        i1, f = min(i0 + 1, n_in - 1), x - i0
+        A[i, i0] += 1.0 - f
+        A[i, i1] += f
+    return A.astype(np.float32)
+
+
+def _resize_to_matmul(g: onnx.GraphProto, n: onnx.NodeProto, h: int, w: int, out_h: int, out_w: int) -> None:
+    """Replace a bilinear Resize of an (N, C, h, w) tensor by x @ A_w^T then A_h @ (...): the same
+    weights (each output is a 2 x 2 weighted sum, the other products are exact zeros), run by
+    onnxruntime's GEMM instead of its NCHW Resize kernel (32 x 32 -> 64 x 64 x 48: 0.8-0.9 ms of a
+    ~15 ms crop, the GEMMs ~0.2 ms)."""
+    a_w, a_h = n.name + "_cols", n.name + "_rows"
+    g.initializer.extend([numpy_helper.from_array(np.ascontiguousarray(linear_resize_matrix(w, out_w).T), a_w),
+                          numpy_helper.from_array(linear_resize_matrix(h, out_h), a_h)])
+    k = list(g.node).index(n)
+    first = onnx.helper.make_node("MatMul", [n.input[0], a_w], [n.output[0] + "_cols"], name=n.name + "_cols")
+    second = onnx.helper.make_node("MatMul", [a_h, n.output[0] + "_cols"], [n.output[0]], name=n.name)
+    g.node.remove(n)
+    g.node.insert(k, second)
+    g.node.insert(k, first)
+
+
+# ------------------------------------------------------------------------------ equalization, GPTQ
+def _consumers(g: onnx.GraphProto) -> dict[str, list[onnx.NodeProto]]:
+    out: dict[str, list[onnx.NodeProto]] = {}
+    for n in g.node:
+        for i in n.input:
+            out.setdefault(i, []).append(n)
+    return out
+
+
+def _group(n: onnx.NodeProto) -> int:
+    return next((a.i for a in n.attribute if a.name == "group"), 1)
+
+
+def equalization_groups(model: onnx.ModelProto) -> list[dict]:
+    """Channel groups whose channels can be rescaled without changing the network's function:
+    the linear tensors of a residual stream (Conv outputs without activation joined by Adds) whose
+    every reader is a Conv. Scaling channel c of every producer (weights and bias) by s_c and the
+    input channel c of every reader by 1 / s_c is exact (no activation in between). Graph order."""
+    g = model.graph
+    inits = {i.name for i in g.initializer}
+    producer = {o: n for n in g.node for o in n.output}
+    consumers = _consumers(g)
+    parent: dict[str, str] = {}
+
+    def find(t: str) -> str:
+        while parent.setdefault(t, t) != t:
+            t = parent[t]
+        return t
+
+    for n in g.node:
+        if n.op_type == "Add" and not any(i in inits for i in n.input):
+            for i in n.input:
+                parent[find(i)] = find(n.output[0])
+    members: dict[str, list[str]] = {}
+    for n in g.node:
+        if n.op_type in ("Conv", "Add"):
+            members.setdefault(find(n.output[0]), []).append(n.output[0])
+    groups = []
+    for tensors in members.values():
+        root = find(tensors[0])
+        producers, readers, ok = [], [], True
+        for t in tensors:
+            p = producer[t]
+            if p.op_type == "Conv":
+                producers.append(p.name)
+            elif not (p.op_type == "Add" and all(find(i) == root for i in p.input)):
+                ok = False
+            for c in consumers.get(t, []):
+                if c.op_type == "Conv" and c.input[0] == t:
+                    readers.append(c.name)
+                elif not (c.op_type == "Add" and find(c.output[0]) == root):
+                    ok = False
+        if ok and producers and readers:
+            groups.append({"tensors": tensors, "producers": producers, "readers": list(dict.fromkeys(readers))})
+    return groups
+
+
+def equalization_scales(groups: list[dict], low: dict[str, np.ndarray], high: dict[str, np.ndarray],
+                        max_scale: float = 1000.0) -> dict[str, list[float]]:
+    """Per group (keyed by its first tensor), the largest channel scales that keep every tensor of
+    the group inside its calibrated range: narrow channels are widened to use the per-tensor uint8
+    grid that the widest channel sets (cross-layer equalization, Nagel et al. 2019)."""
+    out = {}
+    for gr in groups:
+        s = np.full(np.asarray(high[gr["tensors"][0]]).size, np.inf)
+        for t in gr["tensors"]:
+            h, lo = np.asarray(high[t], np.float64), np.asarray(low[t], np.float64)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = np.minimum(s, np.where(h > 1e-9, h.max() / h, np.inf))
+                s = np.minimum(s, np.where(lo < -1e-9, lo.min() / lo, np.inf))
+        s = np.where(np.isfinite(s), np.clip(s, 1.0, max_scale), 1.0)
+        out[gr["tensors"][0]] = [float(np.float32(v)) for v in s]
+    return out
+
+
+def equalize(model: onnx.ModelProto, scales: dict[str, list[float]]) -> None:
+    """Apply `equalization_scales` in place (the groups are found again in the graph)."""
+    g = model.graph
+    inits = {i.name: i for i in g.initializer}
+    nodes = {n.name: n for n in g.node}
+    factor_out: dict[str, np.ndarray] = {}
+    factor_in: dict[str, np.ndarray] = {}
+    groups = {gr["tensors"][0]: gr for gr in equalization_groups(model)}
+    for key, s in scales.items():
+        if key not in groups:
+            raise ModelError(f"equalization group {key} is not in the prepared graph")
+        s = np.asarray(s, np.float64)
+        for p in groups[key]["producers"]:
+            factor_out[p] = factor_out.get(p, 1.0) * s
+        for r in groups[key]["readers"]:
+            factor_in[r] = factor_in.get(r, 1.0) / s
+    for name in sorted(set(factor_out) | set(factor_in)):
+        n = nodes[name]
+        W = numpy_helper.to_array(inits[n.input[1]]).astype(np.float64)
+        if name in factor_in:
+            f = factor_in[name]
+            W = W * (f.reshape(1, -1, 1, 1) if _group(n) == 1 else f.reshape(-1, 1, 1, 1))
+        if name in factor_out:
+            W = W * factor_out[name].reshape(-1, 1, 1, 1)
+            if len(n.input) > 2 and n.input[2]:
+                b = numpy_helper.to_array(inits[n.input[2]]).astype(np.float64) * factor_out[name]
+                inits[n.input[2]].CopyFrom(numpy_helper.from_array(b.astype(np.float32), n.input[2]))
+        inits[n.input[1]].CopyFrom(numpy_helper.from_array(W.astype(np.float32), n.input[1]))
+
+
+def _patches(x: np.ndarray, n: onnx.NodeProto, W: np.ndarray) -> np.ndarray:
+    """Conv input patches: (positions, C) for a 1 x 1 conv, (C, positions, k*k) for a depthwise one."""
+    attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
+    st = list(attrs.get("strides", [1, 1]))
+    pads = list(attrs.get("pads", [0, 0, 0, 0]))
+    O, I, kh, kw = W.shape
+    xp = np.pad(x, ((0, 0), (0, 0), (pads[0], pads[2]), (pads[1], pads[3])))
+    ho, wo = (xp.shape[2] - kh) // st[0] + 1, (xp.shape[3] - kw) // st[1] + 1
+    cols = [xp[:, :, dy : dy + st[0] * (ho - 1) + 1 : st[0], dx : dx + st[1] * (wo - 1) + 1 : st[1]]
+            for dy in range(kh) for dx in range(kw)]
+    P = np.stack(cols, 2)  # N, C, k*k, ho, wo
+    if _group(n) == 1:
+        if kh * kw != 1:
+            raise ModelError(f"{n.name}: GPTQ handles 1 x 1 and depthwise convolutions only")
+        return P[:, :, 0].transpose(0, 2, 3, 1).reshape(-1, P.shape[1])
+    return P.transpose(1, 0, 3, 4, 2).reshape(P.shape[1], -1, kh * kw)
+
+
+def _gptq_rows(W: np.ndarray, b: np.ndarray, H: np.ndarray, scale: np.ndarray, damp: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """GPTQ (Frantar et al. 2022) of rows W (O, d) sharing H = E[[x, 1][x, 1]^T] (d + 1 square):
+    columns are rounded one by one to the int8 grid `scale` (per row) and the rounding error is
+    pushed onto the columns not yet rounded and onto the bias (the last, never rounded, column),
+    minimizing the output error on the calibration inputs. Returns (int weights, new bias)."""
+    O, d = W.shape
+    Hd = H.astype(np.float64).copy()
+    Hd[np.arange(d + 1), np.arange(d + 1)] += damp * np.mean(np.diag(Hd)[:d]) + 1e-9
+    Hinv = np.linalg.inv(Hd)
+    V = np.concatenate([W.astype(np.float64), b.astype(np.float64)[:, None]], 1)
+    s = scale.astype(np.float64)
+    q = np.zeros((O, d), np.int64)
+    alive = np.ones(d + 1, bool)
+    for j in range(d):
+        q[:, j] = np.clip(np.round(V[:, j] / s), -127, 127)
+        err = (V[:, j] - q[:, j] * s) / Hinv[j, j]
+        alive[j] = False
+        V[:, alive] -= np.outer(err, Hinv[j, alive])
+        Hinv = Hinv - np.outer(Hinv[:, j], Hinv[j, :]) / Hinv[j, j]
+    return q, V[:, d]
+
+
+def _weight_scale(W: np.ndarray) -> np.ndarray:
+    """The per-output-channel symmetric int8 scale quantize_static gives these weights."""
+    a = np.abs(W.astype(np.float32).reshape(W.shape[0], -1)).max(1)
+    s = (a * np.float32(2.0) / np.float32(254.0)).astype(np.float32)
+    return np.where(s == 0, np.float32(1.0), s)
+
+
+def _encode_int8(a: np.ndarray) -> str:
+    return base64.b64encode(zlib.compress(np.ascontiguousarray(a, np.int8).tobytes(), 9)).decode()
+
+
+def _decode_int8(text: str, shape: Sequence[int]) -> np.ndarray:
+    return np.frombuffer(zlib.decompress(base64.b64decode(text)), np.int8).reshape(shape)
+
+
+def _quantize(model: onnx.ModelProto, nodes: Sequence[str], ranges: dict, reader=None) -> onnx.ModelProto:
+    """quantize_static (QDQ, uint8 activations per tensor, int8 per-channel weights) of `nodes`
+    with the given MinMax ranges (or, with `reader`, ranges calibrated from its data)."""
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+
+    with tempfile.TemporaryDirectory(prefix="vmocap-int8-") as tmp:
+        src, cache, out = Path(tmp) / "prepared.onnx", Path(tmp) / "ranges.json", Path(tmp) / "q.onnx"
+        onnx.save(model, str(src))
+        if reader is None:
+            cache.write_text(json.dumps(ranges))
+        logging.disable(logging.WARNING)  # the quantizer's generic "consider pre-processing" advice
+        try:
+            quantize_static(str(src), str(out), reader, quant_format=QuantFormat.QDQ, per_channel=True,
+                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                            nodes_to_quantize=list(nodes), calibrate_method=CalibrationMethod.MinMax,
+                            calibration_cache_path=str(cache))
+        finally:
+            logging.disable(logging.NOTSET)
+        if reader is not None:
+            ranges.update(json.loads(cache.read_text()))
+        return onnx.load(str(out))
+
+
+def _int8_weights(q: onnx.ModelProto, conv_weights: dict[str, str]) -> dict[str, onnx.TensorProto]:
+    """conv name -> its int8 weight initializer in the QDQ model `q`."""
+    inits = {i.name: i for i in q.graph.initializer}
+    out = {}
+    for conv, w in conv_weights.items():
+        t = inits.get(w + "_quantized")
+        if t is None:
+            raise ModelError(f"{conv}: no int8 weights {w}_quantized in the quantized graph")
+        out[conv] = t
+    return out
+
+
 # ------------------------------------------------------------------------------ build (no data)
 def build(float_path: Path, dst: Path, calibration: Path | None = None) -> None:
     """Write the int8 model for the float ONNX `float_path` from its committed calibration file."""
-    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
-
     name = float_path.stem
     calibration = calibration or calibration_path(name)
     try:
@@ -130,20 +387,19 @@ def build(float_path: Path, dst: Path, calibration: Path | None = None) -> None:
     missing = [n for n in calib["quantize_nodes"] if n not in names]
     if missing:
         raise ModelError(f"{calibration}: nodes {missing[:5]} are not in {float_path.name}")
-    with tempfile.TemporaryDirectory(prefix="vmocap-int8-") as tmp:
-        src, cache = Path(tmp) / "prepared.onnx", Path(tmp) / "ranges.json"
-        onnx.save(model, str(src))
-        cache.write_text(json.dumps(calib["ranges"]))
-        out = Path(tmp) / dst.name
-        logging.disable(logging.WARNING)  # the quantizer's generic "consider pre-processing" advice
-        try:
-            quantize_static(str(src), str(out), None, quant_format=QuantFormat.QDQ, per_channel=True,
-                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                            nodes_to_quantize=list(calib["quantize_nodes"]), calibrate_method=CalibrationMethod.MinMax,
-                            calibration_cache_path=str(cache))
-        finally:
-            logging.disable(logging.NOTSET)
-        q = onnx.load(str(out))
+    equalize(model, calib.get("equalization", {}))
+    nodes = {n.name: n for n in model.graph.node}
+    inits = {i.name: i for i in model.graph.initializer}
+    gptq = calib.get("gptq", {})
+    for conv, entry in gptq.items():  # the biases that absorb the rounding (GPTQ's last column)
+        n = nodes[conv]
+        bias = np.frombuffer(base64.b64decode(entry["bias"]), np.float32)
+        inits[n.input[2]].CopyFrom(numpy_helper.from_array(bias.copy(), n.input[2]))
+    q = _quantize(model, calib["quantize_nodes"], calib["ranges"])
+    for conv, t in _int8_weights(q, {c: nodes[c].input[1] for c in gptq}).items():
+        rtn = numpy_helper.to_array(t)
+        w = rtn.astype(np.int16) + _decode_int8(gptq[conv]["delta"], rtn.shape)  # GPTQ rounding
+        t.CopyFrom(numpy_helper.from_array(np.clip(w, -127, 127).astype(np.int8), t.name))
     q.producer_name, q.producer_version = "vmocap.pcm.quantize", QUANTIZER_VERSION
     q.doc_string = f"int8 QDQ of {float_path.name} (vmocap_core/pcm/quantize.py, {calibration.name})"
     tmp_dst = dst.with_suffix(".onnx.tmp")
@@ -204,15 +460,44 @@ def calibration_crops(step: int = 2) -> np.ndarray:
     return np.stack(crops)
 
 
-def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: Path) -> dict:
-    """Activation ranges of the `span` nodes over `crops` ((N, 256, 256, 3) uint8 BGR); writes
-    the calibration file `out` that `build()` reads."""
-    from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
+def _tensor_values(model: onnx.ModelProto, x: np.ndarray, tensors: Sequence[str]):
+    """Yield {tensor: value} of the float graph for each crop of x ((N, 256, 256, 3) float input)."""
+    import onnxruntime as ort
 
+    m = onnx.ModelProto()
+    m.CopyFrom(model)
+    have = {o.name for o in m.graph.output}
+    m.graph.output.extend(onnx.helper.make_tensor_value_info(t, onnx.TensorProto.FLOAT, None) for t in tensors if t not in have)
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    sess = ort.InferenceSession(m.SerializeToString(), opts, providers=["CPUExecutionProvider"])
+    for i in range(len(x)):
+        yield dict(zip(tensors, sess.run(list(tensors), {INPUT: x[i : i + 1]})))
+
+
+def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: Path, keep_float: Sequence[str] = ()) -> dict:
+    """Everything build() learns from `crops` ((N, 256, 256, 3) uint8 BGR), written to the
+    calibration file `out`: the equalization scales, the activation ranges of the int8 nodes
+    (`span` without the `keep_float` convolutions) and the GPTQ rounding of their weights."""
     data = float_path.read_bytes()
     model = prepare(onnx.load_from_string(data))
-    quantize = span_nodes(model, *span)
     x = np.ascontiguousarray(crops[..., ::-1].astype(np.float32) / np.float32(255.0))
+    # 1. cross-layer equalization of the residual streams (exact in float)
+    groups = equalization_groups(model)
+    tensors = [t for gr in groups for t in gr["tensors"]]
+    low: dict[str, np.ndarray] = {}
+    high: dict[str, np.ndarray] = {}
+    for values in _tensor_values(model, x, tensors):
+        for t, v in values.items():
+            lo, hi = v.min(axis=(0, 2, 3)), v.max(axis=(0, 2, 3))
+            low[t], high[t] = np.minimum(low.get(t, lo), lo), np.maximum(high.get(t, hi), hi)
+    scales = equalization_scales(groups, low, high)
+    equalize(model, scales)
+    # 2. activation ranges (MinMax) of the int8 nodes, onnxruntime's calibrator
+    drop = {c for k in keep_float for c in span_nodes(model, k, k)}
+    quantize = [n for n in span_nodes(model, *span) if n not in drop]
+
+    from onnxruntime.quantization import CalibrationDataReader
 
     class Reader(CalibrationDataReader):
         def __init__(self) -> None:
@@ -224,19 +509,52 @@ def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: P
             self.i += 1
             return {INPUT: x[self.i - 1 : self.i]}
 
-    with tempfile.TemporaryDirectory(prefix="vmocap-calib-") as tmp:
-        src, cache = Path(tmp) / "prepared.onnx", Path(tmp) / "ranges.json"
-        onnx.save(model, str(src))
-        quantize_static(str(src), str(Path(tmp) / "q.onnx"), Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
-                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, nodes_to_quantize=quantize,
-                        calibrate_method=CalibrationMethod.MinMax, calibration_cache_path=str(cache))
-        ranges = json.loads(cache.read_text())
+    ranges: dict = {}
+    q = _quantize(model, quantize, ranges, Reader())
+    # 3. GPTQ rounding of the small-input convolutions (second moments from every 2nd crop)
+    nodes = {n.name: n for n in model.graph.node}
+    inits = {i.name: i for i in model.graph.initializer}
+    weights = {c: numpy_helper.to_array(inits[nodes[c].input[1]]) for c in quantize if nodes[c].op_type == "Conv"}
+    convs = [c for c, W in weights.items() if int(np.prod(W.shape[1:])) <= GPTQ_MAX_INPUTS]
+    hess: dict[str, np.ndarray] = {}
+    count: dict[str, int] = {}
+    for values in _tensor_values(model, x[::2], sorted({nodes[c].input[0] for c in convs})):
+        for c in convs:
+            P = _patches(values[nodes[c].input[0]].astype(np.float64), nodes[c], weights[c])
+            if P.ndim == 2:
+                P1 = np.concatenate([P, np.ones((len(P), 1))], 1)
+                hess[c] = hess.get(c, 0.0) + P1.T @ P1
+                count[c] = count.get(c, 0) + len(P)
+            else:
+                P1 = np.concatenate([P, np.ones(P.shape[:2] + (1,))], 2)
+                hess[c] = hess.get(c, 0.0) + np.matmul(P1.transpose(0, 2, 1), P1)
+                count[c] = count.get(c, 0) + P.shape[1]
+    rtn = _int8_weights(q, {c: nodes[c].input[1] for c in convs})
+    gptq = {}
+    for c in convs:
+        W = weights[c]
+        O = W.shape[0]
+        b = numpy_helper.to_array(inits[nodes[c].input[2]])
+        H = hess[c] / count[c]
+        scale = _weight_scale(W)
+        if H.ndim == 2:
+            qw, nb = _gptq_rows(W.reshape(O, -1), b, H, scale)
+        else:  # depthwise: one second-moment matrix per channel
+            parts = [_gptq_rows(W[o].reshape(1, -1), b[o : o + 1], H[o], scale[o : o + 1]) for o in range(O)]
+            qw, nb = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+        delta = qw.reshape(W.shape) - numpy_helper.to_array(rtn[c]).astype(np.int64)
+        if np.abs(delta).max() > 127:
+            raise ModelError(f"{c}: GPTQ moved a weight by {np.abs(delta).max()} steps")
+        gptq[c] = {"delta": _encode_int8(delta), "bias": base64.b64encode(nb.astype(np.float32).tobytes()).decode()}
     calib = {
         "model": float_path.name,
         "float_sha256": _sha256_bytes(data),
         "crops": f"{len(crops)} detector crops of the Pose2Sim Demo_SinglePerson videos (pose2sim==0.10.49)",
         "span": list(span),
+        "keep_float": list(keep_float),
         "quantize_nodes": quantize,
+        "equalization": scales,
+        "gptq": gptq,
         "ranges": ranges,
     }
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -255,7 +573,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     crops = calibration_crops(args.step)
-    calib = calibrate(fetch.model_dir() / f"{args.model}.onnx", crops, INT8_SPAN[args.model], calibration_path(args.model))
+    calib = calibrate(fetch.model_dir() / f"{args.model}.onnx", crops, INT8_SPAN[args.model], calibration_path(args.model),
+                      KEEP_FLOAT.get(args.model, ()))
     print(f"{calibration_path(args.model)}: {len(crops)} crops, {len(calib['quantize_nodes'])} nodes int8 "
           f"({time.perf_counter() - t0:.0f} s)")
     return 0
