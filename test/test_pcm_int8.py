@@ -4,7 +4,7 @@ Tolerances: the int8 build (everything after the 128 x 128 stem to the 8 x 8 enc
 equalization and GPTQ rounding) moves the heatmap peaks (5 x 5-weighted centroids) 0.049 cells
 median and 0.35 cells at the 95th percentile from the float ones on 88 real crops (Pose2Sim,
 Panoptic), 0.051 / 0.49 on this test's 8 crops, the presence output by at most 0.2; the demo's
-reprojection error did not grow. The bounds below are ~2-3x those figures: loose enough for
+reprojection error did not grow. The bounds below are ~1.5-2.5x those figures: loose enough for
 another CPU's kernels, tight enough to catch a broken build (the whole network with rounding to
 nearest and no equalization gives 0.33 / 1.7 cells; the per-tensor-weight rewrite that
 runner.DISABLED_OPTIMIZERS switches off gives ~11 cells).
@@ -27,7 +27,7 @@ from vmocap_core.pcm.detector import PoseDetector
 
 PANOPTIC = Path(__file__).resolve().parents[2] / "shared" / "data" / "panoptic_demo"
 MESSI = Path("/usr/share/doc/opencv-doc/examples/data/messi5.jpg")
-MEDIAN_CELLS, P95_CELLS, PRESENCE = 0.12, 1.0, 0.25
+MEDIAN_CELLS, P95_CELLS, PRESENCE = 0.12, 0.75, 0.25
 
 
 @pytest.fixture(scope="module")
