@@ -56,6 +56,23 @@ def test_cdr_matches_rclpy_serialization(type_name: str) -> None:
     assert deserialize_message(again, cls) == ros_msg
 
 
+def test_empty_numpy_point_array_encodes() -> None:
+    """One keypoint left (no complete bone): the LINE_LIST gets a (0, 3) array of points, which
+    encodes as an empty sequence that rclpy reads."""
+    pytest.importorskip("rclpy")
+    from rclpy.serialization import deserialize_message
+
+    from vmocap_ros.common import msg_class
+
+    kp = np.full((25, 3), np.nan)
+    kp[3] = [0.1, 0.2, 1.0]
+    msg = M.skeleton_markers(11, kp)
+    assert msg["markers"][0]["points"].shape == (0, 3)
+    ros_msg = deserialize_message(cdr.encode("visualization_msgs/msg/MarkerArray", msg),
+                                  msg_class("visualization_msgs/msg/MarkerArray"))
+    assert len(ros_msg.markers[0].points) == 0 and len(ros_msg.markers[1].points) == 1
+
+
 def test_rosbags_reads_our_bag(tmp_path: Path) -> None:
     rosbags = pytest.importorskip("rosbags")
     from rosbags.highlevel import AnyReader

@@ -246,11 +246,17 @@ def _enc_prim_array(out: _Out, base: str, value: Any, n: int) -> None:
         arr = np.asarray([] if value is None else value).astype(dtype, copy=False).ravel()
         data = arr.tobytes()
     count = len(data) // size
+    if n > 0 and count == 0:  # an unset fixed array is zeros
+        data, count = b"\x00" * (n * size), n
+    _put_block(out, count, n, size, data, "fixed array")
+
+
+def _put_block(out: _Out, count: int, n: int, size: int, data: Any, what: str) -> None:
+    """An array's elements as one block: fixed arrays (n >= 0) must have n elements, sequences
+    (n < 0) are prefixed by their uint32 length; the block is aligned to the element size."""
     if n >= 0:
-        if count == 0 and n > 0:
-            data, count = b"\x00" * (n * size), n
         if count != n:
-            raise BagError(f"fixed array needs {n} elements, got {count}")
+            raise BagError(f"{what} needs {n} elements, got {count}")
     else:
         out.align(4)
         out.put(struct.pack("<I", count))
@@ -328,16 +334,8 @@ def _enc_flat_struct_array(out: _Out, type_name: str, value: np.ndarray, n: int)
     base, k = _flat_struct(type_name)  # type: ignore[misc]
     code, size = _PRIM[base]
     arr = np.ascontiguousarray(value, dtype=np.dtype("<" + code)).reshape(-1, k)
-    count = len(arr)
-    if n >= 0:
-        if count != n:
-            raise BagError(f"fixed array of {type_name} needs {n} elements, got {count}")
-    else:
-        out.align(4)
-        out.put(struct.pack("<I", count))
-    if count:
-        out.align(size)
-        out.put(memoryview(arr).cast("B"))
+    data = memoryview(arr).cast("B") if len(arr) else b""  # an empty view cannot be cast
+    _put_block(out, len(arr), n, size, data, f"fixed array of {type_name}")
 
 
 def encode(type_name: str, msg: Any) -> bytes:
