@@ -205,7 +205,6 @@ def refine_markers(
     wv = np.zeros(V)
     best = np.empty(n_cam, dtype=np.int64)
     use = np.empty(V, dtype=np.int64)
-    err = np.zeros(V)
     h = 1e-4  # metres, numerical derivative step
     for j in range(J):
         out[j, 0], out[j, 1], out[j, 2] = markers[j, 0], markers[j, 1], markers[j, 2]
@@ -291,7 +290,6 @@ def refine_markers(
                 v = use[i]
                 mx, my, front = _to_map(R, t, dist, M, v, X, Y, Z)
                 e = math.hypot(obs[v, 0] - mx, obs[v, 1] - my) * cell_px[v] if front else 1e9
-                err[i] = e
                 sw += wv[v]
                 se += wv[v] * e
                 if e > worst_e:

@@ -160,6 +160,7 @@ def lattice_search(
     coarse_to_fine: bool = False,
     subcell: bool = True,
     log_eps: float = 0.0,
+    sampler: PcmSampler | None = None,
 ) -> LatticeResult:
     """Virtual markers of all PCM channels around `centres` (J, 3) (channel order of `pcm`).
 
@@ -169,8 +170,9 @@ def lattice_search(
     neighbours (at most s/2), which removes most of the lattice quantization error.
     log_eps: > 0 searches the sum of log(1 + PCM / log_eps) over views (module doc); the
     weights are still eq. 5's plain sums, taken at the final markers.
+    sampler: a PcmSampler of these rig and PCMs already built for this frame (else built here).
     """
-    sampler = PcmSampler(rig, pcm)
+    sampler = sampler or PcmSampler(rig, pcm)
     centres = np.asarray(centres, dtype=np.float64)
     if coarse_to_fine and k > 2:
         kc = 2

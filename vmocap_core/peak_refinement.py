@@ -84,14 +84,15 @@ def local_peaks(rig: Rig, pcm: PcmViews, points: np.ndarray, radius: int = 5) ->
 
 
 def refine_markers(rig: Rig, pcm: PcmViews, markers: np.ndarray, radius: int = 5, min_value: float = 0.1,
-                   max_error_px: float = 12.0, min_views: int = 2) -> tuple[np.ndarray, np.ndarray]:
+                   max_error_px: float = 12.0, min_views: int = 2,
+                   sampler: PcmSampler | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Lattice markers (J, 3) (channel order) -> refined markers (J, 3) and a mask (J,) of
     those that were refined (the others, and non-finite ones, are returned unchanged). See the
-    module doc."""
+    module doc. sampler: the lattice search's PcmSampler of the same rig and PCMs, if at hand."""
     markers = np.asarray(markers, dtype=np.float64)
     if not _kernels.AVAILABLE:
         return refine_markers_numpy(rig, pcm, markers, radius, min_value, max_error_px, min_views)
-    sampler = PcmSampler(rig, pcm)
+    sampler = sampler or PcmSampler(rig, pcm)
     A = pcm.image_to_map[:, :, :2]
     cell_px = 1.0 / np.sqrt(np.abs(A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]))
     out = np.empty_like(markers)

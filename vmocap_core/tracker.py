@@ -28,7 +28,7 @@ from .ik import warm_up as warm_up_ik
 from .iir import LowPassFilter
 from .keypoints import INDEX, KEYPOINTS
 from .one_euro import OneEuroFilter
-from .lattice import lattice_search
+from .lattice import PcmSampler, lattice_search
 from .lattice import warm_up as warm_up_lattice
 from .peak_refinement import refine_markers
 from .peak_refinement import warm_up as warm_up_refinement
@@ -265,6 +265,7 @@ class MarkerStage:
         centres = self.centres
         if cfg.prediction == "constant_velocity":
             centres = centres + self.velocity
+        sampler = PcmSampler(self.rig, pcm)  # one per frame: the lattice search and the refinement
         res = lattice_search(
             self.rig,
             pcm,
@@ -274,6 +275,7 @@ class MarkerStage:
             coarse_to_fine=cfg.coarse_to_fine,
             subcell=cfg.subcell,
             log_eps=cfg.lattice_log_eps,
+            sampler=sampler,
         )
         markers, weights, n_views = res.markers, res.weights, res.n_views
         # A marker weak for `reacquire_after` frames in a row (one weak frame is usually a
@@ -287,7 +289,8 @@ class MarkerStage:
         seen = n_views >= cfg.min_views
         if cfg.refine_markers and seen.any():
             refined, ok = refine_markers(self.rig, pcm, markers, cfg.refine_radius_cells,
-                                         max_error_px=cfg.refine_max_error_px, min_views=cfg.min_views)
+                                         max_error_px=cfg.refine_max_error_px, min_views=cfg.min_views,
+                                         sampler=sampler)
             markers = np.where((ok & seen)[:, None], refined, markers)
         out = _nan_markers(pcm.stamp_ns, "lattice")
         out.positions[pcm.keypoints] = markers
