@@ -14,6 +14,12 @@ fi
 # - opencv-doc: messi5.jpg for the single-photo PCM test;
 # - Aravis (GenICam cameras): the typelib, plus PyGObject built against the system glib.
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+  # - qemu-user: the test that runs the int8 self-check on an emulated x86 CPU without VNNI
+  if [ "$(uname -m)" = x86_64 ] && ! command -v qemu-x86_64 >/dev/null; then
+    export DEBIAN_FRONTEND=noninteractive
+    { apt-get update -qq >/dev/null && apt-get install -y -q qemu-user >/dev/null; } \
+      || echo "setup.sh: qemu-user not installed (the non-VNNI int8 test cannot run)"
+  fi
   stamp=.venv/.apt-done
   if [ ! -f "$stamp" ]; then
     export DEBIAN_FRONTEND=noninteractive

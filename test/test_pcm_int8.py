@@ -4,8 +4,9 @@ Tolerances: the int8 build (everything after the 128 x 128 stem to the 8 x 8 enc
 equalization and GPTQ rounding) moves the heatmap peaks (5 x 5-weighted centroids) 0.049 cells
 median and 0.35 cells at the 95th percentile from the float ones on 88 real crops (Pose2Sim,
 Panoptic), 0.051 / 0.49 on this test's 8 crops, the presence output by at most 0.2; the demo's
-reprojection error did not grow. The bounds below are ~1.5-2.5x those figures: loose enough for
-another CPU's kernels, tight enough to catch a broken build (the whole network with rounding to
+reprojection error did not grow. The bounds (selfcheck.py, shared with the self-check that picks
+the precision where the code runs) are ~1.5-2.5x those figures: loose enough for another CPU's
+kernels, tight enough to catch a broken build (the whole network with rounding to
 nearest and no equalization gives 0.33 / 1.7 cells; the per-tensor-weight rewrite that
 runner.DISABLED_OPTIMIZERS switches off gives ~11 cells).
 """
@@ -22,12 +23,12 @@ import pytest
 from vmocap_core.errors import ModelError
 from vmocap_core.pcm import fetch, quantize
 from vmocap_core.pcm.blazepose import BlazePoseLandmark, resolve_precision
+from vmocap_core.pcm.selfcheck import MEDIAN_CELLS, P95_CELLS, PRESENCE, peak_centroids
 from vmocap_core.pcm.crops import Crops
 from vmocap_core.pcm.detector import PoseDetector
 
 PANOPTIC = Path(__file__).resolve().parents[2] / "shared" / "data" / "panoptic_demo"
 MESSI = Path("/usr/share/doc/opencv-doc/examples/data/messi5.jpg")
-MEDIAN_CELLS, P95_CELLS, PRESENCE = 0.12, 0.75, 0.25
 
 
 @pytest.fixture(scope="module")
@@ -48,25 +49,9 @@ def images() -> list[np.ndarray]:
     return imgs
 
 
-def _centroids(maps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(V, J, 2) 5 x 5-weighted centroids around the argmax (cells) and (V, J) peak values."""
-    V, J, h, w = maps.shape
-    flat = maps.reshape(V, J, -1)
-    y, x = np.divmod(flat.argmax(-1), w)
-    pad = np.pad(maps, ((0, 0), (0, 0), (2, 2), (2, 2)))
-    v, j = np.meshgrid(np.arange(V), np.arange(J), indexing="ij")
-    wsum, acc = np.zeros((V, J)), np.zeros((V, J, 2))
-    for dy in range(-2, 3):
-        for dx in range(-2, 3):
-            val = pad[v, j, y + dy + 2, x + dx + 2]
-            wsum += val
-            acc += val[..., None] * np.stack([x + dx, y + dy], -1)
-    return acc / np.maximum(wsum, 1e-12)[..., None], flat.max(-1)
-
-
 def test_default_precision_and_override(monkeypatch) -> None:
     monkeypatch.delenv("VMOCAP_PCM_PRECISION", raising=False)
-    assert resolve_precision("full") == "int8" and resolve_precision("lite") == "float"
+    assert resolve_precision("full") == "auto" and resolve_precision("lite") == "float"
     monkeypatch.setenv("VMOCAP_PCM_PRECISION", "float")
     assert resolve_precision("full") == "float"
     monkeypatch.setenv("VMOCAP_PCM_PRECISION", "int8")
@@ -89,8 +74,8 @@ def test_int8_heatmaps_match_float_on_real_images(models, images) -> None:
     assert len(cams) >= 5, "people found in the real images"
     crops = Crops(cams, [r[0] for r in rects], [r[1] for r in rects], [r[2] for r in rects])
     a, b = flt.infer(images, crops), q.infer(images, crops)
-    ca, va = _centroids(a.maps)
-    cb, _ = _centroids(b.maps)
+    ca, va = peak_centroids(a.maps)
+    cb, _ = peak_centroids(b.maps)
     confident = (va > 0.5) & flt.channel_valid[None]
     shift = np.linalg.norm(cb - ca, axis=-1)[confident]
     side = np.asarray(crops.side)[:, None].repeat(a.maps.shape[1], 1)[confident]

@@ -18,6 +18,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "pcm"), "vmocap_core.bench.pcm", "PCM (CNN) inference time"),
     (("bench", "graph"), "vmocap_ros.bench_graph", "latency and rate of the ROS 2 node graph"),
     (("models", "fetch"), "vmocap_core.pcm.fetch", "obtain and convert the PCM models (no hubs)"),
+    (("models", "check"), "vmocap_core.pcm.selfcheck", "check the int8 CNN against the float one on this CPU"),
     (("process",), "vmocap_core.process", "run the pipeline offline on an MCAP bag"),
     (("launch",), "vmocap_ros.launcher", "start the ROS 2 node graph from a config"),
     (("play",), "vmocap_ros.player", "play an MCAP bag onto ROS 2 topics"),

@@ -35,7 +35,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from ..keypoints import INDEX, KEYPOINTS, LOWER_BODY
 from ..errors import ModelError
-from . import fetch
+from . import fetch, selfcheck
 from .crops import Crops
 from .model import DEFAULT_THREADS, PcmModel
 from .runner import DEFAULT_PARALLEL
@@ -91,27 +91,26 @@ MIN_TILT = np.deg2rad(20.0)  # below this, the upright and rotated crops nearly 
 
 
 VARIANTS = ("full", "lite")  # lite: `vmocap models fetch --lite`, same outputs, ~2x faster, less accurate
-# "int8": pose_landmark_full_int8.onnx (quantize.py: everything after the 128 x 128 stem up to the
-# 8 x 8 encoder in int8, same demo accuracy, ~1/3 less CNN time); "float": the converted model as it is.
-PRECISIONS = ("int8", "float")
+# "int8": pose_landmark_full_int8.onnx (quantize.py: the encoder after the stem in int8); "float":
+# the converted model as it is; "auto" (default): int8 where the self-check passes on this CPU and
+# int8 is faster (selfcheck.py), else float.
+PRECISIONS = ("auto", "int8", "float")
 INT8_VARIANTS = ("full",)  # lite has no int8 build
 PRECISION_ENV = "VMOCAP_PCM_PRECISION"  # overrides the default precision (e.g. =float) in every process
 
 
 def resolve_precision(variant: str, precision: str | None = None) -> str:
-    """The landmark model's precision: `precision` if given, else $VMOCAP_PCM_PRECISION, else
-    "int8" where the variant has an int8 build ("float" for lite)."""
+    """The requested precision: `precision` if given, else $VMOCAP_PCM_PRECISION, else "auto";
+    "float" for a variant without an int8 build (unless int8 was asked for explicitly: error)."""
     import os
 
-    chosen = precision or os.environ.get(PRECISION_ENV) or None
-    if chosen is None:
-        return "int8" if variant in INT8_VARIANTS else "float"
+    chosen = precision or os.environ.get(PRECISION_ENV) or "auto"
     if chosen not in PRECISIONS:
         raise ModelError(f"BlazePose precision must be one of {PRECISIONS}, got {chosen!r}")
-    if chosen == "int8" and variant not in INT8_VARIANTS:
-        if precision is None:  # from the environment: lite simply stays float
-            return "float"
-        raise ModelError(f"no int8 build of the {variant} landmark model (int8: {INT8_VARIANTS})")
+    if variant not in INT8_VARIANTS:
+        if chosen == "int8" and precision is not None:
+            raise ModelError(f"no int8 build of the {variant} landmark model (int8: {INT8_VARIANTS})")
+        return "float"
     return chosen
 
 
@@ -129,16 +128,29 @@ class BlazePoseLandmark(PcmModel):
     output_names = ("pcm", "Identity_1")  # "pcm" is added by extend_graph
 
     def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS, variant: str = "full",
-                 min_presence: float | None = None, parallel: str = DEFAULT_PARALLEL, precision: str | None = None) -> None:
+                 min_presence: float | None = None, parallel: str = DEFAULT_PARALLEL, precision: str | None = None,
+                 session_config: dict[str, str] | None = None) -> None:
         """min_presence: views below it are invalid (default 0.5, MediaPipe's tracking threshold);
-        parallel: "views" or "intra" (runner.py); precision: "int8" or "float" (None: the default,
-        see `resolve_precision`); `path` overrides the cached model file."""
+        parallel: "views" or "intra" (runner.py); precision: "auto", "int8" or "float" (None: see
+        `resolve_precision`; "auto" and "int8" run the self-check once per process, and "int8"
+        raises where it fails); `path` overrides the cached model file (no self-check: the
+        caller names the file and `precision` says what it is)."""
         if variant not in VARIANTS:
             raise ModelError(f"BlazePose variant must be one of {VARIANTS}, got {variant!r}")
         self.variant = variant
-        self.precision = resolve_precision(variant, precision)
+        request = resolve_precision(variant, precision)
+        self.precision_reason = f"{request} requested"
+        if path is None and request in ("auto", "int8"):
+            check = selfcheck.verdict(variant)
+            if request == "int8" and not check.int8_correct:
+                raise ModelError(f"precision int8 was asked for, but {check.warning}")
+            request = "int8" if request == "int8" else check.precision
+            self.precision_reason = check.reason
+            if request == "int8":
+                session_config = check.session_config
+        self.precision = "float" if request == "auto" else request
         name = f"pose_landmark_{variant}" + ("_int8" if self.precision == "int8" else "")
-        super().__init__(path or fetch.model_path(name), threads, min_presence, parallel)
+        super().__init__(path or fetch.model_path(name), threads, min_presence, parallel, session_config)
 
     def input_to_map(self) -> np.ndarray:
         return CROP_TO_MAP.copy()

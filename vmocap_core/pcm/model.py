@@ -159,8 +159,9 @@ class PcmModel(abc.ABC):
     min_presence: float = 0.5
 
     def __init__(self, path: Path | str, threads: int = DEFAULT_THREADS, min_presence: float | None = None,
-                 parallel: str = DEFAULT_PARALLEL) -> None:
-        """threads: CPU threads; parallel: how they are used (runner.py: "views" or "intra")."""
+                 parallel: str = DEFAULT_PARALLEL, session_config: dict[str, str] | None = None) -> None:
+        """threads: CPU threads; parallel: how they are used (runner.py: "views" or "intra");
+        session_config: onnxruntime session config entries (selfcheck.INT8_KERNELS)."""
         self.path = Path(path)
         self.threads = int(threads)
         if min_presence is not None:
@@ -175,7 +176,7 @@ class PcmModel(abc.ABC):
             raise ModelError(f"{self.path}: input shape {shape} does not fit (batch, {expect})")
         model = prune(self.extend_graph(model), self.output_names)
         model = with_uint8_input(model, self.rgb, self.pixel_scale, self.pixel_offset, self.channels_last)
-        self.runner = Runner(model, self.threads, parallel, self.path)
+        self.runner = Runner(model, self.threads, parallel, self.path, session_config)
 
     def input_to_map(self) -> np.ndarray:
         """(2, 3) affine network-input pixel -> map coordinates. Default: cell x covers input

@@ -29,9 +29,13 @@ DISABLED_OPTIMIZERS = ["WeightBiasQuantization"]
 DEFAULT_PARALLEL = "views"
 
 
-def make_session(model: onnx.ModelProto, threads: int, name: object = "model") -> ort.InferenceSession:
-    """An onnxruntime CPU session with `threads` intra-op threads."""
+def make_session(model: onnx.ModelProto, threads: int, name: object = "model",
+                 config: dict[str, str] | None = None) -> ort.InferenceSession:
+    """An onnxruntime CPU session with `threads` intra-op threads (`config`: session config
+    entries, e.g. selfcheck.INT8_KERNELS)."""
     opts = ort.SessionOptions()
+    for key, value in (config or {}).items():
+        opts.add_session_config_entry(key, value)
     opts.intra_op_num_threads = int(threads)
     opts.inter_op_num_threads = 1
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
@@ -46,16 +50,18 @@ def make_session(model: onnx.ModelProto, threads: int, name: object = "model") -
 class Runner:
     """`run(outputs, batch)` of a one-input model, batch first."""
 
-    def __init__(self, model: onnx.ModelProto, threads: int, parallel: str = DEFAULT_PARALLEL, name: object = "model") -> None:
+    def __init__(self, model: onnx.ModelProto, threads: int, parallel: str = DEFAULT_PARALLEL, name: object = "model",
+                 config: dict[str, str] | None = None) -> None:
         if parallel not in PARALLEL_MODES:
             raise ModelError(f"parallel must be one of {PARALLEL_MODES}, got {parallel!r}")
         self.threads = max(1, int(threads))
         self.parallel = parallel
         self.name = name
+        self.config = config
         dim0 = model.graph.input[0].type.tensor_type.shape.dim[0]
         self.batched = bool(dim0.dim_param) or dim0.dim_value == 0  # False: static batch of 1
         split = parallel == "views" and self.threads > 1
-        self.session = make_session(model, 1 if split else self.threads, name)
+        self.session = make_session(model, 1 if split else self.threads, name, config)
         self.input_name = self.session.get_inputs()[0].name
         self._model = model if split else None  # for the lazily built single-view session
         self._single = None if split else self.session
@@ -69,7 +75,7 @@ class Runner:
         n = len(x)
         if self.batched and (n == 1 or self._pool is None):  # one call
             if self._single is None:
-                self._single = make_session(self._model, self.threads, self.name)
+                self._single = make_session(self._model, self.threads, self.name, self.config)
             return self._call(self._single, outputs, x)
         if self.batched:
             chunks = np.array_split(x, min(self.threads, n))
