@@ -92,10 +92,14 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("views", [""], "PCM view names (topics NS/pcm/VIEW/...); empty: one per camera, named as it"),
         Param("queue_depth", 3, "subscription depth per PCM topic and frame sets queued while the "
               "lattice search waits for feedback (beyond it the oldest are dropped and counted)", 1, 1000),
+        Param("init_warn_s", 2.0, "diagnostics turn WARN, naming the views that disagree and the cameras without "
+              "a person, when no subject is initialized for this long (capture time)", 0.0, 1e6),
     ],
     "vmocap_skeleton": [
         Param("queue_depth", 3, "subscription depth of the markers topic (live: freshness over completeness; "
               "raise it to process every frame of a bag played faster than the pipeline)", 1, 1000),
+        Param("init_warn_s", 2.0, "diagnostics turn WARN, saying why, when no subject is initialized for this long "
+              "(capture time)", 0.0, 1e6),
     ],
     "vmocap_recorder": [
         Param("output", "", "MCAP file to write (renamed from .partial when closed)", path=True),

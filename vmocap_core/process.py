@@ -126,7 +126,8 @@ def feedback_of(result: Any) -> np.ndarray | None:
 
 
 def markers_message(markers: Any) -> dict:
-    return M.keypoint_cloud(markers.stamp_ns, markers.positions, markers.weights, markers.kind)
+    residual = markers.residual_px if markers.residual_px is not None else np.full(len(KEYPOINTS), np.nan)
+    return M.keypoint_cloud(markers.stamp_ns, markers.positions, markers.weights, markers.kind, residual, markers.cameras)
 
 
 def markers_from_message(msg: dict) -> Any:
@@ -136,7 +137,8 @@ def markers_from_message(msg: dict) -> Any:
     P, S, kind = M.cloud_keypoints(msg)
     if P is None:
         P = np.full((len(KEYPOINTS), 3), np.nan)
-    return Markers(M.stamp_ns(msg), P, S, kind)
+    residual, cameras = M.cloud_marker_extras(msg)
+    return Markers(M.stamp_ns(msg), P, S, kind, residual_px=residual, cameras=cameras)
 
 
 def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] | None = None) -> Iterator[tuple[str, str, dict]]:
@@ -426,7 +428,9 @@ class ModelPcmProvider:
         variant = "lite" if model.endswith("lite") else "full"
         self.rig = rig
         self.pcm = BlazePosePcm(rig, rotation=rotation, threads=threads, variant=variant)
-        self.name = f"blazepose-{variant} (rotation {rotation})"
+        lm = self.pcm.landmark
+        self.name = f"blazepose-{variant} {lm.precision} (rotation {rotation})"
+        self.precision, self.precision_reason = lm.precision, lm.precision_reason
 
     def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
         full: list[np.ndarray | None] = [None] * len(self.rig)

@@ -26,6 +26,7 @@ from .heatmaps import PcmViews
 from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
 from .iir import LowPassFilter
+from .init_report import CORE, camera_mask
 from .keypoints import INDEX, KEYPOINTS
 from .one_euro import OneEuroFilter
 from .lattice import PcmSampler, lattice_search
@@ -152,6 +153,10 @@ class Markers:
     weights: np.ndarray  # (25,), 0 where unknown
     kind: str  # "triangulated" | "lattice" | "none"
     score: float = 0.0  # mean weight per view over the observed keypoints (0..1)
+    # triangulated markers: what a stalled initialization is diagnosed from (init_report.py)
+    residual_px: np.ndarray | None = None  # (25,) triangulation residual, NaN: not triangulated
+    cameras: np.ndarray | None = None  # (25,) bit masks of the cameras whose peaks went in
+    presence: dict[str, float] | None = None  # CNN presence per camera (not in messages)
 
 
 def make_filter(config: TrackerConfig) -> LowPassFilter | OneEuroFilter:
@@ -258,6 +263,13 @@ class MarkerStage:
         out.weights[pcm.keypoints] = w
         n_cam = max(len(np.unique(pcm.camera)), 1)
         out.score = float(w.sum() / (n_cam * max(pcm.keypoints.size, 1)))
+        out.residual_px = np.full(N_KP, np.nan)
+        out.residual_px[pcm.keypoints] = resid
+        out.cameras = np.zeros(N_KP, np.uint32)
+        out.cameras[pcm.keypoints] = camera_mask(cam_w)
+        presence = np.full(C, -1.0)
+        np.maximum.at(presence, np.asarray(pcm.camera, dtype=np.intp), np.asarray(pcm.presence, dtype=np.float64))
+        out.presence = {self.rig[c].name: float(presence[c]) for c in range(C) if presence[c] >= 0}
         return out
 
     def _lattice(self, pcm: PcmViews) -> Markers:
@@ -344,11 +356,6 @@ class MarkerStage:
         weights[cand[better]] = alt.weights[better]
         n_views[cand[better]] = alt.n_views[better]
         return markers, weights, n_views
-
-
-# Keypoints that must be seen to identify a body (II-C).
-CORE = ("left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
-        "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle")
 
 
 def _with_midpoints(p: np.ndarray) -> np.ndarray:
@@ -491,6 +498,7 @@ class SkeletonStage:
         self._q_out: np.ndarray | None = None
         self._filter = make_filter(self.config)
         self.status = "initializing"
+        self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
         self._joint_names = Skeleton().joint_names
         self.timings: dict[str, float] = {}
         warm_up_ik()
@@ -567,7 +575,10 @@ class SkeletonStage:
         fitted = fit_skeleton(frames, cfg.init_max_fit_error_m)
         if fitted is None:
             self._buffer.popleft()
+            self.init_problem = (f"the views agree, but {cfg.init_frames} frame sets of triangulated keypoints do not "
+                                 f"fit one skeleton within init_max_fit_error_m = {cfg.init_max_fit_error_m:g} m")
             return self._empty(markers, status)
+        self.init_problem = None
         sk, fit = fitted
         self.skeleton = sk
         self._q_raw = fit.q.copy()

@@ -33,6 +33,15 @@ from vmocap_core.sync import ApproximateSync
 from .common import Topics, declare, msg_class, qos
 
 STREAM_DEPTH = 10  # images, PCMs, markers: reliable, keep last 10
+AGE_WINDOW_NS = 3600 * 10**9  # a stamp further than this from the node's clock is on another clock
+
+
+def age_problem(now_ns: int, stamp_ns: int) -> str:
+    """Why (now - stamp) is no latency ("" when it is one)."""
+    if abs(now_ns - stamp_ns) <= AGE_WINDOW_NS:
+        return ""
+    return (f"n/a: frame stamps are {abs(now_ns - stamp_ns) / 3.6e12:.0f} h from this node's clock (a recording "
+            "replayed without restamp; set restamp, or use_sim_time with `vmocap play`, for ages)")
 
 
 class Stat:
@@ -215,7 +224,8 @@ class VmocapNode(Node):
             self.rig = rig.subset(self.p["cameras"]) if self.p["cameras"] else rig
         self.cpu_s = 0.0
         self.proc = Stat()
-        self.age = Stat()  # capture stamp -> end of processing, ms (wall clock)
+        self.age = Stat()  # capture stamp -> end of processing, ms (this node's clock)
+        self.age_note = ""
         self.problems: dict[str, str] = {}
         self._pending_subs: list = []
         self._dds_pubs: dict[str, Any] = {}  # topic -> rclpy publisher, for matched-subscriber counts
@@ -263,10 +273,22 @@ class VmocapNode(Node):
     def status(self) -> dict[str, Any]:
         return {}
 
+    def record_age(self, stamp_ns: int) -> None:
+        """Capture stamp -> now on this node's clock (sim time under use_sim_time). Stamps of a
+        recording replayed without restamp are on no clock of this machine: no figure then."""
+        now = self.get_clock().now().nanoseconds
+        problem = age_problem(now, stamp_ns)
+        if problem:
+            self.age_note = problem
+            return
+        self.age.add((now - stamp_ns) / 1e6)
+
     def _publish_diagnostics(self) -> None:
         values = {"cpu_s": f"{self.cpu_s:.4f}"}
         values.update({f"proc_ms_{k}": v for k, v in self.proc.summary().items()})
         values.update({f"age_ms_{k}": v for k, v in self.age.summary().items()})
+        if self.age_note:
+            values["age_ms"] = self.age_note
         values.update({k: str(v) for k, v in self.status().items()})
         # matched DDS subscribers per output: volatile outputs published before a subscriber
         # matched are gone, so whoever records or controls can check it is connected
@@ -401,7 +423,7 @@ class CameraNode(VmocapNode):
         pub_img.send(img)
         pub_info.send(info)
         self.published[cam] += 1
-        self.age.add((time.time_ns() - M.stamp_ns(img[0])) / 1e6)  # how late the frame went out
+        self.record_age(M.stamp_ns(img[0]))  # how late the frame went out
 
     def status(self) -> dict[str, Any]:
         return {"published": self.published, "late_dropped": self.late_dropped}
@@ -458,6 +480,11 @@ class PcmNode(VmocapNode):
         from vmocap_core.process import make_model_provider  # the CNN (vmocap_core.pcm)
 
         provider = make_model_provider(model, self.rig, self.p["rotation"], self.p["threads"])
+        from vmocap_core.pcm import selfcheck
+
+        check = selfcheck.last_verdict()
+        if check is not None and check.warning:  # a failing self-check: running, but on the slower float model
+            self.problems["cnn"] = check.warning
         expected = list(channel_keypoints(self.p["pcm_keypoints"]))
         if list(provider.pcm.landmark.keypoints) != expected:
             raise VmocapError(f"pcm_keypoints of the config do not match the model's channels "
@@ -532,12 +559,12 @@ class PcmNode(VmocapNode):
                 self.awaiting = None  # nothing published: no skeleton will answer this frame
             self.frames += 1
             self.proc.add(1e3 * (time.perf_counter() - t0))
-            self.age.add((time.time_ns() - fs.stamp_ns) / 1e6)
+            self.record_age(fs.stamp_ns)
 
     def status(self) -> dict[str, Any]:
         st = self.sync.stats()
         return dict(self.counts, frames=self.frames, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
-                    queued=len(self.sets))
+                    queued=len(self.sets), precision=getattr(self.provider, "precision_reason", "n/a"))
 
 
 class MarkersNode(VmocapNode):
@@ -559,6 +586,8 @@ class MarkersNode(VmocapNode):
         self.awaiting_since = 0.0
         self.timeout = p["feedback_timeout_ms"] / 1e3
         self.counts = {"frames": 0, "queue_dropped": 0, "feedback_timeouts": 0}
+        self.init_watch = InitWatch(p["init_warn_s"], self.stage.config.init_max_reprojection_px, self.rig.names)
+        self.presence: dict[str, float] = {}  # CNN presence per camera, last triangulated frame set
         # markers and feedback are transient-local: a frame processed before the other node's
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
         self.pub = self.publisher(CLOUD, self.topics.markers, depth=p["queue_depth"], latched=True)
@@ -582,12 +611,15 @@ class MarkersNode(VmocapNode):
             pcm = self.queue.popleft()
             t0 = time.perf_counter()
             markers = self.stage.step(pcm)
+            self.init_watch.update(self, "tracking" if markers.kind == "lattice" else "initializing", markers)
+            if markers.presence:
+                self.presence = markers.presence
             if self.timeout > 0:  # before publishing: the feedback may come back at once
                 self.awaiting, self.awaiting_since = pcm.stamp_ns, time.monotonic()
             self.pub(markers_message(markers))
             self.counts["frames"] += 1
             self.proc.add(1e3 * (time.perf_counter() - t0))
-            self.age.add((time.time_ns() - pcm.stamp_ns) / 1e6)
+            self.record_age(pcm.stamp_ns)
 
     def _on_feedback(self, msg: dict) -> None:
         t = M.stamp_ns(msg)
@@ -608,14 +640,42 @@ class MarkersNode(VmocapNode):
     def status(self) -> dict[str, Any]:
         st = self.asm.sync.stats()
         return dict(self.counts, queued=len(self.queue), sync=st.as_dict(), silent=list(st.silent),
-                    rejected_frame_sets=self.asm.bad_views)
+                    rejected_frame_sets=self.asm.bad_views, presence={k: round(v, 3) for k, v in self.presence.items()})
+
+
+class InitWatch:
+    """A node's WARN while no subject is initialized for longer than `warn_s` of capture time,
+    with the reason from the virtual markers (init_report.py)."""
+
+    def __init__(self, warn_s: float, bound_px: float, camera_names: list[str] | None) -> None:
+        self.warn_ns, self.bound_px, self.camera_names = int(warn_s * 1e9), bound_px, camera_names
+        self.since_ns: int | None = None
+
+    def update(self, node: VmocapNode, status: str, markers: Any, problem: str | None = None,
+               min_presence: float | None = None) -> None:
+        from vmocap_core.init_report import describe
+
+        if status not in ("initializing", "lost", "none"):
+            self.since_ns = None
+            node.problems.pop("initializing", None)
+            return
+        self.since_ns = markers.stamp_ns if self.since_ns is None else self.since_ns
+        waited = markers.stamp_ns - self.since_ns
+        if self.warn_ns and waited >= self.warn_ns:
+            if markers.kind == "none":
+                why = "no heatmap views (no frames, or the CNN found nobody)"
+            else:
+                names = self.camera_names or [f"camera {c}" for c in range(32)]
+                why = problem or describe(markers.residual_px, markers.cameras, names, self.bound_px,
+                                          markers.presence, min_presence)
+            node.problems["initializing"] = f"no subject initialized for {waited / 1e9:.1f} s: {why}"
 
 
 class SkeletonNode(VmocapNode):
     """NS/markers -> SkeletonStage (IK, IIR, second IK) -> NS/joint_states, NS/keypoints,
     NS/skeleton and the feedback NS/feedback."""
 
-    needs_rig = False
+    needs_rig = True  # only for the camera names in the diagnostics; runs without one too
 
     def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None) -> None:
         super().__init__("vmocap_skeleton", config, overrides)
@@ -630,10 +690,14 @@ class SkeletonNode(VmocapNode):
         self.subscribe(CLOUD, self.topics.markers, self._on_markers, depth=self.p["queue_depth"], latched=True)
         self.counts = {"frames": 0, "tracking": 0}
         self.last_status = "initializing"
+        self.init_watch = InitWatch(self.p["init_warn_s"], config.tracker_dict(self.p).get("init_max_reprojection_px", 12.0),
+                                    self.rig.names if self.rig is not None else None)
 
     def _on_markers(self, msg: dict) -> None:
         t0 = time.perf_counter()
-        result = self.stage.step(markers_from_message(msg))
+        markers = markers_from_message(msg)
+        result = self.stage.step(markers)
+        self.init_watch.update(self, result.status, markers, self.stage.init_problem)
         # feedback, then joint_states; outputs nobody subscribes to are not even built
         for topic, _ty, out in result_messages(self.topics, result, wanted=lambda topic: self.pubs[topic].wanted()):
             self.pubs[topic](out)
@@ -641,7 +705,7 @@ class SkeletonNode(VmocapNode):
         self.counts["tracking"] += result.status == "tracking"
         self.last_status = result.status
         self.proc.add(1e3 * (time.perf_counter() - t0))
-        self.age.add((time.time_ns() - result.stamp_ns) / 1e6)
+        self.record_age(result.stamp_ns)
 
     def status(self) -> dict[str, Any]:
         return dict(self.counts, status=self.last_status)

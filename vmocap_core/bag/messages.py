@@ -45,6 +45,14 @@ _CLOUD_FIELDS = [
     {"name": "id", "offset": 32, "datatype": 6, "count": 1},
     {"name": "kind", "offset": 36, "datatype": 6, "count": 1},
 ]
+# Virtual markers carry two more fields per keypoint, what a stalled initialization is diagnosed
+# from: the triangulation residual (px; NaN where not triangulated) and the cameras whose peaks
+# went into it (bit c = camera c of the rig).
+MARKERS_DTYPE = np.dtype(CLOUD_DTYPE.descr + [("residual_px", "<f8"), ("cameras", "<u4")])
+_MARKERS_FIELDS = _CLOUD_FIELDS + [
+    {"name": "residual_px", "offset": 40, "datatype": 8, "count": 1},
+    {"name": "cameras", "offset": 48, "datatype": 6, "count": 1},
+]
 
 
 # ------------------------------------------------------------------------------- stamps
@@ -242,46 +250,69 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
 
 
 # ------------------------------------------------------------------------------- clouds
-def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | None = None, kind: str = "none") -> dict:
-    """PointCloud2 of the 25 KEYPOINTS (positions None: an empty cloud, e.g. 'lost')."""
+def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | None = None, kind: str = "none",
+                   residual_px: np.ndarray | None = None, cameras: np.ndarray | None = None) -> dict:
+    """PointCloud2 of the 25 KEYPOINTS (positions None: an empty cloud, e.g. 'lost'); with
+    `residual_px` and `cameras` the virtual markers' layout (MARKERS_DTYPE)."""
+    markers = residual_px is not None
+    dtype, fields = (MARKERS_DTYPE, _MARKERS_FIELDS) if markers else (CLOUD_DTYPE, _CLOUD_FIELDS)
     if positions is None:
-        pts = np.zeros(0, dtype=CLOUD_DTYPE)
+        pts = np.zeros(0, dtype=dtype)
     else:
         P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        pts = np.zeros(len(P), dtype=CLOUD_DTYPE)
+        pts = np.zeros(len(P), dtype=dtype)
         pts["x"], pts["y"], pts["z"] = P[:, 0], P[:, 1], P[:, 2]
         pts["score"] = 0.0 if scores is None else np.asarray(scores, dtype=np.float64)
         pts["id"] = np.arange(len(P))
         pts["kind"] = MARKER_KINDS.index(kind)
+        if markers:
+            pts["residual_px"] = np.asarray(residual_px, dtype=np.float64)
+            pts["cameras"] = 0 if cameras is None else np.asarray(cameras, dtype=np.uint32)
     return {
         "header": header(ns, WORLD_FRAME),
         "height": 1,
         "width": len(pts),
-        "fields": _CLOUD_FIELDS,
+        "fields": fields,
         "is_bigendian": False,
-        "point_step": CLOUD_DTYPE.itemsize,
-        "row_step": CLOUD_DTYPE.itemsize * len(pts),
+        "point_step": dtype.itemsize,
+        "row_step": dtype.itemsize * len(pts),
         "data": pts.tobytes(),
         "is_dense": bool(len(pts) == 0 or np.isfinite(np.stack([pts["x"], pts["y"], pts["z"]])).all()),
     }
 
 
+def _cloud_points(msg: dict) -> np.ndarray:
+    n = msg["width"] * msg["height"]
+    names = [f["name"] for f in msg["fields"]]
+    for dtype in (CLOUD_DTYPE, MARKERS_DTYPE):
+        if names == list(dtype.names) and msg["point_step"] == dtype.itemsize:
+            return np.frombuffer(msg["data"], dtype=dtype, count=n)
+    raise BagError(f"point cloud fields {names} are not vmocap's keypoint layout")
+
+
 def cloud_keypoints(msg: dict) -> tuple[np.ndarray | None, np.ndarray, str]:
     """Inverse of `keypoint_cloud`: positions (25, 3) in KEYPOINTS order (None when empty),
     scores (25,), kind."""
-    n = msg["width"] * msg["height"]
-    if n == 0:
+    if msg["width"] * msg["height"] == 0:
         return None, np.zeros(len(KEYPOINTS)), "none"
-    names = [f["name"] for f in msg["fields"]]
-    if names[:5] != ["x", "y", "z", "score", "id"] or msg["point_step"] != CLOUD_DTYPE.itemsize:
-        raise BagError(f"point cloud fields {names} are not vmocap's keypoint layout")
-    pts = np.frombuffer(msg["data"], dtype=CLOUD_DTYPE, count=n)
+    pts = _cloud_points(msg)
     P = np.full((len(KEYPOINTS), 3), np.nan)
     S = np.zeros(len(KEYPOINTS))
     ids = pts["id"].astype(np.intp)
     P[ids] = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
     S[ids] = pts["score"]
     return P, S, MARKER_KINDS[int(pts["kind"][0])]
+
+
+def cloud_marker_extras(msg: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(residual px (25,), camera bit masks (25,)) of a markers cloud (NaN / 0 where absent)."""
+    residual, cameras = np.full(len(KEYPOINTS), np.nan), np.zeros(len(KEYPOINTS), np.uint32)
+    if msg["width"] * msg["height"]:
+        pts = _cloud_points(msg)
+        if pts.dtype == MARKERS_DTYPE:
+            ids = pts["id"].astype(np.intp)
+            residual[ids], cameras[ids] = pts["residual_px"], pts["cameras"]
+    return residual, cameras
 
 
 # ------------------------------------------------------------------------------- outputs

@@ -1,0 +1,103 @@
+"""A subject that never initializes is reported, with the reason (init_report.py), on the
+skeleton's and the markers' /diagnostics; a recording's stamps give no bogus latency."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from graph_helpers import domain_env, stop, synthetic_bag, vmocap, wait_for, write_config
+from vmocap_core.bag import BagReader
+from vmocap_core.bag import messages as M
+from vmocap_core.init_report import CORE, camera_mask, describe
+from vmocap_core.keypoints import INDEX, KEYPOINTS
+from vmocap_core.rig_io import load_rig, save_rig
+
+
+def test_description_names_disagreeing_views_unseen_keypoints_and_silent_cameras() -> None:
+    residual = np.full(len(KEYPOINTS), 3.0)
+    residual[INDEX["left_wrist"]] = 31.4
+    weights = np.ones((4, len(KEYPOINTS)))
+    weights[2:] = 0.0  # cam2, cam3 see nothing
+    weights[1, INDEX["right_knee"]] = 0.0  # right knee in cam0 only
+    text = describe(residual, camera_mask(weights), ["cam0", "cam1", "cam2", "cam3"], 12.0,
+                    presence={"cam0": 0.99, "cam1": 0.98, "cam2": 0.02})
+    assert "views disagree on left_wrist 31.4 px (bound 12 px)" in text
+    assert "right_knee (1 camera)" in text
+    assert "cam2 (presence 0.02)" in text and "cam3 (no view)" in text
+    ok = describe(np.zeros(len(KEYPOINTS)), camera_mask(np.ones((2, len(KEYPOINTS)))), ["a", "b"], 12.0)
+    assert "agree" in ok and not any(k in ok for k in CORE)
+
+
+def test_markers_cloud_carries_the_diagnosis_fields() -> None:
+    P = np.random.default_rng(0).normal(size=(len(KEYPOINTS), 3))
+    residual = np.linspace(0, 50, len(KEYPOINTS))
+    cams = np.arange(len(KEYPOINTS), dtype=np.uint32)
+    msg = M.keypoint_cloud(5, P, np.ones(len(KEYPOINTS)), "triangulated", residual, cams)
+    assert msg["point_step"] == M.MARKERS_DTYPE.itemsize
+    P2, S2, kind = M.cloud_keypoints(msg)
+    r2, c2 = M.cloud_marker_extras(msg)
+    assert np.array_equal(P, P2) and kind == "triangulated" and np.array_equal(r2, residual) and np.array_equal(c2, cams)
+    plain = M.keypoint_cloud(5, P)  # keypoints and feedback keep the 40-byte layout
+    assert plain["point_step"] == 40 and np.isnan(M.cloud_marker_extras(plain)[0]).all()
+
+
+def _miscalibrated(rig_path: Path, out: Path) -> Path:
+    """The rig with cameras 1-3 turned by 4-6 degrees about their optical axis' vertical: no two
+    views agree except by chance, so no subject can be initialized."""
+    rig = load_rig(rig_path)
+    cams = []
+    for c, cam in enumerate(rig):
+        if c:
+            a = np.deg2rad((4.0, -5.0, 6.0)[c - 1])
+            turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+            cam = dataclasses.replace(cam, R=turn @ cam.R, t=turn @ cam.t)
+        cams.append(cam)
+    save_rig(type(rig)(cams), out)
+    return out
+
+
+def test_stalled_initialization_turns_diagnostics_warn_with_the_reason(tmp_path: Path) -> None:
+    bag = tmp_path / "in.mcap"
+    _, rig_path, kps = synthetic_bag(bag, frames=30)
+    wrong = _miscalibrated(rig_path, tmp_path / "wrong.rig.yaml")
+    out = tmp_path / "out.mcap"
+    cfg = write_config(tmp_path / "g.yaml", wrong, kps, ["vmocap_markers", "vmocap_skeleton", "vmocap_recorder"],
+                       mode="single_process", output=out,
+                       extra={"vmocap_markers": {"queue_depth": 100, "init_warn_s": 0.3},
+                              "vmocap_skeleton": {"queue_depth": 100, "init_warn_s": 0.3}})
+    env = domain_env(17)
+    launch = vmocap(["launch", str(cfg)], env)
+    try:
+        assert wait_for(lambda: Path(str(out) + ".partial").exists() or launch.poll() is not None, 60.0)
+        time.sleep(1.0)
+        topics = [f"/vmocap/pcm/cam{c}/{k}" for c in range(4) for k in ("heatmaps", "camera_info")]
+        play = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "play", str(bag), "--topics", *topics,
+                               "--expect", *topics, "--wait-subscribers", "60"],
+                              env=env, capture_output=True, text=True, timeout=90)
+        assert play.returncode == 0, play.stdout + play.stderr
+        time.sleep(3.0)  # processing backlog + at least one diagnostics period
+    finally:
+        log = stop(launch)
+    assert launch.returncode == 0, log
+    with BagReader(out) as r:
+        assert r.message_counts.get("/vmocap/joint_states", 0) == 0, "nothing tracked with this calibration"
+        status = {}
+        for m in r.messages(["/diagnostics"]):
+            for s in m.decode()["status"]:
+                status[s["name"]] = s
+    sk, mk = status["vmocap_skeleton"], status["vmocap_markers"]
+    print(sk["message"], "|", mk["message"], sep="\n")
+    for s in (sk, mk):
+        assert s["level"] in (1, b"\x01"), {v["key"]: v["value"] for v in s["values"]}
+        assert "no subject initialized for" in s["message"] and "views disagree on" in s["message"]
+        assert " px (bound 12 px)" in s["message"]
+    values = {v["key"]: v["value"] for v in sk["values"]}
+    assert values["status"] in ("initializing", "lost")
+    # the synthetic bag's stamps start in 1970: no latency figure, a reason instead
+    assert values.get("age_ms", "").startswith("n/a") and "age_ms_p50" not in values
