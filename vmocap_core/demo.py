@@ -676,4 +676,19 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2))
     else:
         print((args.out / "report.md").read_text())
+    failure = demo_failure(summary)
+    if failure:
+        print(f"vmocap demo: FAILED: {failure} (report: {args.out / 'report.md'})", file=sys.stderr)
+        return 1
     return 0
+
+
+def demo_failure(summary: dict) -> str | None:
+    """Why the demo's result is unusable (None when it is not): a report full of NaN must not
+    exit 0 (`vmocap models check` is the first thing to run when the CNN is the cause)."""
+    if summary["tracking_frames"] == 0:
+        return (f"the tracker never tracked in {summary['frames']} frame sets (no subject initialized; "
+                "check the CNN with `vmocap models check`)")
+    if not np.isfinite(summary["median_reprojection_px"]):
+        return "the median reprojection error is not finite"
+    return None

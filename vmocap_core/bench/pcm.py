@@ -28,6 +28,7 @@ from tqdm import tqdm
 from ..camera import Camera, Rig, look_at
 from ..errors import ModelError
 from ..keypoints import KEYPOINTS
+from ..pcm import selfcheck
 from ..pcm.blazepose import BlazePoseLandmark
 from ..pcm.crops import Crops
 from ..pcm.detector import PoseDetector
@@ -115,7 +116,11 @@ def measure(repeat: int = 30, threads: int = DEFAULT_THREADS, quiet: bool = Fals
     flt = BlazePosePcm(rig, threads=threads, precision="float")
     views = len(pcm.crops_from_skeleton(standing))
     result["model"] = pcm.landmark.path.stem
-    result["precision"] = pcm.landmark.precision
+    result["precision"] = pcm.landmark.precision  # what the self-check chose on this CPU
+    result["precision_reason"] = pcm.landmark.precision_reason
+    check = selfcheck.last_verdict()
+    result["cpu"] = check.cpu.describe() if check else selfcheck.cpu_info().describe()
+    result["int8_kernels"] = check.int8_kernels if check else None
     result["frame_set_ms"], result["float_frame_set_ms"] = _time_pair(
         lambda: pcm.infer(images, standing), lambda: flt.infer(images, standing), repeat, "tracking frame set, default + float", quiet)
     result["parallel"] = pcm.landmark.runner.parallel
@@ -179,6 +184,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     f = lambda d: f"median {d['median']:.1f} ms, p95 {d['p95']:.1f}, min {d['min']:.1f} ({d['runs']} runs)"  # noqa: E731
     print(f"PCM timing at {W}x{H}, {N_CAMERAS} cameras (load average before {r['loadavg_before'][0]:.2f}, after {r['loadavg_after'][0]:.2f})")
+    print(f"CPU: {r['cpu']}")
+    print(f"precision: {r['precision']} ({r['precision_reason']})")
     print(f"tracking frame set ({r['views']} views, crops from the skeleton, {r['threads']} threads, parallel={r['parallel']}, "
           f"model {r['model']}): {f(r['frame_set_ms'])}")
     print(f"  the same with the float model (interleaved): {f(r['float_frame_set_ms'])}")
