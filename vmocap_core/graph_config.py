@@ -108,7 +108,9 @@ NODE_PARAMS: dict[str, list[Param]] = {
     ],
 }
 TRACKER_NODES = ("vmocap_markers", "vmocap_skeleton")  # these also take tracker.* parameters
-LAUNCH_KEYS = {"mode": "processes", "nodes": None, "env": {}, "fastdds_profile": "fastdds_shm.xml"}
+# groups: nodes that share a process in `processes` mode (their messages stay in-process, e.g. a
+# camera's images and the PCM inference); nodes in no group get a process each
+LAUNCH_KEYS = {"mode": "processes", "nodes": None, "groups": None, "env": {}, "fastdds_profile": "fastdds_shm.xml"}
 
 
 def tracker_params() -> list[Param]:
@@ -133,11 +135,22 @@ def tracker_params() -> list[Param]:
     return out
 
 
+def node_type(name: str) -> str:
+    """The node type of a node name: the type itself, or an instance of it named TYPE_SUFFIX
+    (e.g. `vmocap_pcm_cam0`, a PCM worker for one camera, configured by a section of its own
+    on top of the type's section)."""
+    if name in NODE_PARAMS:
+        return name
+    for t in sorted(NODE_PARAMS, key=len, reverse=True):
+        if name.startswith(t + "_") and name[len(t) + 1:].replace("_", "").isalnum():
+            return t
+    raise KeyError(f"unknown node {name!r}; nodes: {sorted(NODE_PARAMS)} or their instances TYPE_NAME")
+
+
 def params_of(node: str) -> list[Param]:
-    if node not in NODE_PARAMS:
-        raise KeyError(f"unknown node {node!r}; nodes: {sorted(NODE_PARAMS)}")
-    extra = tracker_params() if node in TRACKER_NODES else []
-    return COMMON + NODE_PARAMS[node] + extra
+    t = node_type(node)
+    extra = tracker_params() if t in TRACKER_NODES else []
+    return COMMON + NODE_PARAMS[t] + extra
 
 
 def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
@@ -244,17 +257,26 @@ class GraphConfig:
             return [n for n in NODE_PARAMS if n in self.raw]
         return list(nodes)
 
+    def process_groups(self, nodes: list[str] | None = None) -> list[list[str]]:
+        """The processes of `processes` mode: the configured groups (restricted to `nodes`),
+        then one process per remaining node."""
+        nodes = self.node_names() if nodes is None else nodes
+        out = [[n for n in g if n in nodes] for g in (self.launch.get("groups") or [])]
+        out = [g for g in out if g]
+        grouped = {n for g in out for n in g}
+        return out + [[n] for n in nodes if n not in grouped]
+
     def node_params(self, node: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
         """Validated parameters of `node`: defaults < '/**' < the node's section < overrides."""
         spec = {p.name: p for p in params_of(node)}
         values = {n: p.default for n, p in spec.items()}
         given: dict[str, Any] = {}
-        for section in ("/**", node):
+        for section in dict.fromkeys(("/**", node_type(node), node)):
             given.update(_flatten(((self.raw.get(section) or {}).get("ros__parameters")) or {}))
         given.update(overrides or {})
         for key, value in given.items():
             if key not in spec:
-                if node not in TRACKER_NODES and section_is_common(key):
+                if node_type(node) not in TRACKER_NODES and section_is_common(key):
                     continue
                 raise GraphConfigError(self.path, f"{node}.{key}", f"unknown parameter (known: {sorted(spec)})")
             values[key] = _check(self.path, spec[key], value)
@@ -291,12 +313,25 @@ def load(path: str | Path) -> GraphConfig:
     if launch["mode"] not in ("processes", "single_process"):
         raise GraphConfigError(path, "vmocap_launch.mode", "must be processes or single_process")
     for section in raw:
-        if section not in ("/**", "vmocap_launch") and section not in NODE_PARAMS:
-            raise GraphConfigError(path, section, f"unknown section (nodes: {sorted(NODE_PARAMS)})")
+        if section in ("/**", "vmocap_launch"):
+            continue
+        try:
+            node_type(section)
+        except KeyError:
+            raise GraphConfigError(path, section, f"unknown section (nodes: {sorted(NODE_PARAMS)} "
+                                   "or their instances TYPE_NAME)") from None
     cfg = GraphConfig(path=path, raw=raw, launch=launch)
     for node in cfg.node_names():
-        if node not in NODE_PARAMS:
-            raise GraphConfigError(path, "vmocap_launch.nodes", f"unknown node {node!r}")
-    for node in set(cfg.node_names()) | (set(raw) & set(NODE_PARAMS)):
+        try:
+            node_type(node)
+        except KeyError as exc:
+            raise GraphConfigError(path, "vmocap_launch.nodes", str(exc.args[0])) from None
+    groups = launch.get("groups") or []
+    if not isinstance(groups, list) or not all(isinstance(g, list) and g for g in groups):
+        raise GraphConfigError(path, "vmocap_launch.groups", "must be a list of node lists (one per process)")
+    for node in (n for g in groups for n in g):
+        if node not in cfg.node_names():
+            raise GraphConfigError(path, "vmocap_launch.groups", f"{node!r} is not in vmocap_launch.nodes")
+    for node in set(cfg.node_names()) | {s for s in raw if s not in ("/**", "vmocap_launch")}:
         cfg.node_params(node)  # validate early: a bad file fails before anything starts
     return cfg

@@ -33,7 +33,7 @@ from .lattice import PcmSampler, lattice_search
 from .lattice import warm_up as warm_up_lattice
 from .peak_refinement import refine_markers
 from .peak_refinement import warm_up as warm_up_refinement
-from .skeleton import JOINTS, BodyDimensions, Skeleton
+from .skeleton import BodyDimensions, Skeleton
 from .triangulation import triangulate_robust
 
 N_KP = len(KEYPOINTS)

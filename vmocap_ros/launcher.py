@@ -1,8 +1,9 @@
 """`vmocap launch CONFIG`: start the node graph of a config (no launch_ros wheel exists).
 
-Default: each node in its own process (`python -m vmocap_ros.run_node CONFIG NODE`);
-`--single-process` (or `vmocap_launch: {mode: single_process}`): all nodes in this process
-with one executor (no process switches; messages still go through DDS, within one process).
+Default (`vmocap_launch: {mode: processes}`): one process per group of `vmocap_launch.groups`
+(nodes of a group pass messages in-process, e.g. a camera's images to the PCM inference) and
+one per remaining node (`python -m vmocap_ros.run_node CONFIG NODE [NODE ...]`);
+`--single-process` (or `mode: single_process`): all nodes in this process with one executor.
 Ctrl-C/SIGTERM: every node is asked to stop (SIGINT), closes its outputs (the recorder
 finalizes its MCAP) and exits; stragglers get SIGTERM after --grace seconds, then SIGKILL.
 Discovery is localhost-only unless ROS_AUTOMATIC_DISCOVERY_RANGE is set (docs/graph.md).
@@ -57,10 +58,10 @@ def run(args: argparse.Namespace) -> int:
         from .run_node import spin_nodes
 
         return spin_nodes(args.config, nodes, sets)
-    return run_processes(args.config, nodes, args.set, env, args.grace)
+    return run_processes(args.config, cfg.process_groups(nodes), args.set, env, args.grace)
 
 
-def run_processes(config: str, nodes: list[str], sets: list[str], env: dict[str, str], grace: float) -> int:
+def run_processes(config: str, groups: list[list[str]], sets: list[str], env: dict[str, str], grace: float) -> int:
     procs: list[tuple[str, subprocess.Popen]] = []
     stopping = {"flag": False}
 
@@ -69,11 +70,12 @@ def run_processes(config: str, nodes: list[str], sets: list[str], env: dict[str,
 
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGTERM, stop)
-    for n in nodes:
-        node_sets = [s for s in sets if s.startswith(n + ".")]
-        cmd = [sys.executable, "-m", "vmocap_ros.run_node", config, n]
-        for s in node_sets:
-            cmd += ["--set", s]
+    for group in groups:
+        n = "+".join(group)
+        cmd = [sys.executable, "-m", "vmocap_ros.run_node", config, *group]
+        for s in sets:
+            if any(s.startswith(g + ".") for g in group):
+                cmd += ["--set", s]
         # own process group: a terminal Ctrl-C reaches us, we forward it in order
         procs.append((n, subprocess.Popen(cmd, env=env, start_new_session=True)))
     print(f"vmocap launch: {len(procs)} processes: " + ", ".join(f"{n}[{p.pid}]" for n, p in procs), flush=True)

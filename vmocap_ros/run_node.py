@@ -49,15 +49,13 @@ def make_executor():
     return SingleThreadedExecutor()
 
 
-def spin_round(executor: Any, poll_s: float) -> None:
+def spin_round(executor: Any, transport: Any, poll_s: float) -> None:
     """One turn of the spin loop: what is due goes out (recorded camera frames), then our nodes
     in this process hand their messages on, then the executor (DDS, timers) gets its turn,
     sleeping until something is due or arrives when nothing is left to do."""
-    from .nodes import BUS, DUE
-
-    wait = DUE.run_due(poll_s)
-    busy = BUS.drain(max_s=LOCAL_S)
-    DUE.run_idle(idle=not busy)
+    wait = transport.due.run_due(poll_s)
+    busy = transport.bus.drain(max_s=LOCAL_S)
+    transport.due.run_idle(idle=not busy)
     executor.spin_once(timeout_sec=0.0 if busy else wait)
 
 
@@ -72,15 +70,16 @@ def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str
     rclpy = init_rclpy()
     executor = make_executor()
     nodes = []
-    from .nodes import BUS, DUE, create
+    from .nodes import create
+    from .transport import Transport
 
-    BUS.enabled = len(names) > 1 and local_bus
-    BUS.spin_thread = threading.get_ident()
+    transport = Transport(local=len(names) > 1 and local_bus)
+    transport.bus.spin_thread = threading.get_ident()
     # a task posted from another thread wakes a waiting spin_once at once (both executors)
-    BUS.wake = DUE.wake = lambda: executor.create_task(_nothing)
+    transport.bus.wake = transport.due.wake = lambda: executor.create_task(_nothing)
     try:
         for name in names:
-            node = create(name, cfg, (overrides or {}).get(name))
+            node = create(name, cfg, (overrides or {}).get(name), transport)
             nodes.append(node)
             executor.add_node(node)
         for node in nodes:
@@ -89,18 +88,18 @@ def spin_nodes(config_path: str, names: list[str], overrides: dict[str, dict[str
         if ready is not None:
             ready()
         while not stop:
-            spin_round(executor, BUS.poll_s)
+            spin_round(executor, transport, transport.bus.poll_s)
         # drain: deliver what is already in flight (e.g. the last outputs to the recorder)
         drain_end = time.monotonic() + DRAIN_S
         while time.monotonic() < drain_end:
-            spin_round(executor, 0.05)
+            spin_round(executor, transport, 0.05)
     finally:
         for node in reversed(nodes):
             try:
                 node.close()
             except Exception as exc:  # noqa: BLE001 - keep closing the others
                 print(f"{node.get_name()}: close failed: {exc}", file=sys.stderr)
-        BUS.wake = DUE.wake = None
+        transport.bus.wake = transport.due.wake = None
         for node in nodes:
             executor.remove_node(node)
             node.destroy_node()

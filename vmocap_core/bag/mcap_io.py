@@ -9,7 +9,6 @@ killed with SIGKILL leaves only `NAME.partial`, which `BagReader(..., recover=Tr
 
 from __future__ import annotations
 
-import io
 import logging
 import mmap
 import os

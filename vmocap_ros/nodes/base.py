@@ -1,0 +1,182 @@
+"""The base of every vmocap node: validated parameters, raw publishers and subscriptions
+(CDR bytes over DDS, dicts between our nodes of one process), CPU accounting and a 1 Hz
+/diagnostics status. Messages are converted with vmocap_core.bag.messages, the same code the
+offline pipeline uses: graph and `vmocap process` compute from identical inputs."""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from typing import Any, Callable
+
+import numpy as np
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from vmocap_core import graph_config
+from vmocap_core.bag import cdr
+from vmocap_core.bag import messages as M
+from vmocap_core.errors import VmocapError
+from vmocap_core.process import DIAG, IMAGE
+
+from ..common import Topics, declare, msg_class, qos
+from ..transport import Output, Transport
+
+STREAM_DEPTH = 10  # images, PCMs, markers: reliable, keep last 10
+AGE_WINDOW_NS = 3600 * 10**9  # a stamp further than this from the node's clock is on another clock
+
+
+def age_problem(now_ns: int, stamp_ns: int) -> str:
+    """Why (now - stamp) is no latency ("" when it is one)."""
+    if abs(now_ns - stamp_ns) <= AGE_WINDOW_NS:
+        return ""
+    return (f"n/a: frame stamps are {abs(now_ns - stamp_ns) / 3.6e12:.0f} h from this node's clock (a recording "
+            "replayed without restamp; set restamp, or use_sim_time with `vmocap play`, for ages)")
+
+
+class Stat:
+    """Rolling window of durations (ms)."""
+
+    def __init__(self, n: int = 300) -> None:
+        self.v: deque[float] = deque(maxlen=n)
+
+    def add(self, ms: float) -> None:
+        self.v.append(ms)
+
+    def summary(self) -> dict[str, str]:
+        if not self.v:
+            return {}
+        a = np.fromiter(self.v, float)
+        return {"p50": f"{np.percentile(a, 50):.3f}", "p95": f"{np.percentile(a, 95):.3f}", "n": str(len(a))}
+
+
+
+class VmocapNode(Node):
+    """Base: validated parameters (declared with descriptions/ranges), raw pub/sub helpers,
+    CPU accounting, a 1 Hz /diagnostics status."""
+
+    needs_rig = True
+
+    def __init__(self, name: str, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
+                 transport: Transport | None = None) -> None:
+        super().__init__(name)
+        self.transport = transport or Transport()
+        self.p = config.node_params(name, overrides)
+        declare(self, [q for q in graph_config.params_of(name) if q.name != "use_sim_time"], self.p)
+        if self.p["use_sim_time"]:
+            self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, True)])
+        self.config = config
+        self.topics = Topics(self.p["namespace"])
+        self.rig = None
+        if self.p["rig"] and self.needs_rig:
+            from vmocap_core.rig_io import load_rig
+
+            rig = load_rig(self.p["rig"])
+            self.rig = rig.subset(self.p["cameras"]) if self.p["cameras"] else rig
+        self.cpu_s = 0.0
+        self.proc = Stat()
+        self.age = Stat()  # capture stamp -> end of processing, ms (this node's clock)
+        self.age_note = ""
+        self.problems: dict[str, str] = {}
+        self._pending_subs: list = []
+        self._dds_pubs: dict[str, Any] = {}  # topic -> rclpy publisher, for matched-subscriber counts
+        self._diag = self.create_publisher(msg_class(DIAG), Topics.diagnostics, qos(10))
+        self.create_timer(1.0, self._publish_diagnostics)
+
+    # -- raw messages --------------------------------------------------------------------
+    def publisher(self, type_name: str, topic: str, depth: int = STREAM_DEPTH, latched: bool = False) -> "Output":
+        pub = self.create_publisher(msg_class(type_name), topic, qos(depth, latched=latched))
+        self._dds_pubs[topic] = pub
+        bus = self.transport.bus
+        if bus.enabled:
+            bus.publishers.add(topic)
+        return Output(type_name, topic, pub, latched, bus)
+
+    def subscribe(self, type_name: str, topic: str, cb: Callable[[dict], None], depth: int = STREAM_DEPTH,
+                  latched: bool = False) -> None:
+        def guarded(msg: dict) -> None:
+            t0 = time.thread_time()
+            try:
+                cb(msg)
+            except VmocapError as exc:
+                self.problems[topic] = str(exc)
+                self.get_logger().error(f"{topic}: {exc}", throttle_duration_sec=5.0)
+            finally:
+                self.cpu_s += time.thread_time() - t0
+
+        self._pending_subs.append((type_name, topic, guarded, depth, latched))
+        if not self.transport.bus.enabled:
+            self.finalize()
+
+    def finalize(self) -> None:
+        """Create the subscriptions: local for topics a node of this process publishes."""
+        subs, self._pending_subs = self._pending_subs, []
+        bus = self.transport.bus
+        for type_name, topic, guarded, depth, latched in subs:
+            if bus.enabled and topic in bus.publishers:
+                bus.subscribers.setdefault(topic, []).append(guarded)
+                continue
+            # images and heatmaps: numpy views into the received bytes (no further copy)
+            copy = type_name != IMAGE
+            self.create_subscription(msg_class(type_name), topic,
+                                     lambda data, g=guarded, t=type_name, c=copy: g(cdr.decode(t, data, copy=c)),
+                                     qos(depth, latched=latched), raw=True)
+
+    # -- diagnostics ---------------------------------------------------------------------
+    def status(self) -> dict[str, Any]:
+        return {}
+
+    def record_age(self, stamp_ns: int) -> None:
+        """Capture stamp -> now on this node's clock (sim time under use_sim_time). Stamps of a
+        recording replayed without restamp are on no clock of this machine: no figure then."""
+        now = self.get_clock().now().nanoseconds
+        problem = age_problem(now, stamp_ns)
+        if problem:
+            self.age_note = problem
+            return
+        self.age.add((now - stamp_ns) / 1e6)
+
+    def _publish_diagnostics(self) -> None:
+        values = {"cpu_s": f"{self.cpu_s:.4f}"}
+        values.update({f"proc_ms_{k}": v for k, v in self.proc.summary().items()})
+        values.update({f"age_ms_{k}": v for k, v in self.age.summary().items()})
+        if self.age_note:
+            values["age_ms"] = self.age_note
+        values.update({k: str(v) for k, v in self.status().items()})
+        # matched DDS subscribers per output: volatile outputs published before a subscriber
+        # matched are gone, so whoever records or controls can check it is connected
+        values.update({f"subscribers:{t}": str(pub.get_subscription_count()) for t, pub in self._dds_pubs.items()})
+        level = 1 if self.problems else 0
+        message = "; ".join(sorted(self.problems.values()))[:500] or "ok"
+        self._diag.publish(cdr.encode(DIAG, M.diagnostics_msg(time.time_ns(), [(level, self.get_name(), message, values)])))
+
+    def close(self) -> None:
+        """Flush outputs (the recorder closes its bag); called before the node is destroyed."""
+
+
+class InitWatch:
+    """A node's WARN while no subject is initialized for longer than `warn_s` of capture time,
+    with the reason from the virtual markers (init_report.py)."""
+
+    def __init__(self, warn_s: float, bound_px: float, camera_names: list[str] | None) -> None:
+        self.warn_ns, self.bound_px, self.camera_names = int(warn_s * 1e9), bound_px, camera_names
+        self.since_ns: int | None = None
+
+    def update(self, node: VmocapNode, status: str, markers: Any, problem: str | None = None,
+               min_presence: float | None = None) -> None:
+        from vmocap_core.init_report import describe
+
+        if status not in ("initializing", "lost", "none"):
+            self.since_ns = None
+            node.problems.pop("initializing", None)
+            return
+        self.since_ns = markers.stamp_ns if self.since_ns is None else self.since_ns
+        waited = markers.stamp_ns - self.since_ns
+        if self.warn_ns and waited >= self.warn_ns:
+            if markers.kind == "none":
+                why = "no heatmap views (no frames, or the CNN found nobody)"
+            else:
+                names = self.camera_names or [f"camera {c}" for c in range(32)]
+                why = problem or describe(markers.residual_px, markers.cameras, names, self.bound_px,
+                                          markers.presence, min_presence)
+            node.problems["initializing"] = f"no subject initialized for {waited / 1e9:.1f} s: {why}"

@@ -1,0 +1,153 @@
+"""vmocap_camera: camera ingest. Frames of a FrameSource per camera (bag, video, Aravis, V4L2)
+-> NS/CAM/image_raw + NS/CAM/camera_info, recorded frames sent at their due time."""
+
+from __future__ import annotations
+
+import functools
+import threading
+import time
+from typing import Any
+
+from vmocap_core import graph_config
+from vmocap_core.bag import messages as M
+from vmocap_core.errors import VmocapError
+from vmocap_core.process import IMAGE, INFO
+from vmocap_core.sources.clock import LoopedStamps, PlaybackClock
+
+from ..transport import Output, Transport
+from .base import VmocapNode
+
+
+class CameraNode(VmocapNode):
+    """Frames of a FrameSource per camera -> NS/CAM/image_raw + NS/CAM/camera_info."""
+
+    def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
+                 transport: Transport | None = None, name: str = "vmocap_camera") -> None:
+        super().__init__(name, config, overrides, transport)
+        if self.rig is None:
+            raise VmocapError("vmocap_camera needs a rig")
+        self._stop = threading.Event()
+        self._playback = PlaybackClock(self.p["rate"], self.p["restamp"])
+        self._image_topics: list[str] = []
+        self._matched = threading.Event()
+        self._first_match: float | None = None
+        self._threads = []
+        self.published = {c.name: 0 for c in self.rig}
+        self.late_dropped = {c.name: 0 for c in self.rig}  # restamped replay: frames a period late, skipped
+        for cam in self.rig:
+            src = self._make_source(cam.name)
+            src.open()
+            pub_img = self.publisher(IMAGE, self.topics.image(cam.name))
+            pub_info = self.publisher(INFO, self.topics.camera_info(cam.name))
+            self._image_topics.append(self.topics.image(cam.name))
+            th = threading.Thread(target=self._run, args=(src, cam, pub_img, pub_info), daemon=True)
+            self._threads.append((th, src))
+        for th, _ in self._threads:
+            th.start()
+        self._wait_end = time.monotonic() + self.p["wait_subscribers"]
+        self._matched_timer = self.create_timer(0.05, self._check_matched)
+        self._check_matched()
+
+    def _check_matched(self) -> None:
+        """Recorded sources start 0.2 s after an image topic has a subscriber (one of our nodes
+        in this process or a matched DDS reader; the 0.2 s let a subscriber's other topics
+        match too), at most wait_subscribers seconds after start-up: frames published before
+        the PCM node has matched would be lost."""
+        if self._matched.is_set():
+            return
+        now = time.monotonic()
+        if self._first_match is None and any(self.count_subscribers(t) + len(self.transport.bus.subscribers.get(t, ()))
+                                             for t in self._image_topics):
+            self._first_match = now
+        if (self._first_match is not None and now >= self._first_match + 0.2) or now >= self._wait_end:
+            self._matched.set()
+            self._matched_timer.cancel()
+            self.get_logger().info("playing" + (" (no subscriber yet)" if self._first_match is None else ""))
+
+    def _make_source(self, camera: str):
+        kind, uri = self.p["source"], self.p["uri"]
+        if kind == "bag":
+            from vmocap_core.sources.bag import BagFrameSource
+
+            return BagFrameSource(uri, camera, topic=self.topics.image(camera), start_offset_s=self.p["start_offset"], loop=self.p["loop"])
+        import importlib
+
+        try:
+            factory = getattr(importlib.import_module("vmocap_core.sources"), "make_source")
+        except (ImportError, AttributeError):
+            raise VmocapError(f"camera source {kind!r} is not available (vmocap_core.sources.make_source missing)") from None
+        return factory(kind, uri, camera)
+
+    def _run(self, src, cam, pub_img: Output, pub_info: Output) -> None:
+        stamps = LoopedStamps()
+        slot = threading.Semaphore(1)  # one frame of this camera waits for its time, the next is read meanwhile
+        last_due: float | None = None
+        prev_due: float | None = None  # due time of the frame read before (sent or not)
+        while not self._stop.is_set():
+            try:
+                frame = src.read(timeout=0.5)
+            except VmocapError as exc:
+                self.problems[f"camera:{cam.name}"] = str(exc)
+                self.get_logger().error(str(exc))
+                return
+            bad = getattr(src, "bad_frames", 0)
+            if bad:
+                self.problems[f"frames:{cam.name}"] = f"{cam.name}: {bad} frames skipped ({src.last_error})"
+            if frame is None:
+                if src.exhausted:
+                    return
+                continue
+            if not getattr(src, "live", False) and not self._matched.is_set():
+                while not self._matched.wait(0.05):
+                    if self._stop.is_set():
+                        return
+            stamp, due = self._playback.schedule(stamps(frame.stamp_ns), time.monotonic(), time.time_ns())
+            # the message refers to the frame's pixels (sources never reuse a frame's array)
+            img, info = M.image_msg(frame.image, stamp, cam.name, copy=False), M.camera_info_msg(cam, stamp)
+            if due is None:
+                if self._playback.restamp:
+                    img["header"] = info["header"] = M.header(time.time_ns(), cam.name)
+                self._send(cam.name, pub_img.prepare(img), pub_info.prepare(info), pub_img, pub_info)
+                continue
+            # a recorded frame is converted (and encoded for DDS readers) while it waits for its time
+            prepared = (pub_img.prepare(img), pub_info.prepare(info))
+            while not slot.acquire(timeout=0.1):  # the previous frame of this camera is still due
+                if self._stop.is_set():
+                    return
+            period, prev_due = (due - prev_due if prev_due is not None else 0.0), due
+            if self._playback.superseded(due, period, time.monotonic()):  # replayed as live: skipped
+                slot.release()
+                self.late_dropped[cam.name] += 1
+                continue
+            if self.transport.due.wake is not None:  # the spin loop sends it when due, and frees the slot
+                period = due - last_due if last_due is not None else 0.0
+                last_due = due
+                self.transport.due.put(due, functools.partial(self._send_due, cam.name, prepared, pub_img, pub_info, slot, due + 0.5 * period))
+                continue
+            delay = due - time.monotonic()
+            if delay > 0 and self._stop.wait(delay):
+                return
+            self._send(cam.name, *prepared, pub_img, pub_info)
+            slot.release()
+
+    def _send_due(self, cam: str, prepared: tuple, pub_img: Output, pub_info: Output, slot: threading.Semaphore,
+                  release_at: float) -> None:
+        self._send(cam, *prepared, pub_img, pub_info)
+        # this camera's reader thread reads its next frame once the graph is done with this
+        # frame set (or half a period later): woken meanwhile, it would take the GIL from it
+        self.transport.due.when_idle(slot.release, release_at)
+
+    def _send(self, cam: str, img: tuple, info: tuple, pub_img: Output, pub_info: Output) -> None:
+        pub_img.send(img)
+        pub_info.send(info)
+        self.published[cam] += 1
+        self.record_age(M.stamp_ns(img[0]))  # how late the frame went out
+
+    def status(self) -> dict[str, Any]:
+        return {"published": self.published, "late_dropped": self.late_dropped}
+
+    def close(self) -> None:
+        self._stop.set()
+        for th, src in self._threads:
+            th.join(timeout=2.0)
+            src.close()

@@ -1,0 +1,100 @@
+"""vmocap_markers: the lattice search (paper II-D). PCM views -> frame sets -> MarkerStage -> NS/markers."""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from typing import Any
+
+from vmocap_core import graph_config
+from vmocap_core.bag import messages as M
+from vmocap_core.errors import VmocapError
+from vmocap_core.process import (
+    CLOUD,
+    IMAGE,
+    INFO,
+    PcmAssembler,
+    TrackerPipeline,
+    channel_keypoints,
+    markers_message,
+)
+
+from ..transport import Transport
+from .base import InitWatch, VmocapNode
+
+
+class MarkersNode(VmocapNode):
+    """PCM views -> frame sets -> MarkerStage (lattice search) -> NS/markers. The lattice of
+    frame t waits for the skeleton of frame t-1 (NS/feedback) so results are deterministic."""
+
+    def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
+                 transport: Transport | None = None, name: str = "vmocap_markers") -> None:
+        super().__init__(name, config, overrides, transport)
+        if self.rig is None:
+            raise VmocapError("vmocap_markers needs a rig")
+        p = self.p
+        views = p["views"] or self.rig.names
+        self.asm = PcmAssembler(self.rig, views, channel_keypoints(p["pcm_keypoints"]),
+                                int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
+        self.pipe = TrackerPipeline(self.rig, config.tracker_dict(p))
+        self.stage = self.pipe.markers
+        self.queue: deque = deque()
+        self.awaiting: int | None = None
+        self.awaiting_since = 0.0
+        self.timeout = p["feedback_timeout_ms"] / 1e3
+        self.counts = {"frames": 0, "queue_dropped": 0, "feedback_timeouts": 0}
+        self.init_watch = InitWatch(p["init_warn_s"], self.stage.config.init_max_reprojection_px, self.rig.names)
+        self.presence: dict[str, float] = {}  # CNN presence per camera, last triangulated frame set
+        # markers and feedback are transient-local: a frame processed before the other node's
+        # subscription matched (start-up) is still delivered, keeping the chain deterministic
+        self.pub = self.publisher(CLOUD, self.topics.markers, depth=p["queue_depth"], latched=True)
+        for v in views:
+            self.subscribe(IMAGE, self.topics.pcm(v), lambda m, v=v: self._enqueue(self.asm.add_image(v, m)), depth=p["queue_depth"])
+            self.subscribe(INFO, self.topics.pcm_info(v), lambda m, v=v: self._enqueue(self.asm.add_info(v, m)), depth=p["queue_depth"])
+        self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
+        if self.timeout > 0:
+            self.create_timer(min(0.02, self.timeout / 2), self._check_timeout)
+
+    def _enqueue(self, pcms: list) -> None:
+        for pcm in pcms:
+            self.queue.append(pcm)
+            if len(self.queue) > self.p["queue_depth"]:
+                self.queue.popleft()
+                self.counts["queue_dropped"] += 1
+        self._pump()
+
+    def _pump(self) -> None:
+        while self.queue and (self.awaiting is None or self.timeout == 0):
+            pcm = self.queue.popleft()
+            t0 = time.perf_counter()
+            markers = self.stage.step(pcm)
+            self.init_watch.update(self, "tracking" if markers.kind == "lattice" else "initializing", markers)
+            if markers.presence:
+                self.presence = markers.presence
+            if self.timeout > 0:  # before publishing: the feedback may come back at once
+                self.awaiting, self.awaiting_since = pcm.stamp_ns, time.monotonic()
+            self.pub(markers_message(markers))
+            self.counts["frames"] += 1
+            self.proc.add(1e3 * (time.perf_counter() - t0))
+            self.record_age(pcm.stamp_ns)
+
+    def _on_feedback(self, msg: dict) -> None:
+        t = M.stamp_ns(msg)
+        if self.timeout > 0 and t != self.awaiting:
+            return  # late feedback of a frame we stopped waiting for
+        self.stage.feedback(M.cloud_keypoints(msg)[0])
+        self.awaiting = None
+        self._pump()
+
+    def _check_timeout(self) -> None:
+        if self.awaiting is not None and time.monotonic() - self.awaiting_since > self.timeout:
+            self.counts["feedback_timeouts"] += 1
+            self.problems["feedback"] = f"no skeleton feedback within {self.timeout * 1e3:.0f} ms ({self.counts['feedback_timeouts']}x)"
+            self.stage.feedback(None)  # re-initialize rather than search around a stale skeleton
+            self.awaiting = None
+            self._pump()
+
+    def status(self) -> dict[str, Any]:
+        st = self.asm.sync.stats()
+        return dict(self.counts, queued=len(self.queue), sync=st.as_dict(), silent=list(st.silent),
+                    rejected_frame_sets=self.asm.bad_views, presence={k: round(v, 3) for k, v in self.presence.items()})

@@ -1,0 +1,152 @@
+"""vmocap_pcm: PCM inference. Synchronized camera images -> the CNN (vmocap_core.pcm) -> heatmaps
+per view (NS/pcm/VIEW/heatmaps + camera_info); crops and rotation from the fed-back skeleton."""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from vmocap_core import graph_config
+from vmocap_core.bag import messages as M
+from vmocap_core.errors import VmocapError
+from vmocap_core.process import CLOUD, IMAGE, INFO, channel_keypoints
+from vmocap_core.sync import ApproximateSync
+
+from ..transport import Output, Transport
+from .base import VmocapNode
+
+
+class PcmNode(VmocapNode):
+    """Synchronized camera images -> PCM heatmaps per view (NS/pcm/VIEW/heatmaps + camera_info)."""
+
+    def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
+                 transport: Transport | None = None, name: str = "vmocap_pcm") -> None:
+        super().__init__(name, config, overrides, transport)
+        if self.rig is None:
+            raise VmocapError("vmocap_pcm needs a rig")
+        p = self.p
+        names = self.rig.names
+        self.sync: ApproximateSync[np.ndarray] = ApproximateSync(
+            names, int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
+        self.provider = self._make_provider()
+        self.feedback: np.ndarray | None = None
+        self.info_mismatch: dict[str, str] = {}
+        self._info_seen: dict[str, tuple] = {}  # camera -> the CameraInfo last compared with the rig
+        self._pubs: dict[str, tuple[Output, Output]] = {}
+        for name in names:
+            self.subscribe(IMAGE, self.topics.image(name), lambda m, n=name: self._on_image(n, m), depth=p["queue_depth"])
+            self.subscribe(INFO, self.topics.camera_info(name), lambda m, n=name: self._on_info(n, m))
+        self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
+        # one view per camera exists from the start (publishers created late would lose their
+        # first messages while discovery matches them); extra views (CAM_1...) come on demand
+        for name in names:
+            self._pubs[name] = (self.publisher(IMAGE, self.topics.pcm(name)), self.publisher(INFO, self.topics.pcm_info(name)))
+        self.frames = 0
+        self.sets: deque = deque()
+        self.counts = {"queue_dropped": 0, "feedback_timeouts": 0}
+        self.wait = p["feedback_wait_ms"] / 1e3
+        self.awaiting: int | None = None
+        self.awaiting_since = 0.0
+        if self.wait > 0:
+            self.create_timer(min(0.02, self.wait / 2), self._check_timeout)
+
+    def _make_provider(self):
+        from vmocap_core.process import BagPcmProvider, SyntheticPcmProvider
+
+        kind, model = self.p["source"], self.p["model"]
+        if kind == "synthetic":
+            fps = self.config.tracker_dict(self.config.node_params("vmocap_skeleton")).get("fps", 30.0)
+            return SyntheticPcmProvider(self.rig, model, fps)
+        if model.endswith(".mcap"):
+            return BagPcmProvider(model, self.rig, channel_keypoints(self.p["pcm_keypoints"]), self.p["namespace"])
+        from vmocap_core.process import make_model_provider  # the CNN (vmocap_core.pcm)
+
+        provider = make_model_provider(model, self.rig, self.p["rotation"], self.p["threads"])
+        from vmocap_core.pcm import selfcheck
+
+        check = selfcheck.last_verdict()
+        if check is not None and check.warning:  # a failing self-check: running, but on the slower float model
+            self.problems["cnn"] = check.warning
+        expected = list(channel_keypoints(self.p["pcm_keypoints"]))
+        if list(provider.pcm.landmark.keypoints) != expected:
+            raise VmocapError(f"pcm_keypoints of the config do not match the model's channels "
+                              f"({len(provider.pcm.landmark.keypoints)} channels; for BlazePose leave pcm_keypoints empty)")
+        return provider
+
+    def _on_info(self, cam: str, msg: dict) -> None:
+        # a camera sends the same CameraInfo every frame: compare with the rig only when it changed
+        seen = (msg["width"], msg["height"], msg["distortion_model"], np.asarray(msg["k"]).tobytes(), np.asarray(msg["d"]).tobytes())
+        if self._info_seen.get(cam) == seen:
+            return
+        self._info_seen[cam] = seen
+        problem = M.camera_info_mismatch(msg, self.rig[cam])
+        if problem and cam not in self.info_mismatch:
+            self.get_logger().warning(problem + " (the rig is used)")
+        if problem:
+            self.info_mismatch[cam] = problem
+            self.problems[f"info:{cam}"] = problem
+
+    def _on_feedback(self, msg: dict) -> None:
+        self.feedback = M.cloud_keypoints(msg)[0]
+        if self.awaiting is not None and M.stamp_ns(msg) == self.awaiting:
+            self.awaiting = None
+            self._pump()
+
+    def _on_image(self, cam: str, msg: dict) -> None:
+        t = M.stamp_ns(msg)
+        for fs in self.sync.add(cam, t, M.image_array(msg)):
+            self.sets.append(fs)
+            if len(self.sets) > self.p["queue_depth"]:
+                self.sets.popleft()
+                self.counts["queue_dropped"] += 1
+        self._pump()
+
+    def _check_timeout(self) -> None:
+        if self.awaiting is not None and time.monotonic() - self.awaiting_since > self.wait:
+            self.counts["feedback_timeouts"] += 1
+            self.problems["feedback"] = f"no skeleton feedback within {self.wait * 1e3:.0f} ms ({self.counts['feedback_timeouts']}x)"
+            self.awaiting = None
+            self._pump()
+
+    def _pump(self) -> None:
+        """Frame sets in order; with feedback_wait_ms > 0 frame t waits for the skeleton of the
+        frame before it (crops from t-1, as offline), otherwise the latest skeleton is used."""
+        while self.sets and self.awaiting is None:
+            fs = self.sets.popleft()
+            t0 = time.perf_counter()
+            cams = [n for n in self.rig.names if n in fs.items]
+            idx = np.array([self.rig.names.index(n) for n in cams])
+            fb = self.feedback if self.p["use_feedback"] else None
+            pcm = self.provider.infer([fs.items[n] for n in cams], idx, fs.stamp_ns, fb)
+            if self.wait > 0 and self.p["use_feedback"]:
+                self.awaiting, self.awaiting_since = fs.stamp_ns, time.monotonic()
+            seen: dict[str, int] = {}
+            # without a DDS reader of the heatmaps (all nodes in one process), our vmocap_markers
+            # gets the maps themselves: no interleaving into Image data and back (~1 ms a set)
+            data = any(pi.dds_wanted() for pi, _ in self._pubs.values())
+            for img, info in M.pcm_msgs(pcm, self.rig, data=data):
+                cam_name = img["header"]["frame_id"]
+                k = seen.get(cam_name, 0)
+                seen[cam_name] = k + 1
+                view = cam_name if k == 0 else f"{cam_name}_{k}"
+                if view not in self._pubs:
+                    self._pubs[view] = (self.publisher(IMAGE, self.topics.pcm(view)), self.publisher(INFO, self.topics.pcm_info(view)))
+                pi, pc = self._pubs[view]
+                pc(info)
+                if data:
+                    pi(img)
+                else:
+                    pi.send((img, None))  # to our nodes only
+            if pcm.n_views == 0 and self.awaiting is not None:
+                self.awaiting = None  # nothing published: no skeleton will answer this frame
+            self.frames += 1
+            self.proc.add(1e3 * (time.perf_counter() - t0))
+            self.record_age(fs.stamp_ns)
+
+    def status(self) -> dict[str, Any]:
+        st = self.sync.stats()
+        return dict(self.counts, frames=self.frames, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
+                    queued=len(self.sets), precision=getattr(self.provider, "precision_reason", "n/a"))

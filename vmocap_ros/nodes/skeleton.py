@@ -1,0 +1,54 @@
+"""vmocap_skeleton: weighted IK, low-pass filter and second IK (paper II-E, II-F). NS/markers ->
+NS/joint_states, NS/keypoints, NS/skeleton and the feedback NS/feedback."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from vmocap_core import graph_config
+from vmocap_core.process import CLOUD, markers_from_message, result_messages
+
+from ..transport import Transport
+from .base import STREAM_DEPTH, InitWatch, VmocapNode
+
+
+class SkeletonNode(VmocapNode):
+    """NS/markers -> SkeletonStage (IK, IIR, second IK) -> NS/joint_states, NS/keypoints,
+    NS/skeleton and the feedback NS/feedback."""
+
+    needs_rig = True  # only for the camera names in the diagnostics; runs without one too
+
+    def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
+                 transport: Transport | None = None, name: str = "vmocap_skeleton") -> None:
+        super().__init__(name, config, overrides, transport)
+        from vmocap_core.tracker import SkeletonStage, TrackerConfig
+
+        self.stage = SkeletonStage(TrackerConfig.from_dict(config.tracker_dict(self.p)))
+        self.pubs = {}
+        for topic, ty in ((self.topics.feedback, CLOUD), (self.topics.joint_states, "sensor_msgs/msg/JointState"),
+                          (self.topics.keypoints, CLOUD), (self.topics.skeleton, "visualization_msgs/msg/MarkerArray")):
+            fb = topic == self.topics.feedback
+            self.pubs[topic] = self.publisher(ty, topic, depth=50 if fb else STREAM_DEPTH, latched=fb)
+        self.subscribe(CLOUD, self.topics.markers, self._on_markers, depth=self.p["queue_depth"], latched=True)
+        self.counts = {"frames": 0, "tracking": 0}
+        self.last_status = "initializing"
+        self.init_watch = InitWatch(self.p["init_warn_s"], config.tracker_dict(self.p).get("init_max_reprojection_px", 12.0),
+                                    self.rig.names if self.rig is not None else None)
+
+    def _on_markers(self, msg: dict) -> None:
+        t0 = time.perf_counter()
+        markers = markers_from_message(msg)
+        result = self.stage.step(markers)
+        self.init_watch.update(self, result.status, markers, self.stage.init_problem)
+        # feedback, then joint_states; outputs nobody subscribes to are not even built
+        for topic, _ty, out in result_messages(self.topics, result, wanted=lambda topic: self.pubs[topic].wanted()):
+            self.pubs[topic](out)
+        self.counts["frames"] += 1
+        self.counts["tracking"] += result.status == "tracking"
+        self.last_status = result.status
+        self.proc.add(1e3 * (time.perf_counter() - t0))
+        self.record_age(result.stamp_ns)
+
+    def status(self) -> dict[str, Any]:
+        return dict(self.counts, status=self.last_status)
