@@ -132,3 +132,19 @@ def test_one_euro_constant_input_nan_restart_and_bad_parameters():
     for bad in ((0.0, 10.0, 60.0), (1.0, -1.0, 60.0), (31.0, 1.0, 60.0)):
         with pytest.raises(ValueError):
             OneEuroFilter(*bad)
+
+
+def test_one_euro_follows_the_real_interval_of_skipped_samples() -> None:
+    """A 60 Hz filter fed every second sample with dt = 1/30 s behaves as a 30 Hz filter: a
+    graph that skips frame sets does not see them as a jump."""
+    from vmocap_core.one_euro import OneEuroFilter
+
+    t = np.arange(0, 2, 1 / 60)
+    x = np.stack([np.sin(3 * t), 0.5 * t, np.cos(2 * t)], -1)[:, None]  # (T, 1, 3)
+    fast, slow = OneEuroFilter(1.0, 10.0, 60.0), OneEuroFilter(1.0, 10.0, 30.0)
+    a = np.array([fast(xi, dt=1 / 30) for xi in x[::2]])
+    b = np.array([slow(xi) for xi in x[::2]])
+    assert np.allclose(a, b, atol=1e-12)
+    plain = OneEuroFilter(1.0, 10.0, 60.0)
+    c = np.array([plain(xi) for xi in x[::2]])
+    assert np.abs(c - b).max() > 1e-3, "without dt the skipped samples filter differently"

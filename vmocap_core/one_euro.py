@@ -33,21 +33,25 @@ class OneEuroFilter:
     def reset(self) -> None:
         self._x = self._v = None
 
-    def _alpha(self, cutoff_hz: np.ndarray | float) -> np.ndarray | float:
+    @staticmethod
+    def _alpha(cutoff_hz: np.ndarray | float, rate_hz: float) -> np.ndarray | float:
         """Smoothing factor of a first-order low-pass at this cutoff (exact for the sampling)."""
         tau = 1.0 / (2.0 * np.pi * np.asarray(cutoff_hz))
-        return 1.0 / (1.0 + tau * self.rate_hz)
+        return 1.0 / (1.0 + tau * rate_hz)
 
-    def __call__(self, x: np.ndarray) -> np.ndarray:
+    def __call__(self, x: np.ndarray, dt: float | None = None) -> np.ndarray:
+        """dt: seconds since the previous sample when frames were skipped (None: 1 / rate_hz);
+        the smoothing factors follow the real interval, so a skipped frame set is no jump."""
         x = np.asarray(x, dtype=np.float64)
         if self._x is None or self._x.shape != x.shape:
             self._x, self._v = x.copy(), np.zeros_like(x)
             return x.copy()
+        rate = self.rate_hz if dt is None or not dt > 0 else 1.0 / dt
         fresh = ~np.isfinite(self._x).all(axis=-1, keepdims=True)  # keypoints without a state
-        v = np.where(fresh, 0.0, (x - self._x) * self.rate_hz)
-        a_v = self._alpha(self.derivative_cutoff_hz)
+        v = np.where(fresh, 0.0, (x - self._x) * rate)
+        a_v = self._alpha(self.derivative_cutoff_hz, rate)
         self._v = np.where(fresh, 0.0, a_v * v + (1.0 - a_v) * self._v)
         speed = np.linalg.norm(self._v, axis=-1, keepdims=True)
-        a = self._alpha(self.min_cutoff_hz + self.beta * speed)
+        a = self._alpha(self.min_cutoff_hz + self.beta * speed, rate)
         self._x = np.where(fresh, x, a * x + (1.0 - a) * self._x)
         return self._x.copy()

@@ -499,6 +499,7 @@ class SkeletonStage:
         self._filter = make_filter(self.config)
         self.status = "initializing"
         self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
+        self._last_stamp: int | None = None
         self._joint_names = Skeleton().joint_names
         self.timings: dict[str, float] = {}
         warm_up_ik()
@@ -526,14 +527,16 @@ class SkeletonStage:
             return self._empty(markers, "lost")
         sk = self.skeleton
         t0 = time.perf_counter()
+        dt = self._skipped_interval(markers.stamp_ns)
+        rate = cfg.fps if dt is None else 1.0 / dt
         first = solve_ik(sk, self._q_raw, markers.positions, markers.weights, cfg.ik_iterations,
                          damping=cfg.ik_damping, regularization=cfg.ik_regularization,
-                         prior=self._q_raw, prior_weight=cfg.ik_prior_weight * (cfg.fps / 60.0) ** 2)
+                         prior=self._q_raw, prior_weight=cfg.ik_prior_weight * (rate / 60.0) ** 2)
         self._q_raw = first.q
         if self._identify is not None:
             return self._identifying(markers, first.keypoints)
         t1 = time.perf_counter()
-        smooth = self._filter(first.keypoints)
+        smooth = self._filter(first.keypoints, dt) if isinstance(self._filter, OneEuroFilter) else self._filter(first.keypoints)
         t2 = time.perf_counter()
         second = solve_ik(sk, self._q_out, smooth, np.ones(N_KP), cfg.second_ik_iterations,
                           damping=cfg.ik_damping, regularization=cfg.ik_regularization)
@@ -552,6 +555,16 @@ class SkeletonStage:
         return TrackResult(markers.stamp_ns, "tracking", angles, self._joint_names,
                            second.keypoints, first.keypoints, markers.weights.copy(),
                            markers.positions.copy(), sk.dims.bone_lengths())
+
+    def _skipped_interval(self, stamp_ns: int) -> float | None:
+        """Seconds since the previous frame set when frame sets were skipped (a graph that falls
+        behind), so the prior and the filter follow the real time; None at the nominal rate."""
+        last, self._last_stamp = self._last_stamp, stamp_ns
+        if last is None or stamp_ns <= last:
+            return None
+        dt = (stamp_ns - last) / 1e9
+        nominal = 1.0 / self.config.fps
+        return None if abs(dt / nominal - 1.0) < 0.25 else float(min(dt, 10 * nominal))
 
     def _empty(self, markers: Markers, status: str) -> TrackResult:
         nan = np.full((N_KP, 3), np.nan)

@@ -77,6 +77,8 @@ class VmocapNode(Node):
         self.proc = Stat()
         self.age = Stat()  # capture stamp -> end of processing, ms (this node's clock)
         self.age_note = ""
+        self._frames_done = 0  # frame sets processed, for the achieved rate in the diagnostics
+        self._rate_mark = (time.monotonic(), 0)
         self.problems: dict[str, str] = {}
         self._pending_subs: list = []
         self._dds_pubs: dict[str, Any] = {}  # topic -> rclpy publisher, for matched-subscriber counts
@@ -129,6 +131,7 @@ class VmocapNode(Node):
     def record_age(self, stamp_ns: int) -> None:
         """Capture stamp -> now on this node's clock (sim time under use_sim_time). Stamps of a
         recording replayed without restamp are on no clock of this machine: no figure then."""
+        self._frames_done += 1
         now = self.get_clock().now().nanoseconds
         problem = age_problem(now, stamp_ns)
         if problem:
@@ -142,6 +145,9 @@ class VmocapNode(Node):
         values.update({f"age_ms_{k}": v for k, v in self.age.summary().items()})
         if self.age_note:
             values["age_ms"] = self.age_note
+        t, n = time.monotonic(), self._frames_done
+        values["rate_hz"] = f"{(n - self._rate_mark[1]) / max(t - self._rate_mark[0], 1e-9):.2f}"  # achieved, last period
+        self._rate_mark = (t, n)
         values.update({k: str(v) for k, v in self.status().items()})
         # matched DDS subscribers per output: volatile outputs published before a subscriber
         # matched are gone, so whoever records or controls can check it is connected
