@@ -330,8 +330,10 @@ def load(path: str | Path) -> GraphConfig:
     if not isinstance(groups, list) or not all(isinstance(g, list) and g for g in groups):
         raise GraphConfigError(path, "vmocap_launch.groups", "must be a list of node lists (one per process)")
     for node in (n for g in groups for n in g):
-        if node not in cfg.node_names():
-            raise GraphConfigError(path, "vmocap_launch.groups", f"{node!r} is not in vmocap_launch.nodes")
+        try:
+            node_type(node)
+        except KeyError as exc:
+            raise GraphConfigError(path, "vmocap_launch.groups", str(exc.args[0])) from None
     for node in set(cfg.node_names()) | {s for s in raw if s not in ("/**", "vmocap_launch")}:
         cfg.node_params(node)  # validate early: a bad file fails before anything starts
     return cfg

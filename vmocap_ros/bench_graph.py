@@ -3,8 +3,9 @@
 A synthetic bag (4 cameras, 1024x768 bgr8, 30 Hz; benchmark rig, walk clip) is played in a
 loop, by the graph's own vmocap_camera node (`--feed camera`, default: capture stamp = the
 moment the frame set is due) or by `vmocap play --restamp` in its own process (`--feed
-player`), through vmocap_pcm -> vmocap_markers -> vmocap_skeleton, once with each node in its
-own process and once with all of them in one process.
+player`), through vmocap_pcm -> vmocap_markers -> vmocap_skeleton, in each launch mode: `default`
+(the shipped config's process groups: camera, CNN and tracker share a process, images never
+cross a process boundary), `processes` (each node its own process) and `single_process`.
 A probe node in this process receives joint_states (end-to-end latency, as a controller sees
 it) and keypoints (frame sets out, also while not tracking); the age after each stage comes
 from the nodes' own /diagnostics (capture stamp -> end of the node's processing, last 300
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import dataclasses
 import json
 import os
 import signal
@@ -57,7 +59,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="camera: the graph's own vmocap_camera node plays the bag (looped, restamped: capture "
                              "stamp = the moment the frame set is due), in the graph's process in single_process mode; "
                              "player: a separate `vmocap play --restamp` process publishes the images over DDS")
-    parser.add_argument("--modes", nargs="+", default=["processes", "single_process"], choices=("processes", "single_process"))
+    parser.add_argument("--modes", nargs="+", default=["default", "processes", "single_process"],
+                        choices=("default", "processes", "single_process"))
+    parser.add_argument("--scaling", action="store_true",
+                        help="also the default mode on 1 and 2 cores (taskset) with 2, 4 and 6 cameras (--images pose2sim: "
+                             "cameras beyond the 4 videos repeat them), to size a machine")
     parser.add_argument("--workdir", default=None, help="where the bag and configs go (default: a temp dir)")
 
 
@@ -106,18 +112,22 @@ def _pose2sim_bag(work: Path, args: argparse.Namespace):
         sx, sy = W / c.width, H / c.height
         S = np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]])  # pixel centres at integers
         cams.append(Camera(c.name, S @ c.K, c.dist, c.R, c.t, W, H))
-    rig = Rig(cams[: args.cameras])
+    # more cameras than videos: the videos again under new names (the same views: the cost of
+    # more cameras, not their geometry)
+    extra = [dataclasses.replace(cams[k % len(cams)], name=f"cam{k + 1:02d}") for k in range(len(cams), args.cameras)]
+    rig = Rig((cams + extra)[: args.cameras])
+    source = {c.name: (cams + extra)[k % len(cams)].name for k, c in enumerate(rig)}
     bag = work / f"pose2sim_{args.cameras}x{args.size}_{args.frames}.mcap"
     if not bag.exists():
         topics = Topics()
-        caps = {c.name: cv2.VideoCapture(str(videos[c.name])) for c in rig}
+        caps = {c.name: cv2.VideoCapture(str(videos[source[c.name]])) for c in rig}
         with BagWriter(bag) as wr:
             for k in range(args.frames):
                 t = 1_000_000_000_000 + int(round(k * 1e9 / args.fps))
                 for c in rig:
                     ok, img = caps[c.name].read()
                     if not ok:
-                        raise RuntimeError(f"{videos[c.name]}: fewer than {args.frames} frames")
+                        raise RuntimeError(f"{videos[source[c.name]]}: fewer than {args.frames} frames")
                     img = cv2.resize(img, (c.width, c.height), interpolation=cv2.INTER_AREA)
                     wr.write(topics.image(c.name), "sensor_msgs/msg/Image", M.image_msg(img, t, c.name), t)
                     wr.write(topics.camera_info(c.name), "sensor_msgs/msg/CameraInfo", M.camera_info_msg(c, t), t)
@@ -146,7 +156,11 @@ def _config(work: Path, mode: str, rig_path: Path, kps: list[str], args: argpars
     if args.feed == "camera":
         nodes.insert(0, "vmocap_camera")
         cfg["vmocap_camera"]["ros__parameters"].update(source="bag", uri=str(bag), rate=1.0, loop=True, restamp=True)
-    cfg["vmocap_launch"] = {"mode": mode, "nodes": nodes, "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
+    shipped = cfg.get("vmocap_launch") or {}
+    cfg["vmocap_launch"] = {"mode": "processes" if mode == "default" else mode, "nodes": nodes,
+                            "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
+    if mode == "default":
+        cfg["vmocap_launch"]["groups"] = shipped.get("groups") or []
     path = work / f"graph_{mode}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
@@ -268,12 +282,14 @@ def _proc_cpu_s(pid: int) -> float:
         return 0.0
 
 
-def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, probe: Probe, env: dict[str, str]) -> dict:
-    launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
+def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, probe: Probe, env: dict[str, str],
+             cores: str | None = None) -> dict:
+    pin = ["taskset", "-c", cores] if cores else []  # the children inherit the affinity
+    launch = subprocess.Popen([*pin, sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     # process ids: the launcher prints its children first (processes mode); single process: itself
     pids = {"launcher (all nodes)" if mode == "single_process" else "launcher": launch.pid}
-    if mode == "processes":
+    if mode != "single_process":
         line = launch.stdout.readline()
         for item in line.rsplit(": ", 1)[-1].split(","):
             name, _, pid = item.strip().rstrip("]").partition("[")
@@ -363,6 +379,9 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         "pcm": pcm_name,
         "feed": args.feed,
         "tracking_frames": int(len(s["joint_states"])),
+        # share of the frame sets out (keypoints go out also while not tracking) with the person tracked
+        "tracking_pct": round(100.0 * len({st for _, st in s["joint_states"]}) / max(len(sets_out), 1), 1),
+        "precision": status.get("vmocap_pcm", {}).get("precision", "n/a"),
         "node_status": {n: {k: v for k, v in status[n].items() if k in ("frames", "sync", "queue_dropped", "feedback_timeouts", "queued", "tracking")}
                         for n in NODES if n in status},
     }
@@ -399,6 +418,7 @@ def run(args: argparse.Namespace) -> int:
             if not args.json:
                 print(f"bench graph: {mode} ...", file=sys.stderr)
             results[mode] = run_mode(mode, _config(work, mode, rig_path, kps, args, bag, motion), bag, rig, args, probe, env)
+        scaling = _scaling(work, args, probe, env) if args.scaling else None
     finally:
         probe.close()
         if rclpy.ok():
@@ -421,7 +441,7 @@ def run(args: argparse.Namespace) -> int:
     for r in results.values():
         r["graph_overhead_ms_p50"] = (round(r["latency_ms"]["p50"] - offline_steady["p50"], 2)
                                       if offline_ms is not None and args.pcm != "model" else None)
-    out = {"modes": results, "offline_ms_per_frame": offline_ms,
+    out = {"modes": results, "scaling": scaling, "cpu": _cpu_flags(), "offline_ms_per_frame": offline_ms,
            "offline_ms_steady": offline_steady if offline_ms is not None else None, "cameras": len(rig), "size": args.size, "fps": args.fps, "seconds": args.seconds,
            "shm_profile": env.get("FASTRTPS_DEFAULT_PROFILES_FILE", "")}
     if args.json:
@@ -431,13 +451,40 @@ def run(args: argparse.Namespace) -> int:
         print(f"offline pipeline (vmocap process, same PCM frames): {offline_ms:.2f} ms per frame set over the bag once "
               f"(initialization included); looped as in the graph: p50 {offline_steady['p50']:.2f} ms, "
               f"p95 {offline_steady['p95']:.2f} ms, mean {offline_steady['mean']:.2f} ms")
+    print(f"CPU: {out['cpu']}")
     for mode, r in results.items():
         st = r["stages_ms"]
         print(f"{mode:15s} rate {r['rate_hz']:6.2f} Hz (input {r['input_rate_hz']:.2f})  dropped {r['dropped_pct']:5.2f} %  "
               f"end-to-end p50 {r['latency_ms']['p50']:.1f} ms p95 {r['latency_ms']['p95']:.1f} ms  pcm: {r['pcm']}  feed: {r['feed']}"
               + (f"  graph adds {r['graph_overhead_ms_p50']:.1f} ms p50" if r["graph_overhead_ms_p50"] is not None else ""))
+        print(f"   tracking {r['tracking_pct']:.1f} % of the frame sets out; CNN precision: {r['precision']}")
         print("   age after stage (p50/p95 ms): " + ", ".join(f"{k} {v['p50']}/{v['p95']}" for k, v in st.items()))
         print("   process CPU % of one core: " + ", ".join(f"{k} {v}" for k, v in r["process_cpu_pct"].items()))
         print("   callback CPU % of one core: " + ", ".join(f"{k} {v}" for k, v in r["cpu_pct"].items())
               + "   proc ms p50: " + ", ".join(f"{k} {v}" for k, v in r["proc_ms_p50"].items()))
+    if scaling:
+        print("scaling (default mode): cores cameras -> rate Hz, dropped %, end-to-end p95 ms, tracking %")
+        for row in scaling:
+            print(f"   {row['cores']} core(s) {row['cameras']} cameras: {row['rate_hz']:.2f} Hz, {row['dropped_pct']:.2f} %, "
+                  f"{row['p95_ms']:.1f} ms, {row['tracking_pct']:.1f} %")
     return 0
+
+
+def _cpu_flags() -> str:
+    from vmocap_core.pcm.selfcheck import cpu_info
+
+    return cpu_info().describe()
+
+
+def _scaling(work: Path, args: argparse.Namespace, probe: Probe, env: dict[str, str]) -> list[dict]:
+    """The default mode pinned to 1 and 2 cores, with 2, 4 and 6 cameras."""
+    rows = []
+    for cameras in (2, 4, 6):
+        a = argparse.Namespace(**{**vars(args), "cameras": cameras})
+        rig, bag, rig_path, kps, motion = (_pose2sim_bag if args.images == "pose2sim" else _bag)(work, a)
+        cfg = _config(work, "default", rig_path, kps, a, bag, motion)
+        for cores in ("0", "0,1"):
+            r = run_mode("default", cfg, bag, rig, a, probe, env, cores)
+            rows.append({"cores": cores.count(",") + 1, "cameras": cameras, "rate_hz": r["rate_hz"],
+                         "dropped_pct": r["dropped_pct"], "p95_ms": r["latency_ms"]["p95"], "tracking_pct": r["tracking_pct"]})
+    return rows
