@@ -393,26 +393,32 @@ def time_pipeline(frames: list[PcmViews], rig: Rig, tracker: dict[str, Any] | No
 
 
 class SyntheticPcmProvider:
-    """Heatmaps rendered from a motion clip's ground truth (vmocap_core.synthetic), frame k of
-    the clip for the k-th frame set; the input rotation follows the fed-back skeleton."""
+    """Heatmaps rendered from a motion clip's ground truth (vmocap_core.synthetic): the clip's
+    frame at the frame set's stamp (stamp x fps, modulo the clip's length), so that PCM workers
+    of different cameras render the same instant whatever frames each of them skipped; the input
+    rotation follows the fed-back skeleton."""
 
     name = "synthetic"
 
-    def __init__(self, rig: Rig, motion_path: str | Path, fps: float, seed: int = 0) -> None:
+    def __init__(self, rig: Rig, motion_path: str | Path, fps: float, seed: int | None = None) -> None:
+        """seed None: from the camera names, so that per-camera workers draw independent noise
+        (one seed for all would give every view the same false peaks and swaps)."""
+        import zlib
+
         from .motion import extend, load_motion, resample
         from .synthetic import SyntheticPcmSource
 
+        seed = zlib.crc32(",".join(rig.names).encode()) if seed is None else seed
         motion = extend(resample(load_motion(motion_path), fps), 2.0)
         self.source = SyntheticPcmSource(rig, motion.positions, motion.present, seed=seed, fps=fps)
         self.rig = rig
-        self._k = 0
+        self.fps = fps
 
     def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
         from .tracker import trunk_tilt
 
         rot = trunk_tilt(self.rig, feedback) if feedback is not None else None
-        pcm = self.source.render(self._k % len(self.source), rotation=rot)
-        self._k += 1
+        pcm = self.source.render(int(round(stamp_ns * self.fps / 1e9)) % len(self.source), rotation=rot)
         keep = np.isin(pcm.camera, cameras)
         return PcmViews(pcm.maps[keep], pcm.image_to_map[keep], pcm.camera[keep], pcm.keypoints,
                         pcm.valid[keep], pcm.presence[keep], stamp_ns)
