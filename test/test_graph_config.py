@@ -52,3 +52,19 @@ def test_types_and_ranges_are_checked(tmp_path):
     # overrides (vmocap launch --set) are validated the same way
     with pytest.raises(GraphConfigError):
         cfg.node_params("vmocap_recorder", {"compression": "rar"})
+
+
+def test_live_config_and_config_check_command(tmp_path):
+    import subprocess
+    import sys
+
+    cfg = graph_config.load(REPO / "config" / "live.yaml")
+    assert cfg.process_groups() == [["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"], ["vmocap_recorder"]]
+    assert cfg.node_params("vmocap_pcm")["model"] == "blazepose"
+    ok = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "config", "check", str(REPO / "config" / "live.yaml")],
+                        capture_output=True, text=True, timeout=60)
+    assert ok.returncode == 0 and "vmocap_camera + vmocap_pcm" in ok.stdout and "threads: 2" in ok.stdout, ok.stderr
+    bad = _cfg(tmp_path, {"vmocap_pcm_cam0": {"cameras": ["cam0"], "threads": "two"}})
+    out = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "config", "check", str(bad)], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2 and "vmocap_pcm_cam0" in out.stderr and "threads" in out.stderr and str(bad) in out.stderr

@@ -279,7 +279,10 @@ class GraphConfig:
                 if node_type(node) not in TRACKER_NODES and section_is_common(key):
                     continue
                 raise GraphConfigError(self.path, f"{node}.{key}", f"unknown parameter (known: {sorted(spec)})")
-            values[key] = _check(self.path, spec[key], value)
+            try:
+                values[key] = _check(self.path, spec[key], value)
+            except GraphConfigError as exc:  # name the section too
+                raise GraphConfigError(self.path, f"{node}.{key}", exc.problem) from None
         # ROS has no empty string arrays: [""] stands for "empty"
         for n, v in values.items():
             if isinstance(v, list) and v == [""]:
