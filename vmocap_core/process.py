@@ -28,6 +28,7 @@ from .errors import BagError, HeatmapError
 from .graph_config import Topics
 from .heatmaps import PcmViews
 from .keypoints import KEYPOINTS, indices
+from .sources.bag import decode_compressed
 from .sync import ApproximateSync
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -199,7 +200,7 @@ def process_bag(
     with BagReader(in_path, recover=recover) as reader:
         view_names = pcm_topics(reader.topics, topics, views)
         if not view_names:
-            cams = [c.name for c in rig if topics.image(c.name) in reader.topics]
+            cams = [c.name for c in rig if _image_topic(reader, topics, c.name)]
             if len(cams) < 2:
                 raise BagError(f"{in_path}: neither PCM topics under {topics.ns}/pcm/ nor images "
                                f"{topics.image('CAM')} of at least 2 rig cameras")
@@ -253,14 +254,15 @@ def _write_outputs(writer: BagWriter, topics: Topics, markers, result, stamp_ns:
 
 def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topics: Topics, tracker, model: str,
                     tolerance_ns: int, min_views: int, progress: bool) -> dict[str, Any]:
-    """Images -> approximate-time sync -> CNN (crops from the previous frame's skeleton) ->
+    """Images (raw or compressed) -> approximate-time sync -> CNN (crops from the previous frame's skeleton) ->
     tracker: what vmocap_pcm + vmocap_markers + vmocap_skeleton do, frame set by frame set."""
     from tqdm import tqdm
 
     provider = make_model_provider(model, rig)
     sync: ApproximateSync[np.ndarray] = ApproximateSync(cams, max(tolerance_ns, 8_000_000), min_cameras=min_views)
     pipe = TrackerPipeline(rig, dict(tracker or {}))
-    want = {topics.image(c): c for c in cams}
+    want = {_image_topic(reader, topics, c): c for c in cams}
+    compressed = {t for t in want if t.endswith("/compressed")}
     stats = {"frames": 0, "tracking": 0, "seconds": 0.0, "pcm": provider.name}
     feedback = None
     with BagWriter(out_path, compression="zstd") as writer:
@@ -282,12 +284,19 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
 
         for m in reader.messages(list(want)):
             msg = m.decode()
-            handle(sync.add(want[m.topic], M.stamp_ns(msg), M.image_array(msg)))
+            image = decode_compressed(msg) if m.topic in compressed else M.image_array(msg)
+            handle(sync.add(want[m.topic], M.stamp_ns(msg), image))
         handle(sync.flush())
         bar.close()
     stats["sync"] = sync.stats().as_dict()
     stats["ms_per_frame"] = 1e3 * stats["seconds"] / max(stats["frames"], 1)
     return stats
+
+
+def _image_topic(reader: BagReader, topics: Topics, camera: str) -> str | None:
+    """A camera's image topic in a bag: raw, else JPEG/PNG (`image_raw/compressed`), else None."""
+    raw = topics.image(camera)
+    return raw if raw in reader.topics else raw + "/compressed" if raw + "/compressed" in reader.topics else None
 
 
 def joint_trajectory(path: str | Path, topic: str = "/vmocap/joint_states") -> tuple[np.ndarray, np.ndarray, list[str]]:
