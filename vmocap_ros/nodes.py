@@ -31,6 +31,7 @@ from vmocap_core.sources.clock import LoopedStamps, PlaybackClock
 from vmocap_core.sync import ApproximateSync
 
 from .common import Topics, declare, msg_class, qos
+from .subject import recorder_tf, skeleton_outputs
 
 STREAM_DEPTH = 10  # images, PCMs, markers: reliable, keep last 10
 
@@ -627,6 +628,8 @@ class SkeletonNode(VmocapNode):
                           (self.topics.keypoints, CLOUD), (self.topics.skeleton, "visualization_msgs/msg/MarkerArray")):
             fb = topic == self.topics.feedback
             self.pubs[topic] = self.publisher(ty, topic, depth=50 if fb else STREAM_DEPTH, latched=fb)
+        self.subject, extra = skeleton_outputs(self)  # robot_description, root_pose, TF
+        self.pubs.update(extra)
         self.subscribe(CLOUD, self.topics.markers, self._on_markers, depth=self.p["queue_depth"], latched=True)
         self.counts = {"frames": 0, "tracking": 0}
         self.last_status = "initializing"
@@ -635,8 +638,11 @@ class SkeletonNode(VmocapNode):
         t0 = time.perf_counter()
         result = self.stage.step(markers_from_message(msg))
         # feedback, then joint_states; outputs nobody subscribes to are not even built
-        for topic, _ty, out in result_messages(self.topics, result, wanted=lambda topic: self.pubs[topic].wanted()):
-            self.pubs[topic](out)
+        pubs = self.pubs
+        for topic, _ty, out in result_messages(self.topics, result, subject=self.subject,
+                                               wanted=lambda topic: topic in pubs and pubs[topic].wanted()):
+            if topic in pubs:
+                pubs[topic](out)
         self.counts["frames"] += 1
         self.counts["tracking"] += result.status == "tracking"
         self.last_status = result.status
@@ -663,6 +669,7 @@ class RecorderNode(VmocapNode):
         self.known = self.topics.outputs()
         self.wanted = list(self.p["topics"]) or list(self.known)
         self.subscribed: set[str] = set()
+        self.tf = recorder_tf(self)  # /tf and /tf_static derived from our outputs
         self.lock = threading.Lock()
         self._discover()
         self.create_timer(0.5, self._discover)
@@ -687,11 +694,30 @@ class RecorderNode(VmocapNode):
                 t0 = time.thread_time()
                 with self.lock:
                     if self.writer is not None:
-                        self.writer.write(topic, ty, data, self.get_clock().now().nanoseconds)
+                        now = self.get_clock().now().nanoseconds
+                        self.writer.write(topic, ty, data, now)
+                        if self.tf is not None:
+                            self._write_tf(topic, ty, data, now)
                 self.cpu_s += time.thread_time() - t0
 
-            self.create_subscription(msg_class(ty), topic, cb, qos(100), raw=True)
+            latched = topic == self.topics.robot_description
+            if latched:
+                self.writer.add_topic(topic, ty, latched=True)
+            self.create_subscription(msg_class(ty), topic, cb, qos(1 if latched else 100, latched=latched), raw=True)
             self.subscribed.add(topic)
+
+    def _write_tf(self, topic: str, ty: str, data: bytes, now: int) -> None:
+        if topic not in (self.topics.robot_description, self.topics.joint_states, self.topics.root_pose):
+            return
+        try:
+            derived = self.tf.add(topic, cdr.decode(ty, data))
+        except VmocapError as exc:
+            self.problems["tf"] = f"no TF derived: {exc}"
+            return
+        for t, tty, msg in derived:
+            if t == self.topics.tf_static:
+                self.writer.add_topic(t, tty, latched=True)
+            self.writer.write(t, tty, msg, now)
 
     def status(self) -> dict[str, Any]:
         return {"messages": self.writer.count if self.writer else 0, "topics": sorted(self.subscribed)}
