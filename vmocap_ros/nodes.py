@@ -31,7 +31,7 @@ from vmocap_core.sources.clock import LoopedStamps, PlaybackClock
 from vmocap_core.sync import ApproximateSync
 
 from .common import Topics, declare, msg_class, qos
-from .subject import recorder_tf, skeleton_outputs
+from .subject import recorded_outputs, recorder_tf, skeleton_outputs
 
 STREAM_DEPTH = 10  # images, PCMs, markers: reliable, keep last 10
 
@@ -666,7 +666,7 @@ class RecorderNode(VmocapNode):
         if not self.p["output"]:
             raise VmocapError("vmocap_recorder: parameter 'output' (an .mcap path) is required")
         self.writer = BagWriter(self.p["output"], compression=self.p["compression"]).open()
-        self.known = self.topics.outputs()
+        self.known = recorded_outputs(self.topics)
         self.wanted = list(self.p["topics"]) or list(self.known)
         self.subscribed: set[str] = set()
         self.tf = recorder_tf(self)  # /tf and /tf_static derived from our outputs
@@ -700,7 +700,7 @@ class RecorderNode(VmocapNode):
                             self._write_tf(topic, ty, data, now)
                 self.cpu_s += time.thread_time() - t0
 
-            latched = topic == self.topics.robot_description
+            latched = topic in (self.topics.robot_description, self.topics.tf_static)
             if latched:
                 self.writer.add_topic(topic, ty, latched=True)
             self.create_subscription(msg_class(ty), topic, cb, qos(1 if latched else 100, latched=latched), raw=True)

@@ -45,6 +45,14 @@ def skeleton_outputs(node: Any) -> tuple[SubjectOutputs, dict[str, Any]]:
     return SubjectOutputs(node_rig(node.p)), pubs
 
 
+def recorded_outputs(topics: Any) -> dict[str, str]:
+    """The graph outputs a recorder takes by default: with /tf and /tf_static when they travel."""
+    out = topics.outputs()
+    if tf_available():
+        out.update({topics.tf: TF_TYPE, topics.tf_static: TF_TYPE})
+    return out
+
+
 def recorder_tf(node: Any) -> TfFromStates | None:
     """The recorder's TF source when /tf does not travel over DDS (None when it does)."""
     return None if tf_available() else TfFromStates(node.topics, node_rig(node.p))
