@@ -231,3 +231,25 @@ def test_vmocap_urdf_cli(processed, tmp_path: Path) -> None:
     assert "kp_left_toe" in (tmp_path / "b.urdf").read_text()
     assert main(["urdf", "--bag", str(tmp_path / "a.urdf"), "-o", str(tmp_path / "c.urdf")]) == 2  # not a bag
     assert not (tmp_path / "c.urdf").exists()
+
+
+def test_viewer_configs_name_our_topics_and_joints() -> None:
+    import json
+
+    import yaml
+
+    from vmocap_core.graph_config import Topics
+
+    config = Path(__file__).resolve().parents[1] / "config"
+    t = Topics(NS)
+    rviz = yaml.safe_load((config / "vmocap.rviz").read_text())
+    displays = {d["Class"]: d for d in rviz["Visualization Manager"]["Displays"]}
+    assert rviz["Visualization Manager"]["Global Options"]["Fixed Frame"] == "world"
+    model = displays["rviz_default_plugins/RobotModel"]["Description Topic"]
+    assert model["Value"] == t.robot_description and model["Durability Policy"] == "Transient Local"
+    assert displays["rviz_default_plugins/MarkerArray"]["Topic"]["Value"] == t.skeleton
+    assert displays["rviz_default_plugins/PointCloud2"]["Topic"]["Value"] == t.keypoints
+    fox = json.loads((config / "vmocap_foxglove.json").read_text())["configById"]
+    assert fox["3D!vmocap"]["layers"]["subject"]["topic"] == t.robot_description
+    for p in fox["Plot!joints"]["paths"]:  # joint_states.position[i] is the labelled joint
+        assert p["value"] == f"{t.joint_states}.position[{U.JOINT_NAMES.index(p['label'])}]"
