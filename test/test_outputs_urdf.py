@@ -12,6 +12,9 @@ import numpy as np
 import pytest
 
 from graph_helpers import synthetic_bag
+from outputs_helpers import cloud as _cloud
+from outputs_helpers import rosbags_messages as _rosbags_messages
+from outputs_helpers import tf_keypoint_errors
 from vmocap_core.keypoints import KEYPOINTS
 from vmocap_core.outputs import urdf as U
 from vmocap_core.skeleton import LIMITS, BodyDimensions, Skeleton
@@ -28,25 +31,6 @@ def processed(tmp_path_factory) -> tuple[Path, object]:
     stats = process_bag(d / "in.mcap", d / "out.mcap", rig, keypoints=kps, progress=False)
     assert stats["tracking"] >= 5, stats
     return d / "out.mcap", rig
-
-
-def _rosbags_messages(path: Path) -> dict[str, list[tuple[int, object]]]:
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
-    out: dict[str, list] = {}
-    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as r:
-        for c, t, raw in r.messages():
-            out.setdefault(c.topic, []).append((t, r.deserialize(raw, c.msgtype)))
-    return out
-
-
-def _cloud(msg) -> np.ndarray:
-    """Keypoints (25, 3) of a PointCloud2 as rosbags decodes it (layout: bag/messages.py)."""
-    from vmocap_core.bag.messages import CLOUD_DTYPE
-
-    pts = np.frombuffer(bytes(msg.data), dtype=CLOUD_DTYPE)
-    return np.stack([pts["x"], pts["y"], pts["z"]], axis=1)[np.argsort(pts["id"])]
 
 
 def _random_angles(sk: Skeleton, rng: np.random.Generator) -> np.ndarray:
@@ -102,6 +86,21 @@ def test_pinocchio_fk_of_the_urdf_equals_the_skeleton_at_random_poses() -> None:
     assert worst < 1e-9, worst
 
 
+def test_joint_positions_at_gimbal_lock() -> None:
+    import pinocchio as pin
+
+    sk = Skeleton()
+    model = pin.buildModelFromXML(U.SubjectModel(sk.dims).to_xml())
+    R = lambda axis, a: pin.exp3(a * np.eye(3)[axis])  # noqa: E731
+    for b in (np.pi / 2, -np.pi / 2):
+        angles = sk.to_angles(sk.neutral())
+        i = sk.joint_names.index("left_shoulder_rx")
+        angles[i:i + 3] = pin.log3(R(0, 0.3) @ R(1, b) @ R(2, 0.5))  # ry at the lock
+        q = sk.from_angles(angles)
+        got = _pin_keypoints(pin, model, U.JOINT_NAMES, U.joint_positions(angles), *U.base_pose(angles))
+        assert np.abs(got - sk.keypoint_positions(q)).max() < 1e-9
+
+
 def test_recorded_joint_states_and_root_pose_reproduce_the_keypoints(processed) -> None:
     import pinocchio as pin
 
@@ -125,29 +124,9 @@ def test_recorded_joint_states_and_root_pose_reproduce_the_keypoints(processed) 
 
 
 def test_tf_read_by_rosbags_gives_the_keypoints_and_nothing_while_not_tracking(processed) -> None:
-    from vmocap_core.outputs.tf import TfTree, Transforms
-
     out, _ = processed
     msgs = _rosbags_messages(out)
-
-    def transforms(m) -> Transforms:
-        ts = m.transforms
-        return Transforms([x.header.frame_id for x in ts], [x.child_frame_id for x in ts],
-                          np.array([[x.transform.translation.x, x.transform.translation.y, x.transform.translation.z] for x in ts]),
-                          np.array([[x.transform.rotation.x, x.transform.rotation.y, x.transform.rotation.z, x.transform.rotation.w] for x in ts]))
-
-    tree = TfTree()
-    for _, m in msgs["/tf_static"]:
-        tree.add(transforms(m))
-    clouds = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec: m for _, m in msgs[f"{NS}/keypoints"]}
-    tracked = {s for s, c in clouds.items() if c.width > 0}
-    tf_stamps = []
-    worst = 0.0
-    for _, m in msgs["/tf"]:
-        stamp = m.transforms[0].header.stamp.sec * 10**9 + m.transforms[0].header.stamp.nanosec
-        tf_stamps.append(stamp)
-        tree.add(transforms(m))
-        worst = max(worst, float(np.abs(tree.positions([f"kp_{k}" for k in KEYPOINTS]) - _cloud(clouds[stamp])).max()))
+    worst, tf_stamps, tracked = tf_keypoint_errors(msgs, NS)
     assert worst < 1e-6, worst
     # TF exactly at the tracked frames: none while initializing/identifying (no stale pose)
     assert sorted(tf_stamps) == sorted(tracked) and len(tf_stamps) >= 5
@@ -183,7 +162,8 @@ def test_camera_frames_reproject_the_keypoints_like_the_rig(processed) -> None:
 def test_reidentified_subject_gets_a_new_description_before_its_joint_state() -> None:
     from vmocap_core.graph_config import Topics
     from vmocap_core.outputs.streams import SubjectOutputs, TfFromStates
-    from vmocap_core.outputs.tf import UrdfKinematics
+    from vmocap_core.bag import cdr
+    from vmocap_core.outputs.tf import TF_TYPE, UrdfKinematics
     from vmocap_core.process import result_messages
     from vmocap_core.tracker import TrackResult
 
@@ -217,7 +197,11 @@ def test_reidentified_subject_gets_a_new_description_before_its_joint_state() ->
     rec.add(topics.robot_description, {"data": xml})
     got = [x for topic, _, m in msgs for x in rec.add(topic, m)]
     ours = next(m for topic, _, m in msgs if topic == topics.tf)
-    assert len(got) == 1 and got[0][0] == topics.tf and got[0][2] == ours
+    assert len(got) == 1 and got[0][0] == topics.tf
+    assert cdr.encode(TF_TYPE, got[0][2]) == cdr.encode(TF_TYPE, ours)
+    # the fast TFMessage encoder gives the generic encoder's bytes
+    plain = {"transforms": list(ours["transforms"])}
+    assert cdr.encode(TF_TYPE, plain) == cdr.encode(TF_TYPE, ours) and len(plain["transforms"]) == 35
 
 
 def test_vmocap_urdf_cli(processed, tmp_path: Path) -> None:

@@ -149,6 +149,7 @@ def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] |
     keypoints and the MarkerArray. Each message is built when it is taken, and not at all where
     `wanted(topic)` is False (nobody listens)."""
     from .outputs import streams
+    from .outputs.urdf import base_pose, joint_positions
 
     t = result.stamp_ns
     tracking = result.status == "tracking"
@@ -159,12 +160,14 @@ def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] |
         yield from subject.start(topics, t)
         if tracking:
             yield from subject.description(topics, t, result.dims)
-    if tracking and want(topics.joint_states):
-        yield topics.joint_states, JOINTS, streams.joint_state(t, result.q)
-    if tracking and want(topics.root_pose):
-        yield topics.root_pose, streams.POSE, streams.root_pose(t, result.q)
-    if tracking and subject is not None and want(topics.tf):
-        yield subject.tf(topics, t, result.q)
+    if tracking:
+        positions, base = joint_positions(result.q), base_pose(result.q)
+        if want(topics.joint_states):
+            yield topics.joint_states, JOINTS, streams.joint_state(t, positions)
+        if want(topics.root_pose):
+            yield topics.root_pose, streams.POSE, streams.root_pose(t, base)
+        if subject is not None and want(topics.tf):
+            yield subject.tf(topics, t, positions, base)
     if want(topics.keypoints):
         yield topics.keypoints, CLOUD, M.keypoint_cloud(t, result.keypoints if tracking else None, result.scores)
     if want(topics.skeleton):

@@ -342,8 +342,18 @@ def _enc_flat_struct_array(out: _Out, type_name: str, value: np.ndarray, n: int)
     _put_block(out, len(arr), n, size, data, f"fixed array of {type_name}")
 
 
+# Faster encoders of whole messages, by type: fn(msg) -> the bytes `encode` would give, or None
+# when the message does not carry what the fast path needs (see outputs.tf).
+FAST_ENCODERS: dict[str, Any] = {}
+
+
 def encode(type_name: str, msg: Any) -> bytes:
     """CDR bytes (with encapsulation header) of `msg` (a dict) as `type_name`."""
+    fast = FAST_ENCODERS.get(type_name)
+    if fast is not None:
+        data = fast(msg)
+        if data is not None:
+            return data
     out = _Out()
     _enc_struct(out, type_name, msg)
     return b"".join([CDR_HEADER, *out.parts])  # one copy of the payload (an image's data is MBs)

@@ -18,21 +18,21 @@ from ..camera import Rig
 from ..graph_config import Topics
 from ..skeleton import BodyDimensions
 from .tf import TF_TYPE, Transforms, UrdfKinematics, base_transform, camera_transforms, tf_message
-from .urdf import JOINT_NAMES, SubjectModel, base_pose, joint_positions
+from .urdf import JOINT_NAMES, SubjectModel
 
 STRING = "std_msgs/msg/String"
 POSE = "geometry_msgs/msg/PoseStamped"
 JOINTS = "sensor_msgs/msg/JointState"
 
 
-def joint_state(stamp_ns: int, angles: np.ndarray) -> dict:
-    """JointState of the URDF's 34 joints from the model's 40 DOF."""
-    return M.joint_state_msg(stamp_ns, JOINT_NAMES, joint_positions(angles))
+def joint_state(stamp_ns: int, positions: np.ndarray) -> dict:
+    """JointState of the URDF's 34 joints (`urdf.joint_positions` of the model's 40 DOF)."""
+    return M.joint_state_msg(stamp_ns, JOINT_NAMES, positions)
 
 
-def root_pose(stamp_ns: int, angles: np.ndarray) -> dict:
-    """PoseStamped of the pelvis (the floating base) in the world frame."""
-    t, q = base_pose(angles)
+def root_pose(stamp_ns: int, base: tuple[np.ndarray, np.ndarray]) -> dict:
+    """PoseStamped of the pelvis (the floating base, `urdf.base_pose`) in the world frame."""
+    t, q = base
     return {"header": M.header(stamp_ns, M.WORLD_FRAME),
             "pose": {"position": dict(zip("xyz", map(float, t))), "orientation": dict(zip("xyzw", map(float, q)))}}
 
@@ -75,10 +75,11 @@ class SubjectOutputs:
         yield topics.robot_description, STRING, {"data": xml}
         yield topics.tf_static, TF_TYPE, tf_message(stamp_ns, self.static(stamp_ns))
 
-    def tf(self, topics: Topics, stamp_ns: int, angles: np.ndarray) -> tuple[str, str, dict]:
+    def tf(self, topics: Topics, stamp_ns: int, positions: np.ndarray, base: tuple[np.ndarray, np.ndarray]) -> tuple[str, str, dict]:
+        """/tf of one frame from `urdf.joint_positions` and `urdf.base_pose` of its 40 DOF."""
         assert self.kinematics is not None, "description() first"
-        body = self.kinematics.transforms(JOINT_NAMES, joint_positions(angles))
-        return topics.tf, TF_TYPE, tf_message(stamp_ns, Transforms.concat([base_transform(*base_pose(angles)), body]))
+        body = self.kinematics.transforms(JOINT_NAMES, positions)
+        return topics.tf, TF_TYPE, tf_message(stamp_ns, Transforms.concat([base_transform(*base), body]))
 
 
 class TfFromStates:

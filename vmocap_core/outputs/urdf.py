@@ -122,21 +122,38 @@ def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ joint states
+def rotvec_to_quaternion(v: np.ndarray) -> np.ndarray:
+    """Rotation vectors (N, 3) -> unit quaternions (N, 4) x y z w."""
+    v = np.asarray(v, dtype=np.float64).reshape(-1, 3)
+    theta = np.sqrt(np.einsum("ij,ij->i", v, v))
+    # sin(theta/2)/theta, with its limit 1/2 at 0
+    s = np.where(theta > 1e-12, np.sin(theta / 2) / np.where(theta > 1e-12, theta, 1.0), 0.5)
+    return np.concatenate([v * s[:, None], np.cos(theta / 2)[:, None]], axis=1)
+
+
 def joint_positions(angles: np.ndarray) -> np.ndarray:
     """The model's 40 published DOF (Skeleton.to_angles) -> the 34 URDF joint positions."""
     a = np.asarray(angles, dtype=np.float64).reshape(40)
+    x, y, z, w = rotvec_to_quaternion(a[_SPH_40[:, None] + np.arange(3)]).T
+    # the entries of R (from the quaternion) that R = Rx(a) Ry(b) Rz(c) is solved with
+    r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)
+    r10, r11 = 2 * (x * y + z * w), 1 - 2 * (x * x + z * z)
+    r12, r22 = 2 * (y * z - x * w), 1 - 2 * (x * x + y * y)
+    cb = np.hypot(r12, r22)
+    lock = cb < 1e-9  # gimbal lock (b = +-pi/2): only a +- c is defined; put it all into a
+    euler = np.stack([np.where(lock, np.arctan2(np.sign(r02) * r10, r11), np.arctan2(-r12, r22)),
+                      np.arctan2(r02, cb), np.where(lock, 0.0, np.arctan2(-r01, r00))], axis=1)
     out = np.empty(len(JOINT_NAMES))
-    idx = _SPH_40[:, None] + np.arange(3)
-    euler = matrix_to_euler_xyz(rotvec_to_matrix(a[idx]))
     out[_SPH_OUT[:, None] + np.arange(3)] = euler
     out[_HINGE_OUT] = a[_HINGE_40]
     return out
 
 
 def base_pose(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """world -> pelvis of the 40 DOF: translation (3,), quaternion (4,) x y z w."""
+    """world -> pelvis of the 40 DOF: translation (3,), quaternion (4,) x y z w, w >= 0."""
     a = np.asarray(angles, dtype=np.float64).reshape(40)
-    return a[:3].copy(), matrix_to_quaternion(rotvec_to_matrix(a[3:6]))[0]
+    q = rotvec_to_quaternion(a[3:6])[0]
+    return a[:3].copy(), q if q[3] >= 0 else -q
 
 
 # ------------------------------------------------------------------------------ the URDF
