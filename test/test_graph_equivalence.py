@@ -60,11 +60,13 @@ def listener():
     rclpy.shutdown()
 
 
-@pytest.mark.parametrize("mode", ["processes", "single_process"])
-def test_graph_equals_offline(tmp_path: Path, mode: str, listener) -> None:
+@pytest.mark.parametrize("mode,tf_dds", [("processes", "auto"), ("single_process", "auto"), ("processes", "off")])
+def test_graph_equals_offline(tmp_path: Path, mode: str, tf_dds: str, listener) -> None:
+    """tf_dds off: /tf does not travel over DDS (as without tf2_msgs), the recorder derives it."""
     from vmocap_core.process import joint_trajectory, process_bag
 
     env, counter = listener
+    env = dict(env, VMOCAP_TF_DDS=tf_dds)
     counter.reset()
     bag = tmp_path / "in.mcap"
     rig, rig_path, kps = synthetic_bag(bag, N)

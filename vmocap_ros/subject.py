@@ -4,10 +4,12 @@ node's extra publishers, and the TF a recorder derives when /tf cannot travel ov
 tf2_msgs has no PyPI wheel: without it (the default install) no node can publish or
 subscribe /tf; the skeleton node then publishes root_pose and robot_description only, and the
 recorder writes /tf and /tf_static into its MCAP from them (vmocap_core.outputs.streams).
-With tf2_msgs importable (a ROS 2 install), /tf and /tf_static go over DDS as well."""
+With tf2_msgs importable (a ROS 2 install), /tf and /tf_static go over DDS as well, unless
+VMOCAP_TF_DDS=off (the recorder then derives them, as without tf2_msgs)."""
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 from vmocap_core.outputs.streams import POSE, STRING, SubjectOutputs, TfFromStates
@@ -17,6 +19,8 @@ TF_DEPTH = 100
 
 
 def tf_available() -> bool:
+    if os.environ.get("VMOCAP_TF_DDS", "auto") == "off":
+        return False
     try:
         import tf2_msgs.msg  # noqa: F401
     except ImportError:
