@@ -11,7 +11,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from graph_helpers import REPO, domain_env, stop, synthetic_bag, vmocap, wait_for, wait_ready, write_config
 

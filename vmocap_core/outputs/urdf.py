@@ -86,20 +86,6 @@ def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * K + c * (K @ K)
 
 
-def matrix_to_euler_xyz(R: np.ndarray) -> np.ndarray:
-    """Matrices (N, 3, 3) -> angles (N, 3) with R = Rx(a) Ry(b) Rz(c), b in [-pi/2, pi/2]."""
-    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
-    cb = np.hypot(R[:, 1, 2], R[:, 2, 2])
-    b = np.arctan2(R[:, 0, 2], cb)
-    a = np.arctan2(-R[:, 1, 2], R[:, 2, 2])
-    c = np.arctan2(-R[:, 0, 1], R[:, 0, 0])
-    # Gimbal lock (b = +-pi/2): only a +- c is defined; put it all into a.
-    lock = cb < 1e-9
-    a = np.where(lock, np.arctan2(np.sign(R[:, 0, 2]) * R[:, 1, 0], R[:, 1, 1]), a)
-    c = np.where(lock, 0.0, c)
-    return np.stack([a, b, c], axis=1)
-
-
 def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
     """Matrices (N, 3, 3) -> unit quaternions (N, 4) as x y z w, w >= 0."""
     R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
