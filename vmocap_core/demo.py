@@ -226,12 +226,14 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
     from .graph_config import Topics
     from .pcm.peaks import camera_keypoints
     from .pcm.pipeline import BlazePosePcm
-    from .process import TrackerPipeline, feedback_of, markers_message, result_messages
+    from .outputs.streams import SubjectOutputs
+    from .process import TrackerPipeline, feedback_of, markers_message, write_results
     from .tracker import trunk_tilt
 
     topics = Topics()
     model = BlazePosePcm(rig, threads=threads)
     pipe = TrackerPipeline(rig, dict(TRACKER_SETTINGS))
+    subject = SubjectOutputs(rig)
     rec: dict[str, list] = {k: [] for k in ("stamp", "status", "keypoints", "raw", "markers", "uv", "w", "score", "weights",
                                              "t_decode", "t_pcm", "t_markers", "t_skeleton", "n_views", "links")}
     last = None
@@ -256,8 +258,7 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
             pipe.markers.feedback(feedback_of(result))
             t4 = time.perf_counter()
             writer.write(topics.markers, "sensor_msgs/msg/PointCloud2", markers_message(markers), ns)
-            for topic, ty, msg in result_messages(topics, result):
-                writer.write(topic, ty, msg, ns)
+            write_results(writer, topics, result, ns, subject)
             uv, w = camera_keypoints(pcm, len(rig))
             for k, v in (("stamp", ns), ("status", result.status), ("keypoints", result.keypoints),
                          ("raw", result.raw_keypoints), ("markers", markers.positions), ("uv", uv),

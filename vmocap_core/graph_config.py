@@ -231,13 +231,25 @@ class Topics:
     def skeleton(self) -> str:
         return f"{self.ns}/skeleton"
 
+    @property
+    def robot_description(self) -> str:
+        return f"{self.ns}/robot_description"
+
+    @property
+    def root_pose(self) -> str:
+        return f"{self.ns}/root_pose"
+
     diagnostics = "/diagnostics"
     clock = "/clock"
+    tf = "/tf"
+    tf_static = "/tf_static"
 
     def outputs(self) -> dict[str, str]:
         """The graph's output topics and their types (what the recorder takes by default)."""
         return {
             self.joint_states: "sensor_msgs/msg/JointState",
+            self.root_pose: "geometry_msgs/msg/PoseStamped",
+            self.robot_description: "std_msgs/msg/String",
             self.keypoints: "sensor_msgs/msg/PointCloud2",
             self.markers: "sensor_msgs/msg/PointCloud2",
             self.skeleton: "visualization_msgs/msg/MarkerArray",

@@ -28,6 +28,7 @@ from .errors import BagError, HeatmapError
 from .graph_config import Topics
 from .heatmaps import PcmViews
 from .keypoints import KEYPOINTS, indices
+from .outputs.streams import SubjectOutputs
 from .sources.bag import decode_compressed
 from .sync import ApproximateSync
 
@@ -142,18 +143,34 @@ def markers_from_message(msg: dict) -> Any:
     return Markers(M.stamp_ns(msg), P, S, kind, residual_px=residual, cameras=cameras)
 
 
-def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] | None = None) -> Iterator[tuple[str, str, dict]]:
+def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] | None = None,
+                    subject: Any = None) -> Iterator[tuple[str, str, dict]]:
     """(topic, type, message) of one TrackResult in publishing order: the feedback first (the
-    lattice search of the next frame waits for it), then joint_states (what controllers wait
-    for), then keypoints and the MarkerArray. Each message is built when it is taken, and not
-    at all where `wanted(topic)` is False (nobody listens)."""
+    lattice search of the next frame waits for it), then, with a `subject`
+    (outputs.streams.SubjectOutputs), robot_description and /tf_static when the skeleton is
+    new, then joint_states (what controllers wait for; the URDF's joints), root_pose, /tf,
+    keypoints and the MarkerArray. Each message is built when it is taken, and not at all where
+    `wanted(topic)` is False (nobody listens)."""
+    from .outputs import streams
+    from .outputs.urdf import base_pose, joint_positions
+
     t = result.stamp_ns
     tracking = result.status == "tracking"
     want = wanted or (lambda topic: True)
     if want(topics.feedback):
         yield topics.feedback, CLOUD, M.keypoint_cloud(t, feedback_of(result))
-    if tracking and want(topics.joint_states):
-        yield topics.joint_states, JOINTS, M.joint_state_msg(t, result.joint_names, result.q)
+    if subject is not None:
+        yield from subject.start(topics, t)
+        if tracking:
+            yield from subject.description(topics, t, result.dims)
+    if tracking:
+        positions, base = joint_positions(result.q), base_pose(result.q)
+        if want(topics.joint_states):
+            yield topics.joint_states, JOINTS, streams.joint_state(t, positions)
+        if want(topics.root_pose):
+            yield topics.root_pose, streams.POSE, streams.root_pose(t, base)
+        if subject is not None and want(topics.tf):
+            yield subject.tf(topics, t, positions, base)
     if want(topics.keypoints):
         yield topics.keypoints, CLOUD, M.keypoint_cloud(t, result.keypoints if tracking else None, result.scores)
     if want(topics.skeleton):
@@ -208,6 +225,7 @@ def process_bag(
                                    min_views, progress)
         asm = PcmAssembler(rig, view_names, kp, tolerance_ns, min_views)
         pipe = TrackerPipeline(rig, dict(tracker or {}))
+        subject = SubjectOutputs(rig)
         by_topic = {}
         for v in view_names:
             by_topic[topics.pcm(v)] = (v, "image")
@@ -222,7 +240,7 @@ def process_bag(
                     t0 = time.perf_counter()
                     markers, result = pipe.step(pcm)
                     stats["seconds"] += time.perf_counter() - t0
-                    _write_outputs(writer, topics, markers, result, pcm.stamp_ns, stats)
+                    _write_outputs(writer, topics, markers, result, pcm.stamp_ns, stats, subject)
                 bar.update(len(pcms))
 
             for m in reader.messages(list(by_topic)):
@@ -243,11 +261,19 @@ def process_bag(
     return stats
 
 
-def _write_outputs(writer: BagWriter, topics: Topics, markers, result, stamp_ns: int, stats: dict[str, Any]) -> None:
+def write_results(writer: BagWriter, topics: Topics, result, stamp_ns: int, subject: SubjectOutputs | None) -> None:
+    """A TrackResult's output messages (not the internal feedback) into a bag at its stamp."""
+    for topic, ty, msg in result_messages(topics, result, wanted=lambda topic: topic != topics.feedback, subject=subject):
+        if topic in (topics.robot_description, topics.tf_static):
+            writer.add_topic(topic, ty, latched=True)
+        writer.write(topic, ty, msg, stamp_ns)
+
+
+def _write_outputs(writer: BagWriter, topics: Topics, markers, result, stamp_ns: int, stats: dict[str, Any],
+                   subject: SubjectOutputs | None = None) -> None:
     """One frame set's graph outputs (markers and results, not the internal feedback) and counts."""
     writer.write(topics.markers, CLOUD, markers_message(markers), stamp_ns)
-    for topic, ty, msg in result_messages(topics, result, wanted=lambda topic: topic != topics.feedback):
-        writer.write(topic, ty, msg, stamp_ns)
+    write_results(writer, topics, result, stamp_ns, subject)
     stats["frames"] += 1
     stats["tracking"] += result.status == "tracking"
 
@@ -261,6 +287,7 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
     provider = make_model_provider(model, rig)
     sync: ApproximateSync[np.ndarray] = ApproximateSync(cams, max(tolerance_ns, 8_000_000), min_cameras=min_views)
     pipe = TrackerPipeline(rig, dict(tracker or {}))
+    subject = SubjectOutputs(rig)
     want = {_image_topic(reader, topics, c): c for c in cams}
     compressed = {t for t in want if t.endswith("/compressed")}
     stats = {"frames": 0, "tracking": 0, "seconds": 0.0, "pcm": provider.name}
@@ -279,7 +306,7 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
                 markers, result = pipe.step(pcm)
                 feedback = feedback_of(result)
                 stats["seconds"] += time.perf_counter() - t0
-                _write_outputs(writer, topics, markers, result, fs.stamp_ns, stats)
+                _write_outputs(writer, topics, markers, result, fs.stamp_ns, stats, subject)
             bar.update(len(sets))
 
         for m in reader.messages(list(want)):

@@ -182,6 +182,7 @@ class TrackResult:
     scores: np.ndarray  # (25,) marker weights
     markers: np.ndarray  # (25, 3) virtual markers
     link_lengths: dict[str, float] = field(default_factory=dict)
+    dims: BodyDimensions | None = None  # the subject's skeleton (tracking results only)
 
 
 def trunk_tilt(rig: Rig, keypoints: np.ndarray) -> np.ndarray:
@@ -554,7 +555,7 @@ class SkeletonStage:
         self.timings = {"ik": t1 - t0, "filter": t2 - t1, "ik2": t3 - t2}
         return TrackResult(markers.stamp_ns, "tracking", angles, self._joint_names,
                            second.keypoints, first.keypoints, markers.weights.copy(),
-                           markers.positions.copy(), sk.dims.bone_lengths())
+                           markers.positions.copy(), sk.dims.bone_lengths(), sk.dims)
 
     def _skipped_interval(self, stamp_ns: int) -> float | None:
         """Seconds since the previous frame set when frame sets were skipped (a graph that falls
@@ -628,7 +629,7 @@ class SkeletonStage:
         self.status = "tracking"
         return TrackResult(markers.stamp_ns, "tracking", sk.to_angles(fit.q), self._joint_names, fit.keypoints,
                            fit.keypoints.copy(), markers.weights.copy(), markers.positions.copy(),
-                           sk.dims.bone_lengths())
+                           sk.dims.bone_lengths(), sk.dims)
 
 
 def fit_skeleton(frames: np.ndarray, max_fit_error_m: float, q0: np.ndarray | None = None) -> tuple[Skeleton, Any] | None:

@@ -35,6 +35,10 @@ DEFINITIONS: dict[str, str] = {
     "geometry_msgs/msg/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
     "geometry_msgs/msg/Quaternion": "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n",
     "geometry_msgs/msg/Pose": "Point position\nQuaternion orientation\n",
+    "geometry_msgs/msg/PoseStamped": "std_msgs/Header header\nPose pose\n",
+    "geometry_msgs/msg/Transform": "Vector3 translation\nQuaternion rotation\n",
+    "geometry_msgs/msg/TransformStamped": "std_msgs/Header header\nstring child_frame_id\nTransform transform\n",
+    "tf2_msgs/msg/TFMessage": "geometry_msgs/TransformStamped[] transforms\n",
     "sensor_msgs/msg/RegionOfInterest": (
         "uint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\nbool do_rectify\n"
     ),
@@ -338,8 +342,18 @@ def _enc_flat_struct_array(out: _Out, type_name: str, value: np.ndarray, n: int)
     _put_block(out, len(arr), n, size, data, f"fixed array of {type_name}")
 
 
+# Faster encoders of whole messages, by type: fn(msg) -> the bytes `encode` would give, or None
+# when the message does not carry what the fast path needs (see outputs.tf).
+FAST_ENCODERS: dict[str, Any] = {}
+
+
 def encode(type_name: str, msg: Any) -> bytes:
     """CDR bytes (with encapsulation header) of `msg` (a dict) as `type_name`."""
+    fast = FAST_ENCODERS.get(type_name)
+    if fast is not None:
+        data = fast(msg)
+        if data is not None:
+            return data
     out = _Out()
     _enc_struct(out, type_name, msg)
     return b"".join([CDR_HEADER, *out.parts])  # one copy of the payload (an image's data is MBs)

@@ -33,7 +33,7 @@ MAGIC = b"\x89MCAP0\r\n"
 PARTIAL_SUFFIX = ".partial"
 # What rosbag2 records as the publisher QoS (reliable, volatile, keep last): players use it.
 _QOS_YAML = (
-    "- history: 1\n  depth: {depth}\n  reliability: 1\n  durability: 2\n"
+    "- history: 1\n  depth: {depth}\n  reliability: 1\n  durability: {durability}\n"
     "  deadline:\n    sec: 2147483647\n    nsec: 4294967295\n"
     "  lifespan:\n    sec: 2147483647\n    nsec: 4294967295\n"
     "  liveliness: 1\n  liveliness_lease_duration:\n    sec: 2147483647\n    nsec: 4294967295\n"
@@ -87,8 +87,10 @@ class BagWriter:
         self._writer.start(profile="ros2", library="vmocap")
         return self
 
-    def add_topic(self, topic: str, type_name: str, qos_depth: int = 10) -> int:
-        """Register `topic` with message type `type_name` ("pkg/msg/Type"); idempotent."""
+    def add_topic(self, topic: str, type_name: str, qos_depth: int = 10, latched: bool = False) -> int:
+        """Register `topic` with message type `type_name` ("pkg/msg/Type"); idempotent.
+        latched: recorded as transient local (robot_description, /tf_static), which players
+        offer again to late subscribers."""
         if self._writer is None:
             self.open()
         assert self._writer is not None
@@ -105,7 +107,7 @@ class BagWriter:
             topic=topic,
             message_encoding="cdr",
             schema_id=self._schemas[type_name],
-            metadata={"offered_qos_profiles": _QOS_YAML.format(depth=qos_depth)},
+            metadata={"offered_qos_profiles": _QOS_YAML.format(depth=1 if latched else qos_depth, durability=1 if latched else 2)},
         )
         self._channels[topic] = (cid, type_name)
         self._seq[cid] = 0

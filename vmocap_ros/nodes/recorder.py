@@ -7,9 +7,11 @@ import time
 from typing import Any
 
 from vmocap_core import graph_config
+from vmocap_core.bag import cdr
 from vmocap_core.errors import VmocapError
 
 from ..common import msg_class, qos
+from ..subject import recorded_outputs, recorder_tf
 from ..transport import Transport
 from .base import VmocapNode
 
@@ -28,9 +30,10 @@ class RecorderNode(VmocapNode):
         if not self.p["output"]:
             raise VmocapError("vmocap_recorder: parameter 'output' (an .mcap path) is required")
         self.writer = BagWriter(self.p["output"], compression=self.p["compression"]).open()
-        self.known = self.topics.outputs()
+        self.known = recorded_outputs(self.topics)
         self.wanted = list(self.p["topics"]) or list(self.known)
         self.subscribed: set[str] = set()
+        self.tf = recorder_tf(self)  # /tf and /tf_static derived from our outputs
         self.lock = threading.Lock()
         self._discover()
         self.create_timer(0.5, self._discover)
@@ -55,11 +58,30 @@ class RecorderNode(VmocapNode):
                 t0 = time.thread_time()
                 with self.lock:
                     if self.writer is not None:
-                        self.writer.write(topic, ty, data, self.get_clock().now().nanoseconds)
+                        now = self.get_clock().now().nanoseconds
+                        self.writer.write(topic, ty, data, now)
+                        if self.tf is not None:
+                            self._write_tf(topic, ty, data, now)
                 self.cpu_s += time.thread_time() - t0
 
-            self.create_subscription(msg_class(ty), topic, cb, qos(100), raw=True)
+            latched = topic in (self.topics.robot_description, self.topics.tf_static)
+            if latched:
+                self.writer.add_topic(topic, ty, latched=True)
+            self.create_subscription(msg_class(ty), topic, cb, qos(1 if latched else 100, latched=latched), raw=True)
             self.subscribed.add(topic)
+
+    def _write_tf(self, topic: str, ty: str, data: bytes, now: int) -> None:
+        if topic not in (self.topics.robot_description, self.topics.joint_states, self.topics.root_pose):
+            return
+        try:
+            derived = self.tf.add(topic, cdr.decode(ty, data))
+        except VmocapError as exc:
+            self.problems["tf"] = f"no TF derived: {exc}"
+            return
+        for t, tty, msg in derived:
+            if t == self.topics.tf_static:
+                self.writer.add_topic(t, tty, latched=True)
+            self.writer.write(t, tty, msg, now)
 
     def status(self) -> dict[str, Any]:
         return {"messages": self.writer.count if self.writer else 0, "topics": sorted(self.subscribed)}

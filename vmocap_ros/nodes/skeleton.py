@@ -9,6 +9,7 @@ from typing import Any
 from vmocap_core import graph_config
 from vmocap_core.process import CLOUD, markers_from_message, result_messages
 
+from ..subject import skeleton_outputs
 from ..transport import Transport
 from .base import STREAM_DEPTH, InitWatch, VmocapNode
 
@@ -30,6 +31,8 @@ class SkeletonNode(VmocapNode):
                           (self.topics.keypoints, CLOUD), (self.topics.skeleton, "visualization_msgs/msg/MarkerArray")):
             fb = topic == self.topics.feedback
             self.pubs[topic] = self.publisher(ty, topic, depth=50 if fb else STREAM_DEPTH, latched=fb)
+        self.subject, extra = skeleton_outputs(self)  # robot_description, root_pose, TF
+        self.pubs.update(extra)
         self.subscribe(CLOUD, self.topics.markers, self._on_markers, depth=self.p["queue_depth"], latched=True)
         self.counts = {"frames": 0, "tracking": 0}
         self.last_status = "initializing"
@@ -42,8 +45,11 @@ class SkeletonNode(VmocapNode):
         result = self.stage.step(markers)
         self.init_watch.update(self, result.status, markers, self.stage.init_problem)
         # feedback, then joint_states; outputs nobody subscribes to are not even built
-        for topic, _ty, out in result_messages(self.topics, result, wanted=lambda topic: self.pubs[topic].wanted()):
-            self.pubs[topic](out)
+        pubs = self.pubs
+        for topic, _ty, out in result_messages(self.topics, result, subject=self.subject,
+                                               wanted=lambda topic: topic in pubs and pubs[topic].wanted()):
+            if topic in pubs:
+                pubs[topic](out)
         self.counts["frames"] += 1
         self.counts["tracking"] += result.status == "tracking"
         self.last_status = result.status

@@ -1,0 +1,1 @@
+"""ROS-native outputs of a tracked subject: its URDF (`urdf`) and TF frames (`tf`)."""
