@@ -25,7 +25,7 @@ def domain_env(offset: int = 0) -> dict[str, str]:
     return env
 
 
-def synthetic_bag(path: Path, frames: int = 30, fps: float = 30.0, images: bool = False, size=(1024, 768)):
+def synthetic_bag(path: Path, frames: int = 30, fps: float = 30.0, images: bool = False, size=(1024, 768), noise=None):
     from vmocap_core.bag.synth import write_synthetic_bag
     from vmocap_core.keypoints import KEYPOINTS
     from vmocap_core.motion import load_motion, resample
@@ -34,7 +34,7 @@ def synthetic_bag(path: Path, frames: int = 30, fps: float = 30.0, images: bool 
 
     rig = benchmark_rig(width=size[0], height=size[1])
     m = resample(load_motion(MOTION), fps)
-    write_synthetic_bag(path, rig, m.positions, m.present, frames, fps=fps, images=images)
+    write_synthetic_bag(path, rig, m.positions, m.present, frames, fps=fps, images=images, noise=noise)
     rig_path = path.with_suffix(".rig.yaml")
     save_rig(rig, rig_path)
     return rig, rig_path, [KEYPOINTS[i] for i in np.flatnonzero(m.present)]

@@ -66,17 +66,30 @@ def triangulate(rig: Rig, uv: np.ndarray, weights: np.ndarray, min_views: int = 
 def triangulate_robust(
     rig: Rig, uv: np.ndarray, weights: np.ndarray, max_error_px: float = 20.0, min_views: int = 2
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Triangulate, then drop the worst camera per point while its reprojection error exceeds
-    `max_error_px` and more than `min_views` cameras remain (a swapped or false peak in one
-    view must not pull the point). Returns points (J, 3), residual px (J,)."""
+    """Triangulate, then, per point whose reprojection error exceeds `max_error_px` while more
+    than `min_views` cameras remain, drop the camera whose removal leaves the smallest error (a
+    swapped or false peak, or a camera moved since calibration, must not pull the point; the
+    camera with the largest error of the pulled solution is not always the culprit). Returns
+    points (J, 3), residual px (J,)."""
     uv, w = _sanitize(uv, weights)
     xy = undistort_all(rig, uv)  # once: only the weights change between rounds
-    pts, resid, err = _dlt(rig, xy, uv, w, min_views)
+    pts, resid, _ = _dlt(rig, xy, uv, w, min_views)
     for _ in range(max(0, len(rig) - min_views)):
         bad = (resid > max_error_px) & ((w > 0).sum(axis=0) > min_views)
         if not bad.any():
             break
-        worst = np.where(w > 0, err, -1.0).argmax(axis=0)
-        w[worst[bad], np.nonzero(bad)[0]] = 0.0
-        pts, resid, err = _dlt(rig, xy, uv, w, min_views)
+        best = np.full(resid.shape, np.inf)
+        drop = np.full(resid.shape, -1)
+        for c in range(len(rig)):  # leave one camera out, all bad points at once
+            active = bad & (w[c] > 0)
+            if not active.any():
+                continue
+            w_c = w.copy()
+            w_c[c, active] = 0.0
+            _, r_c, _ = _dlt(rig, xy, uv, w_c, min_views)
+            better = active & (np.nan_to_num(r_c, nan=np.inf) < best)
+            best[better], drop[better] = r_c[better], c
+        chosen = np.nonzero(drop >= 0)[0]
+        w[drop[chosen], chosen] = 0.0
+        pts, resid, _ = _dlt(rig, xy, uv, w, min_views)
     return pts, resid

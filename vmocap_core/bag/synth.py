@@ -31,11 +31,13 @@ def write_synthetic_bag(
     t0_ns: int = 1_000_000_000_000,
     seed: int = 0,
     compression: str = "none",
+    noise: "NoiseModel | None" = None,
 ) -> Path:
+    """noise: the heatmaps' noise model (default: the benchmark's, at this stride)."""
     from ..synthetic import NoiseModel, SyntheticPcmSource
 
     topics = Topics(namespace)
-    src = SyntheticPcmSource(rig, positions, present, seed=seed, noise=NoiseModel(stride=stride), fps=fps)
+    src = SyntheticPcmSource(rig, positions, present, seed=seed, noise=noise or NoiseModel(stride=stride), fps=fps)
     rng = np.random.default_rng(seed)
     # one random texture per camera; frames differ by a cheap roll so bytes change
     textures = [rng.integers(0, 255, (c.height, c.width, 3), dtype=np.uint8) for c in rig] if images else []

@@ -6,8 +6,11 @@ import time
 from collections import deque
 from typing import Any
 
+import numpy as np
+
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
+from vmocap_core.camera_check import OddCamera, camera_residuals
 from vmocap_core.errors import VmocapError
 from vmocap_core.process import (
     CLOUD,
@@ -21,6 +24,8 @@ from vmocap_core.process import (
 
 from ..transport import Transport
 from .base import InitWatch, VmocapNode
+
+CAMERA_CHECK_EVERY = 10  # frame sets between per-camera residual checks (~0.3 ms each)
 
 
 class MarkersNode(VmocapNode):
@@ -45,6 +50,7 @@ class MarkersNode(VmocapNode):
         self.counts = {"frames": 0, "queue_dropped": 0, "feedback_timeouts": 0}
         self.init_watch = InitWatch(p["init_warn_s"], self.stage.config.init_max_reprojection_px, self.rig.names)
         self.presence: dict[str, float] = {}  # CNN presence per camera, last triangulated frame set
+        self.cameras = OddCamera()  # per-camera reprojection residuals while tracking
         # markers and feedback are transient-local: a frame processed before the other node's
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
         self.pub = self.publisher(CLOUD, self.topics.markers, depth=p["queue_depth"], latched=True)
@@ -77,6 +83,20 @@ class MarkersNode(VmocapNode):
             self.counts["frames"] += 1
             self.proc.add(1e3 * (time.perf_counter() - t0))
             self.record_age(pcm.stamp_ns)
+            if markers.kind == "lattice" and self.counts["frames"] % CAMERA_CHECK_EVERY == 0:
+                self._check_cameras(pcm, markers.positions)
+
+    def _check_cameras(self, pcm: Any, positions: np.ndarray) -> None:
+        """After the markers went out: per-camera residuals, and a WARN naming a camera that
+        disagrees with the others (camera_check.py)."""
+        self.cameras.add(camera_residuals(self.rig, pcm, positions))
+        odd = self.cameras.odd()
+        if odd is None:
+            self.problems.pop("camera", None)
+            return
+        name, px, others = odd
+        self.problems["camera"] = (f"{name} disagrees with the other cameras: its heatmap peaks lie {px:.0f} px from the "
+                                   f"markers' projections (the others {others:.0f} px): moved or turned since calibration?")
 
     def _on_feedback(self, msg: dict) -> None:
         t = M.stamp_ns(msg)
@@ -97,4 +117,5 @@ class MarkersNode(VmocapNode):
     def status(self) -> dict[str, Any]:
         st = self.asm.sync.stats()
         return dict(self.counts, queued=len(self.queue), sync=st.as_dict(), silent=list(st.silent),
-                    rejected_frame_sets=self.asm.bad_views, presence={k: round(v, 3) for k, v in self.presence.items()})
+                    rejected_frame_sets=self.asm.bad_views, presence={k: round(v, 3) for k, v in self.presence.items()},
+                    **{f"residual_px:{k}": round(v, 1) for k, v in self.cameras.medians().items()})
