@@ -635,9 +635,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .calibration.datasets import pose2sim_demo
-    from .rig_io import save_rig
-
     from .pcm.fetch import fetch as fetch_models
+    from .rig_io import save_rig
 
     log("PCM models: checking the cache (builds it on a fresh machine, as `vmocap models fetch`)")
     fetch_models(quiet=True)

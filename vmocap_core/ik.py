@@ -18,7 +18,6 @@ import pinocchio as pin
 from . import _ik_kernels
 from .skeleton import Skeleton
 
-
 _NO_PRIOR = np.zeros(40)
 
 

@@ -23,14 +23,14 @@ import pinocchio as pin
 
 from .camera import Rig
 from .heatmaps import PcmViews
+from .iir import LowPassFilter
 from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
-from .iir import LowPassFilter
 from .init_report import CORE, camera_mask
 from .keypoints import INDEX, KEYPOINTS
-from .one_euro import OneEuroFilter
 from .lattice import PcmSampler, lattice_search
 from .lattice import warm_up as warm_up_lattice
+from .one_euro import OneEuroFilter
 from .peak_refinement import refine_markers
 from .peak_refinement import warm_up as warm_up_refinement
 from .skeleton import BodyDimensions, Skeleton

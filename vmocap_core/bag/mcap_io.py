@@ -17,11 +17,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
+import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
-import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from ..errors import BagError
@@ -259,7 +259,7 @@ class BagReader:
             self._f.seek(0)
             reader = SeekingReader(self._f)
             reader._summary = self._summary
-            for schema, ch, rec in reader.iter_messages(
+            for _schema, ch, rec in reader.iter_messages(
                 topics=None if wanted is None else sorted(wanted), starting_at=start_ns, ending_before=end_ns, log_time_order=True
             ):
                 yield BagMessage(ch.topic, self.topics[ch.topic], rec.log_time, rec.data)

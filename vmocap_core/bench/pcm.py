@@ -136,12 +136,12 @@ def measure(repeat: int = 30, threads: int = DEFAULT_THREADS, quiet: bool = Fals
         det = PoseDetector(threads=t)
         crops4 = pcm.crops_from_skeleton(standing)
         result["landmark"][f"threads_{t}"] = {
-            "per_image_ms": _time(lambda: lm.infer(images[:1], one), repeat, f"landmark 1 image, {t} thr", quiet),
-            "frame_set_ms": _time(lambda: lm.infer(images, crops4), repeat, f"landmark 4 views, {t} thr", quiet),
+            "per_image_ms": _time(lambda lm=lm: lm.infer(images[:1], one), repeat, f"landmark 1 image, {t} thr", quiet),
+            "frame_set_ms": _time(lambda lm=lm, crops4=crops4: lm.infer(images, crops4), repeat, f"landmark 4 views, {t} thr", quiet),
         }
         result["detector"][f"threads_{t}"] = {
-            "per_image_ms": _time(lambda: det.detect(images[:1]), repeat, f"detector 1 image, {t} thr", quiet),
-            "frame_set_ms": _time(lambda: det.detect(images), repeat, f"detector 4 images, {t} thr", quiet),
+            "per_image_ms": _time(lambda det=det: det.detect(images[:1]), repeat, f"detector 1 image, {t} thr", quiet),
+            "frame_set_ms": _time(lambda det=det: det.detect(images), repeat, f"detector 4 images, {t} thr", quiet),
         }
     result["per_image_ms"] = result["landmark"][f"threads_{threads}"]["per_image_ms"] if threads in (1, 2) else {}
     # the lite landmark model, when fetched (`vmocap models fetch --lite`)

@@ -112,7 +112,7 @@ class Node:
 
 
 def _attr(buf: bytes) -> object:
-    for num, wt, val in _fields(buf):
+    for num, _wt, val in _fields(buf):
         if num == 2:
             return bytes(val)
         if num == 3:
