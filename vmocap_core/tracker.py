@@ -50,11 +50,6 @@ class TrackerConfig:
     coarse_to_fine: bool = True  # same volume, ~9x fewer samples; measured equal to the full search
     subcell: bool = True
     prediction: str = "previous"  # lattice centre: "previous" (paper) or "constant_velocity"
-    # > 0: the lattice argmax maximizes the sum over views of log(1 + PCM / eps) instead of the
-    # paper's plain sum (our addition, lattice.py); 0 = eq. 1 as in the paper. Measured with
-    # eps 0.01: synthetic regular 28.7 -> 25.8 mm, inverted 26.3 -> 24.6 mm, but real data got
-    # worse (Shelf MPJPE 57.3 -> 59.1 mm, eps 0.3: 58.1; demo 11.63 -> 12.01 px), so off.
-    lattice_log_eps: float = 0.0
     min_views: int = 2  # a marker seen by fewer views gets weight 0
     # Our addition (peak_refinement.py): move each lattice marker to the robust triangulation of
     # the views' own PCM peaks within `refine_radius_cells` of its projection (False = the
@@ -121,8 +116,8 @@ class TrackerConfig:
     def validate(self) -> None:
         if self.refine_radius_cells < 1 or self.refine_max_error_px <= 0:
             raise ValueError("refine_radius_cells must be >= 1 and refine_max_error_px > 0")
-        if self.fps <= 0 or self.lattice_k < 0 or self.lattice_spacing <= 0 or self.lattice_log_eps < 0:
-            raise ValueError("fps, lattice_k and lattice_spacing must be positive, lattice_log_eps >= 0")
+        if self.fps <= 0 or self.lattice_k < 0 or self.lattice_spacing <= 0:
+            raise ValueError("fps, lattice_k and lattice_spacing must be positive")
         if self.identify_seconds < 0:
             raise ValueError("identify_seconds must be >= 0")
         if self.ik_prior_weight < 0 or self.ik_regularization < 0:
@@ -286,7 +281,6 @@ class MarkerStage:
             spacing=cfg.lattice_spacing,
             coarse_to_fine=cfg.coarse_to_fine,
             subcell=cfg.subcell,
-            log_eps=cfg.lattice_log_eps,
             sampler=sampler,
         )
         markers, weights, n_views = res.markers, res.weights, res.n_views
@@ -347,8 +341,7 @@ class MarkerStage:
         centres = markers.copy()
         centres[cand] = pts[ok]
         masked = PcmViews(pcm.maps, pcm.image_to_map, pcm.camera, pcm.keypoints, only, pcm.presence, pcm.stamp_ns)
-        alt = lattice_search(self.rig, masked, centres, k=1, spacing=cfg.lattice_spacing, subcell=cfg.subcell,
-                             log_eps=cfg.lattice_log_eps)
+        alt = lattice_search(self.rig, masked, centres, k=1, spacing=cfg.lattice_spacing, subcell=cfg.subcell)
         alt.markers, alt.weights, alt.n_views = alt.markers[cand], alt.weights[cand], alt.n_views[cand]
         better = alt.weights > weights[cand]
         markers, weights, n_views = markers.copy(), weights.copy(), n_views.copy()
