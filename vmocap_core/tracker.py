@@ -270,6 +270,7 @@ class MarkerStage:
     def _lattice(self, pcm: PcmViews) -> Markers:
         cfg = self.config
         centres = self.centres
+        assert centres is not None  # set by the previous frame's skeleton (markers run only while tracking)
         if cfg.prediction == "constant_velocity":
             centres = centres + self.velocity
         sampler = PcmSampler(self.rig, pcm)  # one per frame: the lattice search and the refinement
@@ -330,6 +331,7 @@ class MarkerStage:
             cam_uv[c, better] = uv[v][better]
             cam_w[c, better] = val[v][better]
         pts, resid = triangulate_robust(self.rig, cam_uv, cam_w, cfg.init_max_reprojection_px, cfg.min_views)
+        assert self.centres is not None  # called from _lattice
         near = np.linalg.norm(pts - self.centres[pcm.keypoints[sub]], axis=1) < cfg.reacquire_radius
         ok = np.isfinite(resid) & (resid <= cfg.init_max_reprojection_px) & near
         if not ok.any():
@@ -597,6 +599,7 @@ class SkeletonStage:
         """Identification phase: collect the virtual markers; once there are enough, identify
         the skeleton on all of them and start tracking (the provisional one stays otherwise)."""
         cfg = self.config
+        assert self._identify is not None  # started by the first fit
         self._identify.append(np.where((markers.weights > 0)[:, None], markers.positions, np.nan))
         if len(self._identify) >= cfg.identify_frames:
             frames = np.array(self._identify)
@@ -640,6 +643,7 @@ def fit_skeleton(frames: np.ndarray, max_fit_error_m: float, q0: np.ndarray | No
         rms = float(np.sqrt(fit.cost))
         if best is None or rms < best[0]:
             best = (rms, sk, fit)
+    assert best is not None  # the loop above ran
     rms, sk, fit = best
     if rms <= max_fit_error_m:
         sk = refine_offsets(sk, frames, fit.q)

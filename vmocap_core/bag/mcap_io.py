@@ -287,7 +287,7 @@ class BagReader:
             if self._mm is None:
                 self._mm = mmap.mmap(self._f.fileno(), 0, access=mmap.ACCESS_READ)
             mm = self._mm
-            entries = []
+            entries: list[tuple[int, int, int]] = []  # (log time, record offset, channel id)
             for ci in chunks:
                 # chunk record: opcode, length, start/end time, uncompressed size, crc, compression, records
                 (comp_len,) = struct.unpack_from("<I", mm, ci.chunk_start_offset + 37)

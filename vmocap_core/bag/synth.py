@@ -50,8 +50,8 @@ def write_synthetic_bag(
                     w.write(topics.image(cam.name), "sensor_msgs/msg/Image", M.image_msg(img, t, cam.name), t)
             if views is not None:
                 views.stamp_ns = t
-                for (img, info), v in zip(M.pcm_msgs(views, rig), range(views.n_views)):
+                for (pcm_img, info), v in zip(M.pcm_msgs(views, rig), range(views.n_views)):
                     name = rig[int(views.camera[v])].name
-                    w.write(topics.pcm(name), "sensor_msgs/msg/Image", img, t)
+                    w.write(topics.pcm(name), "sensor_msgs/msg/Image", pcm_img, t)
                     w.write(topics.pcm_info(name), "sensor_msgs/msg/CameraInfo", info, t)
     return Path(path)

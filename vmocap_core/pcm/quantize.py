@@ -257,11 +257,11 @@ def equalize(model: onnx.ModelProto, scales: dict[str, list[float]]) -> None:
     for key, s in scales.items():
         if key not in groups:
             raise ModelError(f"equalization group {key} is not in the prepared graph")
-        s = np.asarray(s, np.float64)
+        sc = np.asarray(s, np.float64)
         for p in groups[key]["producers"]:
-            factor_out[p] = factor_out.get(p, 1.0) * s
+            factor_out[p] = factor_out.get(p, 1.0) * sc
         for r in groups[key]["readers"]:
-            factor_in[r] = factor_in.get(r, 1.0) / s
+            factor_in[r] = factor_in.get(r, 1.0) / sc
     for name in sorted(set(factor_out) | set(factor_in)):
         n = nodes[name]
         W = numpy_helper.to_array(inits[n.input[1]]).astype(np.float64)
