@@ -5,6 +5,19 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export PYTHONUNBUFFERED=1
+# Lint and type check first: a violation fails the run before any test starts.
+lint_failed=0
+if ! .venv/bin/ruff check vmocap_core vmocap_ros test; then
+  echo "test.sh: FAILED: ruff check vmocap_core vmocap_ros test" >&2
+  lint_failed=1
+fi
+if ! .venv/bin/mypy vmocap_core; then
+  echo "test.sh: FAILED: mypy vmocap_core" >&2
+  lint_failed=1
+fi
+if [ "$lint_failed" -ne 0 ]; then
+  exit 1
+fi
 run_pytest='.venv/bin/python -m pytest -q -p no:cacheprovider "$@"'
 if unshare -n true 2>/dev/null; then
   echo "test.sh: running inside a loopback-only network namespace"

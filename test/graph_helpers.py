@@ -90,7 +90,7 @@ def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
-            raise AssertionError(f"process did not stop on signal {sig}:\n{''.join(proc._lines)}")
+            raise AssertionError(f"process did not stop on signal {sig}:\n{''.join(proc._lines)}") from None
         proc._reader.join(timeout=5)
         return "".join(proc._lines)
     try:
@@ -98,7 +98,7 @@ def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0
     except subprocess.TimeoutExpired:
         proc.kill()
         out, _ = proc.communicate()
-        raise AssertionError(f"process did not stop on signal {sig}:\n{out}")
+        raise AssertionError(f"process did not stop on signal {sig}:\n{out}") from None
     return out
 
 

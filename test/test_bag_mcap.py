@@ -74,7 +74,7 @@ def test_empty_numpy_point_array_encodes() -> None:
 
 
 def test_rosbags_reads_our_bag(tmp_path: Path) -> None:
-    rosbags = pytest.importorskip("rosbags")
+    pytest.importorskip("rosbags")
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 

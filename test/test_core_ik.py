@@ -133,7 +133,8 @@ def test_ik_prior_pulls_towards_the_prior_pose():
     q_true[:3] = q_prior[:3] + [0.03, 0.0, -0.02]
     target = sk.keypoint_positions(q_true)
     w = np.ones(len(KEYPOINTS))
-    fit = lambda mu: solve_ik(sk, q_prior, target, w, max_iterations=30, line_search=True, prior=q_prior, prior_weight=mu)
+    def fit(mu: float):
+        return solve_ik(sk, q_prior, target, w, max_iterations=30, line_search=True, prior=q_prior, prior_weight=mu)
     d_true = [np.linalg.norm(fit(mu).keypoints - target, axis=1).mean() for mu in (0.0, 1e-4, 1e-2, 1e3)]
     d_prior = [np.linalg.norm(pin.difference(sk.model, q_prior, fit(mu).q)) for mu in (0.0, 1e-4, 1e-2, 1e3)]
     assert d_true[0] < 1e-3 and d_prior[-1] < 1e-3

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+from test_core_lattice import gaussian_pcm, rig4
 
 from vmocap_core import _kernels
 from vmocap_core.heatmaps import PcmViews
 from vmocap_core.lattice import lattice_search
 from vmocap_core.peak_refinement import local_peaks, refine_markers, refine_markers_numpy
 from vmocap_core.triangulation import triangulate
-
-from test_core_lattice import gaussian_pcm, rig4
 
 
 def rotated_crop_affine(centre_px: np.ndarray, side_px: float, angle: float, cells: int = 64) -> np.ndarray:

@@ -46,8 +46,8 @@ def test_identification_phase_improves_link_lengths():
     """The 0.5 s identification phase (statuses "identifying", no output) ends with link
     lengths nearer the truth than the 5-frame provisional fit, and the output's bones are
     constant from its first frame."""
-    from vmocap_core.skeleton import BONES
     from vmocap_core.keypoints import INDEX
+    from vmocap_core.skeleton import BONES
 
     m = punch()
     m.positions = m.positions[:120]
@@ -61,7 +61,8 @@ def test_identification_phase_improves_link_lengths():
             assert run.first_tracked - first_id == 29 and np.isnan(run.method[first_id]).all()
         out, gt = run.method[run.first_tracked:], m.positions[run.first_tracked:]
         bones = [(INDEX[a], INDEX[b]) for a, b in BONES.values() if m.present[INDEX[a]] and m.present[INDEX[b]]]
-        length = lambda p, a, b: np.linalg.norm(p[:, a] - p[:, b], axis=-1)
+        def length(p, a, b):
+            return np.linalg.norm(p[:, a] - p[:, b], axis=-1)
         assert max(np.ptp(length(out, a, b)) for a, b in bones) < 1e-9
         err[seconds] = np.mean([abs(length(out, a, b)[0] - np.median(length(gt, a, b))) for a, b in bones])
     assert err[0.5] < 0.7 * err[0.0], err

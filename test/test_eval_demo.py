@@ -53,8 +53,8 @@ def test_qualisys_rig_matches_the_file_and_sees_the_scene() -> None:
 @needs_demo
 @pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
 def test_demo_pipeline_tracks_the_walker(tmp_path: Path) -> None:
-    from vmocap_core.demo import load_qualisys_rig, reprojection_errors, run_pipeline, video_paths, video_sizes, videos_to_bag
     from vmocap_core.bag import BagReader
+    from vmocap_core.demo import load_qualisys_rig, reprojection_errors, run_pipeline, video_paths, video_sizes, videos_to_bag
 
     videos = video_paths(DEMO)
     rig = load_qualisys_rig(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
@@ -100,7 +100,15 @@ def test_report_markdown_from_a_real_shelf_run(tmp_path: Path) -> None:
 @pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
 def test_demo_on_the_node_graph(tmp_path: Path) -> None:
     pytest.importorskip("rclpy")
-    from vmocap_core.demo import load_qualisys_rig, recording_from_graph, reprojection_errors, run_graph, video_paths, video_sizes, videos_to_bag
+    from vmocap_core.demo import (
+        load_qualisys_rig,
+        recording_from_graph,
+        reprojection_errors,
+        run_graph,
+        video_paths,
+        video_sizes,
+        videos_to_bag,
+    )
     from vmocap_core.rig_io import save_rig
 
     videos = video_paths(DEMO)

@@ -10,8 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from graph_helpers import domain_env, stop, vmocap, wait_ready, write_config
+
 from vmocap_core.bag import BagReader, BagWriter, cdr
 from vmocap_core.bag import messages as M
 

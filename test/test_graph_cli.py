@@ -10,8 +10,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
 from graph_helpers import REPO, domain_env, stop, synthetic_bag, vmocap, wait_for, write_config
+
 from vmocap_core.bag import BagReader
 from vmocap_core.bag import messages as M
 

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from graph_helpers import domain_env, stop, synthetic_bag, vmocap, wait_for, wait_ready, write_config
 
 N = 30
@@ -22,9 +21,8 @@ def listener():
     """A node of this test process counting /vmocap/keypoints (one per processed frame set)."""
     env = domain_env(1)
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
-    from vmocap_ros.common import init_rclpy, msg_class, qos
-
     from vmocap_core.bag import cdr
+    from vmocap_ros.common import init_rclpy, msg_class, qos
 
     rclpy = init_rclpy()
     node = rclpy.create_node("test_listener")

@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 import pytest
+from graph_helpers import REPO, domain_env, stop, synthetic_bag, wait_ready, write_config
 
-from graph_helpers import REPO, domain_env, stop, synthetic_bag, wait_for, wait_ready, write_config
 from vmocap_core.bag import BagReader
 
 SUBNET = "10.213.0"

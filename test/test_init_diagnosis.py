@@ -10,8 +10,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from graph_helpers import domain_env, stop, synthetic_bag, vmocap, wait_for, write_config
+
 from vmocap_core.bag import BagReader
 from vmocap_core.bag import messages as M
 from vmocap_core.init_report import CORE, camera_mask, describe

@@ -11,7 +11,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from graph_helpers import REPO, domain_env, stop, synthetic_bag, vmocap, wait_for, wait_ready, write_config
 
 sys.path.insert(0, str(REPO / "examples"))
@@ -37,7 +36,7 @@ def _offline_velocities(path: Path, stale_ns: int) -> dict[int, np.ndarray]:
 
 
 def test_lost_subject_from_stale_stamps() -> None:
-    from vmocap_core.outputs.urdf import SubjectModel, base_pose, joint_positions, JOINT_NAMES
+    from vmocap_core.outputs.urdf import JOINT_NAMES, SubjectModel, base_pose, joint_positions
     from vmocap_core.skeleton import BodyDimensions, Skeleton
 
     sk = Skeleton(BodyDimensions())

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from graph_helpers import synthetic_bag
 from outputs_helpers import cloud as _cloud
 from outputs_helpers import rosbags_messages as _rosbags_messages
 from outputs_helpers import tf_keypoint_errors
+
 from vmocap_core.keypoints import KEYPOINTS
 from vmocap_core.outputs import urdf as U
 from vmocap_core.skeleton import LIMITS, BodyDimensions, Skeleton
@@ -160,9 +160,9 @@ def test_camera_frames_reproject_the_keypoints_like_the_rig(processed) -> None:
 
 
 def test_reidentified_subject_gets_a_new_description_before_its_joint_state() -> None:
+    from vmocap_core.bag import cdr
     from vmocap_core.graph_config import Topics
     from vmocap_core.outputs.streams import SubjectOutputs, TfFromStates
-    from vmocap_core.bag import cdr
     from vmocap_core.outputs.tf import TF_TYPE, UrdfKinematics
     from vmocap_core.process import result_messages
     from vmocap_core.tracker import TrackResult

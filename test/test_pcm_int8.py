@@ -23,9 +23,9 @@ import pytest
 from vmocap_core.errors import ModelError
 from vmocap_core.pcm import fetch, quantize
 from vmocap_core.pcm.blazepose import BlazePoseLandmark, resolve_precision
-from vmocap_core.pcm.selfcheck import MEDIAN_CELLS, P95_CELLS, PRESENCE, peak_centroids
 from vmocap_core.pcm.crops import Crops
 from vmocap_core.pcm.detector import PoseDetector
+from vmocap_core.pcm.selfcheck import MEDIAN_CELLS, P95_CELLS, PRESENCE, peak_centroids
 
 PANOPTIC = Path(__file__).resolve().parents[2] / "shared" / "data" / "panoptic_demo"
 MESSI = Path("/usr/share/doc/opencv-doc/examples/data/messi5.jpg")

@@ -4,8 +4,6 @@ written here in protobuf wire format, with image sizes that make SAME padding as
 
 from __future__ import annotations
 
-import struct
-
 import numpy as np
 import onnxruntime as ort
 import pytest

@@ -81,11 +81,9 @@ def score_lattice(
     scores: np.ndarray,  # out (J, L) float32
     nviews: np.ndarray,  # out (J, L) int32
     cubic: bool,  # bicubic (OpenCV's INTER_CUBIC kernel) instead of bilinear sampling
-    log_eps: float,  # > 0: sum log(1 + PCM / log_eps) / log(1 + 1 / log_eps) instead of PCM (lattice.py)
 ) -> None:
     V, J, H, W = maps.shape
     L = rotated_offsets.shape[1]
-    log_norm = 1.0 / math.log1p(1.0 / log_eps) if log_eps > 0.0 else 1.0
     for j in range(J):
         for v in range(V):
             if not valid[v, j]:
@@ -135,8 +133,6 @@ def score_lattice(
                             val += _cell(maps, v, j, y0 + 1, x0 + 1) * fx * fy
                 if not (val > 0.0):
                     continue
-                if log_eps > 0.0:
-                    val = math.log1p((val if val < 1.0 else 1.0) / log_eps) * log_norm
                 scores[j, l] += val
                 nviews[j, l] += 1
 

@@ -17,6 +17,7 @@ from .errors import RigFileError
 
 N_DIST = 8  # k1 k2 p1 p2 k3 k4 k5 k6
 MIN_DEPTH = 1e-6  # points closer than this in front of the optical centre count as behind
+Z_UP = np.array([0.0, 0.0, 1.0])  # world up (default argument of look_at)
 
 
 @dataclass
@@ -182,7 +183,7 @@ class Rig:
                 )
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> tuple[np.ndarray, np.ndarray]:
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = Z_UP) -> tuple[np.ndarray, np.ndarray]:
     """World->camera (R, t) of a camera at `eye` looking at `target` (OpenCV axes: z forward, y down)."""
     eye = np.asarray(eye, dtype=np.float64)
     z = np.asarray(target, dtype=np.float64) - eye

@@ -24,6 +24,7 @@ import sys
 import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -72,7 +73,7 @@ def load_qualisys_rig(path: str | Path, sizes: dict[str, tuple[int, int]] | None
         root = ET.parse(path).getroot()
     except (OSError, ET.ParseError) as exc:
         raise RigFileError(path, "xml", str(exc)) from None
-    cams = []
+    cams: list[Camera] = []
     for cam in root.iter("camera"):
         name = cam.get("serial") or f"cam{len(cams) + 1:02d}"
         tr, it, fov = cam.find("transform"), cam.find("intrinsic"), cam.find("fov_video")
@@ -187,6 +188,8 @@ def bag_frame_sets(bag: Path, rig: Rig):
             msg = m.decode()
             ns = M.stamp_ns(msg)
             img = cv2.imdecode(np.frombuffer(bytes(msg["data"]), np.uint8), cv2.IMREAD_COLOR)
+            if img is None:
+                raise VmocapError(f"{bag}: undecodable image on {m.topic} at {ns} ns")
             pending.setdefault(ns, {})[want[m.topic]] = img
             if len(pending[ns]) == len(rig):
                 imgs = pending.pop(ns)
@@ -224,11 +227,11 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
 
     from .bag import BagWriter
     from .graph_config import Topics
+    from .outputs.streams import SubjectOutputs
     from .pcm.peaks import camera_keypoints
     from .pcm.pipeline import BlazePosePcm
-    from .outputs.streams import SubjectOutputs
     from .process import TrackerPipeline, feedback_of, markers_message, write_results
-    from .tracker import trunk_tilt
+    from .tracker import TrackResult, trunk_tilt
 
     topics = Topics()
     model = BlazePosePcm(rig, threads=threads)
@@ -236,7 +239,7 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
     subject = SubjectOutputs(rig)
     rec: dict[str, list] = {k: [] for k in ("stamp", "status", "keypoints", "raw", "markers", "uv", "w", "score", "weights",
                                              "t_decode", "t_pcm", "t_markers", "t_skeleton", "n_views", "links")}
-    last = None
+    last: TrackResult | None = None
     it = bag_frame_sets(bag, rig)
     with BagWriter(out_bag, compression="zstd") as writer:
         bar = tqdm(total=n_frames, desc="pipeline", unit="frame", file=sys.stderr)
@@ -248,8 +251,8 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
                 break
             t1 = time.perf_counter()
             tracking = last is not None and last.status == "tracking"
-            fb = last.keypoints if tracking else None
-            tilt = trunk_tilt(rig, last.keypoints) if tracking else None
+            fb = last.keypoints if last is not None and tracking else None
+            tilt = trunk_tilt(rig, last.keypoints) if last is not None and tracking else None
             pcm = model.infer(images, keypoints=fb, tilt=tilt, stamp_ns=ns)
             t2 = time.perf_counter()
             markers = pipe.markers.step(pcm)
@@ -365,7 +368,7 @@ def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
     index = {int(s): f for f, s in enumerate(stamps)}
     J, C = len(KEYPOINTS), len(rig)
     nan3 = np.full((n_frames, J, 3), np.nan)
-    rec = {"stamp": stamps, "status": ["dropped"] * n_frames, "keypoints": nan3.copy(), "raw": nan3.copy(),
+    rec: dict[str, Any] = {"stamp": stamps, "status": ["dropped"] * n_frames, "keypoints": nan3.copy(), "raw": nan3.copy(),
            "markers": nan3.copy(), "uv": np.full((n_frames, C, J, 2), np.nan), "w": np.zeros((n_frames, C, J)),
            "score": np.zeros(n_frames), "weights": np.zeros((n_frames, J)), "n_views": np.zeros(n_frames, int)}
     for k in ("t_decode", "t_pcm", "t_markers", "t_skeleton"):
@@ -481,7 +484,7 @@ def render_overlays(bag: Path, rig: Rig, rec: dict, out_dir: Path, scale: float 
             tiles.append(tile)
         row = np.hstack(tiles)
         if writer is None:
-            writer = cv2.VideoWriter(str(mp4), cv2.VideoWriter_fourcc(*"mp4v"), FPS, (row.shape[1], row.shape[0]))
+            writer = cv2.VideoWriter(str(mp4), cv2.VideoWriter.fourcc(*"mp4v"), FPS, (row.shape[1], row.shape[0]))
         writer.write(row)
         if f in sheet_idx:
             sheet_rows.append(row)
@@ -636,9 +639,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .calibration.datasets import pose2sim_demo
-    from .rig_io import save_rig
-
     from .pcm.fetch import fetch as fetch_models
+    from .rig_io import save_rig
 
     log("PCM models: checking the cache (builds it on a fresh machine, as `vmocap models fetch`)")
     fetch_models(quiet=True)

@@ -110,7 +110,7 @@ NODE_PARAMS: dict[str, list[Param]] = {
 TRACKER_NODES = ("vmocap_markers", "vmocap_skeleton")  # these also take tracker.* parameters
 # groups: nodes that share a process in `processes` mode (their messages stay in-process, e.g. a
 # camera's images and the PCM inference); nodes in no group get a process each
-LAUNCH_KEYS = {"mode": "processes", "nodes": None, "groups": None, "env": {}, "fastdds_profile": "fastdds_shm.xml"}
+LAUNCH_KEYS: dict[str, Any] = {"mode": "processes", "nodes": None, "groups": None, "env": {}, "fastdds_profile": "fastdds_shm.xml"}
 
 
 def tracker_params() -> list[Param]:

@@ -15,6 +15,7 @@ pixels [x*s - 0.5, (x+1)*s - 0.5).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -98,6 +99,7 @@ class PcmViews:
         chans = np.arange(self.maps.shape[1]) if channels is None else np.asarray(channels)
         valid = self.valid[:, chans]
         V, _, H, W = self.maps.shape
+        flat: Any  # (V, C, H*W) array, or a list of (V, H*W) views
         if channels is None:
             flat = self.maps.reshape(V, chans.size, H * W)
         else:  # a few channels: (V, H*W) views of each, no copy of the stack

@@ -18,7 +18,6 @@ import pinocchio as pin
 from . import _ik_kernels
 from .skeleton import Skeleton
 
-
 _NO_PRIOR = np.zeros(40)
 
 
@@ -58,7 +57,7 @@ def solve_ik(
     finite = np.isfinite(x).all(axis=1)
     w[~finite | ~np.isfinite(w)] = 0.0
     w = np.clip(w, 0.0, None)
-    x = np.where(finite[:, None], x, 0.0)
+    x = np.where(finite[:, None], x, 0.0)  # type: ignore[index]  # numpy stub: all(axis=1) is an array
     wsum = w.sum()
     if wsum <= 0.0:
         p = skeleton.keypoint_positions(q0)

@@ -5,12 +5,6 @@ every view, the views' PCMs are sampled bilinearly at the projections, and the l
 with the largest sum over views is the virtual marker; that sum is its weight W_j. A
 projection outside a map, or a point behind the camera, contributes 0.
 
-Our variant (`log_eps` > 0): the argmax is taken over the sum of log(1 + PCM / eps) instead
-of the PCM values themselves, i.e. over the product of (eps + PCM) across views. For peaks
-shaped like Gaussians this is the least-squares consensus of the views, whereas the plain sum
-snaps to whichever view's peak is strongest; eps caps what a view that misses the point (a
-missing or swapped PCM) can veto. W stays the plain sum of eq. 5, at the marker.
-
 All keypoints, lattice points and views are evaluated in one vectorized pass.
 """
 
@@ -75,30 +69,28 @@ class PcmSampler:
         self._M32 = self._M.astype(np.float32)[:, :, :, None, None]
         self._rational = bool(rig._rational[pcm.camera].any())
 
-    def sample_lattice(self, centres: np.ndarray, offsets: np.ndarray, cubic: bool = False,
-                       log_eps: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    def sample_lattice(self, centres: np.ndarray, offsets: np.ndarray, cubic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Scores (J, L) and view counts (J, L) of the points centres (J, 3) + offsets (L, 3):
-        the compiled kernel when numba is there, else the numpy reference (bilinear only).
-        log_eps > 0 sums log(1 + PCM / log_eps) / log(1 + 1 / log_eps) over views (module doc)."""
+        the compiled kernel when numba is there, else the numpy reference (bilinear only)."""
         if not _kernels.AVAILABLE:
-            return self.sample_lattice_numpy(centres, offsets, log_eps)
+            return self.sample_lattice_numpy(centres, offsets)
         J, L = centres.shape[0], offsets.shape[0]
         scores = np.zeros((J, L), dtype=np.float32)
         nviews = np.zeros((J, L), dtype=np.int32)
         _kernels.score_lattice(
             np.ascontiguousarray(centres, dtype=np.float64), np.ascontiguousarray(np.matmul(offsets, self._R.transpose(0, 2, 1))),
-            self._R, self._t, self._dist, self._M, self._maps, self._valid_b, scores, nviews, cubic, float(log_eps),
+            self._R, self._t, self._dist, self._M, self._maps, self._valid_b, scores, nviews, cubic,
         )
         return scores, nviews
 
-    def sample_lattice_numpy(self, centres: np.ndarray, offsets: np.ndarray, log_eps: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    def sample_lattice_numpy(self, centres: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """numpy reference of sample_lattice: the rotation is applied to centres and offsets
         separately (R (c + o) + t = (R c + t) + R o), then broadcast."""
         c = np.matmul(self._R, centres.T) + self._t[:, :, None]  # (V, 3, J)
         o = np.matmul(self._R, offsets.T)  # (V, 3, L)
-        return self.sample_camera_frame(c.astype(np.float32)[:, :, :, None] + o.astype(np.float32)[:, :, None, :], log_eps)
+        return self.sample_camera_frame(c.astype(np.float32)[:, :, :, None] + o.astype(np.float32)[:, :, None, :])
 
-    def sample_camera_frame(self, pc: np.ndarray, log_eps: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    def sample_camera_frame(self, pc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Camera-frame points of every view (V, 3, J, L) -> (score (J, L), views (J, L))."""
         z = pc[:, 2]
         front = z > 1e-6
@@ -123,8 +115,6 @@ class PcmSampler:
         vals *= front
         vals *= self._valid[:, :, None]
         seen = vals > 0
-        if log_eps > 0:
-            vals = np.log1p(vals / np.float32(log_eps)) / np.float32(np.log1p(1.0 / log_eps))
         return vals.sum(axis=0), seen.sum(axis=0)
 
     def _bilinear(self, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
@@ -159,7 +149,6 @@ def lattice_search(
     spacing: float = 0.01,
     coarse_to_fine: bool = False,
     subcell: bool = True,
-    log_eps: float = 0.0,
     sampler: PcmSampler | None = None,
 ) -> LatticeResult:
     """Virtual markers of all PCM channels around `centres` (J, 3) (channel order of `pcm`).
@@ -168,8 +157,6 @@ def lattice_search(
     then the full resolution s around the coarse winner (125 + 27 instead of 1331 samples for k=5).
     subcell: refine the argmax along each axis by a parabola through it and its two lattice
     neighbours (at most s/2), which removes most of the lattice quantization error.
-    log_eps: > 0 searches the sum of log(1 + PCM / log_eps) over views (module doc); the
-    weights are still eq. 5's plain sums, taken at the final markers.
     sampler: a PcmSampler of these rig and PCMs already built for this frame (else built here).
     """
     sampler = sampler or PcmSampler(rig, pcm)
@@ -177,38 +164,30 @@ def lattice_search(
     if coarse_to_fine and k > 2:
         kc = 2
         sc = k * spacing / kc
-        best, _, _ = _search(sampler, centres, lattice_offsets(kc, sc), log_eps)
+        best, _, _ = _search(sampler, centres, lattice_offsets(kc, sc))
         centres = best
         # The coarse winner lies within +-sc/2 of the optimum; the fine lattice (+-k s) and the
         # sub-lattice refinement (one more step) cover that with k = ceil(sc / 2s - 1).
         k = min(k, max(1, int(np.ceil(sc / spacing / 2.0 - 1.0 - 1e-9))))
     offsets = lattice_offsets(k, spacing)
-    best, score, nviews = _search(sampler, centres, offsets, log_eps)
+    best, score, nviews = _search(sampler, centres, offsets)
     if subcell:
-        best = _refine(sampler, best, score, spacing, log_eps)
-    if log_eps > 0:  # eq. 5's weight at the marker
-        w, nviews = sampler.sample_lattice(best, _ORIGIN)
-        score, nviews = w[:, 0].astype(np.float64), nviews[:, 0]
+        best = _refine(sampler, best, score, spacing)
     return LatticeResult(best, score, nviews)
 
 
-_ORIGIN = np.zeros((1, 3))
-
-
-def _search(sampler: PcmSampler, centres: np.ndarray, offsets: np.ndarray,
-            log_eps: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    score, nviews = sampler.sample_lattice(centres, offsets, log_eps=log_eps)
+def _search(sampler: PcmSampler, centres: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    score, nviews = sampler.sample_lattice(centres, offsets)
     arg = score.argmax(axis=1)
     j = np.arange(len(centres))
     return centres + offsets[arg], score[j, arg].astype(np.float64), nviews[j, arg]
 
 
-def _refine(sampler: PcmSampler, best: np.ndarray, score: np.ndarray, spacing: float, log_eps: float = 0.0) -> np.ndarray:
+def _refine(sampler: PcmSampler, best: np.ndarray, score: np.ndarray, spacing: float) -> np.ndarray:
     """Sub-lattice refinement: a parabola along x, y and z through the marker and its two
-    lattice neighbours, on bicubic samples of the PCMs (bilinear samples peak on cell centres).
-    With log_eps the parabola fits log-PCMs, which near a Gaussian peak are exactly parabolic."""
+    lattice neighbours, on bicubic samples of the PCMs (bilinear samples peak on cell centres)."""
     steps = np.array([[0, 0, 0], [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float) * spacing
-    s, _ = sampler.sample_lattice(best, steps, cubic=_kernels.AVAILABLE, log_eps=log_eps)  # (J, 7)
+    s, _ = sampler.sample_lattice(best, steps, cubic=_kernels.AVAILABLE)  # (J, 7)
     s = s.astype(np.float64)
     c, minus, plus = s[:, :1], s[:, 1::2], s[:, 2::2]
     denom = minus - 2 * c + plus
@@ -229,5 +208,5 @@ def warm_up(rig: Rig) -> None:
         return
     A = np.array([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])
     pcm = PcmViews(np.zeros((1, 1, 4, 4), np.float32), A, [0], [0], [[True]], [1.0])
-    lattice_search(rig, pcm, np.zeros((1, 3)), k=3, spacing=0.02, coarse_to_fine=True, subcell=True, log_eps=0.01)
+    lattice_search(rig, pcm, np.zeros((1, 3)), k=3, spacing=0.02, coarse_to_fine=True, subcell=True)
     _warm = True

@@ -17,7 +17,7 @@ Nothing here reads ground truth.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -299,7 +299,7 @@ class MultiPersonConfig:
 @dataclass
 class Track:
     track_id: int
-    filter: object  # anything with .step(PcmViews) -> TrackResult (e.g. SpatiotemporalFilter)
+    filter: Any  # anything with .step(PcmViews) -> TrackResult (e.g. SpatiotemporalFilter)
     keypoints: np.ndarray  # (25, 3) last feedback keypoints (NaN before the first result)
     born: int
     unseen: int = 0

@@ -43,7 +43,7 @@ class OneEuroFilter:
         """dt: seconds since the previous sample when frames were skipped (None: 1 / rate_hz);
         the smoothing factors follow the real interval, so a skipped frame set is no jump."""
         x = np.asarray(x, dtype=np.float64)
-        if self._x is None or self._x.shape != x.shape:
+        if self._x is None or self._v is None or self._x.shape != x.shape:
             self._x, self._v = x.copy(), np.zeros_like(x)
             return x.copy()
         rate = self.rate_hz if dt is None or not dt > 0 else 1.0 / dt

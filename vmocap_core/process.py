@@ -231,7 +231,7 @@ def process_bag(
             by_topic[topics.pcm(v)] = (v, "image")
             by_topic[topics.pcm_info(v)] = (v, "info")
         total = sum(reader.message_counts.get(t, 0) for t in by_topic) // 2
-        stats = {"frames": 0, "tracking": 0, "seconds": 0.0}
+        stats: dict[str, Any] = {"frames": 0, "tracking": 0, "seconds": 0.0}
         with BagWriter(out_path, compression="zstd") as writer:
             bar = tqdm(total=total, unit="frame", desc="process", disable=not progress, file=sys.stderr)
 
@@ -288,9 +288,9 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
     sync: ApproximateSync[np.ndarray] = ApproximateSync(cams, max(tolerance_ns, 8_000_000), min_cameras=min_views)
     pipe = TrackerPipeline(rig, dict(tracker or {}))
     subject = SubjectOutputs(rig)
-    want = {_image_topic(reader, topics, c): c for c in cams}
+    want = {str(_image_topic(reader, topics, c)): c for c in cams}  # every camera has one (process_bag)
     compressed = {t for t in want if t.endswith("/compressed")}
-    stats = {"frames": 0, "tracking": 0, "seconds": 0.0, "pcm": provider.name}
+    stats: dict[str, Any] = {"frames": 0, "tracking": 0, "seconds": 0.0, "pcm": provider.name}
     feedback = None
     with BagWriter(out_path, compression="zstd") as writer:
         bar = tqdm(total=min(reader.message_counts.get(t, 0) for t in want), unit="frame", desc="process (CNN)",

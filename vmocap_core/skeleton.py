@@ -26,13 +26,13 @@ to the joints (keypoint table `KEYPOINT_PARENTS`); link lengths are parameters o
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import pinocchio as pin
 
 from . import _ik_kernels
-from .keypoints import INDEX, KEYPOINTS
+from .keypoints import KEYPOINTS
 
 JOINTS: tuple[str, ...] = (
     "root",
@@ -261,9 +261,6 @@ class Skeleton:
             names += [n] if n in REVOLUTE else [f"{n}_{a}" for a in ("rx", "ry", "rz")]
         return names
 
-    def with_dims(self, dims: BodyDimensions) -> "Skeleton":
-        return Skeleton(dims)
-
     # ---- configurations -----------------------------------------------------------------
     def neutral(self) -> np.ndarray:
         return pin.neutral(self.model)
@@ -363,13 +360,6 @@ class Skeleton:
         Jp *= self._support[:, None, :]
         return p, Jp
 
-    def bone_length_values(self, keypoints: np.ndarray) -> dict[str, np.ndarray]:
-        """Measured segment lengths of keypoint trajectories (..., 25, 3) per named bone."""
-        out = {}
-        for bone, (a, b) in BONES.items():
-            out[bone] = np.linalg.norm(keypoints[..., INDEX[a], :] - keypoints[..., INDEX[b], :], axis=-1)
-        return out
-
 
 # Keypoint pairs whose distance the model keeps constant (used for the bone-length metric).
 BONES: dict[str, tuple[str, str]] = {
@@ -385,7 +375,3 @@ BONES: dict[str, tuple[str, str]] = {
     "shoulders": ("left_shoulder", "right_shoulder"),
     "neck_left_shoulder": ("neck", "left_shoulder"),
 }
-
-
-def dims_replace(dims: BodyDimensions, **kw: object) -> BodyDimensions:
-    return replace(dims, **kw)

@@ -146,12 +146,12 @@ class ApproximateSync(Generic[T]):
         first = self._first if self._first is not None else now
         return [
             n for n in self.names
-            if (self._newest[n] if self._newest[n] is not None else first) < now - self.silent_after_ns
+            if (t if (t := self._newest[n]) is not None else first) < now - self.silent_after_ns
             and not self._stamps[n]
         ]
 
     def _drain(self) -> list[FrameSet[T]]:
-        out = []
+        out: list[FrameSet[T]] = []
         while True:
             fs = self._try_pivot(final=False)
             if fs is None:

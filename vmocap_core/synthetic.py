@@ -23,6 +23,8 @@ from .heatmaps import PcmViews, stride_affine
 from .keypoints import KEYPOINTS, LOWER_BODY, MIRROR, indices
 from .tracker import trunk_tilt
 
+ORIGIN = np.zeros(3)  # default rig centre
+
 
 @dataclass
 class NoiseModel:
@@ -40,7 +42,7 @@ class NoiseModel:
     inverted_amplitude: tuple[float, float] = (0.2, 0.6)
 
 
-def benchmark_rig(centre: np.ndarray = np.zeros(3), width: int = 1024, height: int = 768,
+def benchmark_rig(centre: np.ndarray = ORIGIN, width: int = 1024, height: int = 768,
                   volume_radius: float = 1.9, volume_height: float = 2.2, camera_radius: float = 5.0,
                   camera_height: float = 2.5) -> Rig:
     """4 cameras on the diagonals of a lab around a cylindrical capture volume (radius 1.9 m,

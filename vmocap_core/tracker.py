@@ -23,14 +23,14 @@ import pinocchio as pin
 
 from .camera import Rig
 from .heatmaps import PcmViews
+from .iir import LowPassFilter
 from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
-from .iir import LowPassFilter
 from .init_report import CORE, camera_mask
 from .keypoints import INDEX, KEYPOINTS
-from .one_euro import OneEuroFilter
 from .lattice import PcmSampler, lattice_search
 from .lattice import warm_up as warm_up_lattice
+from .one_euro import OneEuroFilter
 from .peak_refinement import refine_markers
 from .peak_refinement import warm_up as warm_up_refinement
 from .skeleton import BodyDimensions, Skeleton
@@ -50,11 +50,6 @@ class TrackerConfig:
     coarse_to_fine: bool = True  # same volume, ~9x fewer samples; measured equal to the full search
     subcell: bool = True
     prediction: str = "previous"  # lattice centre: "previous" (paper) or "constant_velocity"
-    # > 0: the lattice argmax maximizes the sum over views of log(1 + PCM / eps) instead of the
-    # paper's plain sum (our addition, lattice.py); 0 = eq. 1 as in the paper. Measured with
-    # eps 0.01: synthetic regular 28.7 -> 25.8 mm, inverted 26.3 -> 24.6 mm, but real data got
-    # worse (Shelf MPJPE 57.3 -> 59.1 mm, eps 0.3: 58.1; demo 11.63 -> 12.01 px), so off.
-    lattice_log_eps: float = 0.0
     min_views: int = 2  # a marker seen by fewer views gets weight 0
     # Our addition (peak_refinement.py): move each lattice marker to the robust triangulation of
     # the views' own PCM peaks within `refine_radius_cells` of its projection (False = the
@@ -121,8 +116,8 @@ class TrackerConfig:
     def validate(self) -> None:
         if self.refine_radius_cells < 1 or self.refine_max_error_px <= 0:
             raise ValueError("refine_radius_cells must be >= 1 and refine_max_error_px > 0")
-        if self.fps <= 0 or self.lattice_k < 0 or self.lattice_spacing <= 0 or self.lattice_log_eps < 0:
-            raise ValueError("fps, lattice_k and lattice_spacing must be positive, lattice_log_eps >= 0")
+        if self.fps <= 0 or self.lattice_k < 0 or self.lattice_spacing <= 0:
+            raise ValueError("fps, lattice_k and lattice_spacing must be positive")
         if self.identify_seconds < 0:
             raise ValueError("identify_seconds must be >= 0")
         if self.ik_prior_weight < 0 or self.ik_regularization < 0:
@@ -276,6 +271,7 @@ class MarkerStage:
     def _lattice(self, pcm: PcmViews) -> Markers:
         cfg = self.config
         centres = self.centres
+        assert centres is not None  # set by the previous frame's skeleton (markers run only while tracking)
         if cfg.prediction == "constant_velocity":
             centres = centres + self.velocity
         sampler = PcmSampler(self.rig, pcm)  # one per frame: the lattice search and the refinement
@@ -287,7 +283,6 @@ class MarkerStage:
             spacing=cfg.lattice_spacing,
             coarse_to_fine=cfg.coarse_to_fine,
             subcell=cfg.subcell,
-            log_eps=cfg.lattice_log_eps,
             sampler=sampler,
         )
         markers, weights, n_views = res.markers, res.weights, res.n_views
@@ -337,6 +332,7 @@ class MarkerStage:
             cam_uv[c, better] = uv[v][better]
             cam_w[c, better] = val[v][better]
         pts, resid = triangulate_robust(self.rig, cam_uv, cam_w, cfg.init_max_reprojection_px, cfg.min_views)
+        assert self.centres is not None  # called from _lattice
         near = np.linalg.norm(pts - self.centres[pcm.keypoints[sub]], axis=1) < cfg.reacquire_radius
         ok = np.isfinite(resid) & (resid <= cfg.init_max_reprojection_px) & near
         if not ok.any():
@@ -348,8 +344,7 @@ class MarkerStage:
         centres = markers.copy()
         centres[cand] = pts[ok]
         masked = PcmViews(pcm.maps, pcm.image_to_map, pcm.camera, pcm.keypoints, only, pcm.presence, pcm.stamp_ns)
-        alt = lattice_search(self.rig, masked, centres, k=1, spacing=cfg.lattice_spacing, subcell=cfg.subcell,
-                             log_eps=cfg.lattice_log_eps)
+        alt = lattice_search(self.rig, masked, centres, k=1, spacing=cfg.lattice_spacing, subcell=cfg.subcell)
         alt.markers, alt.weights, alt.n_views = alt.markers[cand], alt.weights[cand], alt.n_views[cand]
         better = alt.weights > weights[cand]
         markers, weights, n_views = markers.copy(), weights.copy(), n_views.copy()
@@ -605,6 +600,7 @@ class SkeletonStage:
         """Identification phase: collect the virtual markers; once there are enough, identify
         the skeleton on all of them and start tracking (the provisional one stays otherwise)."""
         cfg = self.config
+        assert self._identify is not None  # started by the first fit
         self._identify.append(np.where((markers.weights > 0)[:, None], markers.positions, np.nan))
         if len(self._identify) >= cfg.identify_frames:
             frames = np.array(self._identify)
@@ -648,6 +644,7 @@ def fit_skeleton(frames: np.ndarray, max_fit_error_m: float, q0: np.ndarray | No
         rms = float(np.sqrt(fit.cost))
         if best is None or rms < best[0]:
             best = (rms, sk, fit)
+    assert best is not None  # the loop above ran
     rms, sk, fit = best
     if rms <= max_fit_error_m:
         sk = refine_offsets(sk, frames, fit.q)

@@ -426,9 +426,7 @@ def run(args: argparse.Namespace) -> int:
     # the same frames offline (no DDS): what the graph adds on top of the computation
     offline_ms = offline_steady = None
     if args.images == "synthetic":
-        from vmocap_core.process import process_bag
-
-        from vmocap_core.process import BagPcmProvider, channel_keypoints, time_pipeline
+        from vmocap_core.process import BagPcmProvider, channel_keypoints, process_bag, time_pipeline
 
         off = process_bag(bag, work / "offline_out.mcap", rig, tracker={"fps": float(args.fps)}, keypoints=kps, progress=False)
         offline_ms = round(off["ms_per_frame"], 2)

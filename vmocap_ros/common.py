@@ -72,12 +72,6 @@ def declare(node: Any, params: list, values: dict[str, Any]) -> None:
         node.declare_parameter(p.name, value, desc)
 
 
-def now_ns() -> int:
-    import time
-
-    return time.time_ns()
-
-
 class StopFlag:
     """SIGINT/SIGTERM -> a flag the spin loop watches (rclpy's own handlers are disabled so
     that outputs are flushed in order before the context shuts down)."""

@@ -235,6 +235,7 @@ def _enc_string(out: _Out, value: Any) -> None:
 
 def _enc_prim_array(out: _Out, base: str, value: Any, n: int) -> None:
     code, size = _PRIM[base]
+    data: bytes | memoryview
     if base in _BYTES:
         # byte views are joined into the output as they are: their payload is copied once, in encode()
         if isinstance(value, np.ndarray):

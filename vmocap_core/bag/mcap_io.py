@@ -17,11 +17,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
+import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
-import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from ..errors import BagError
@@ -261,7 +261,7 @@ class BagReader:
             self._f.seek(0)
             reader = SeekingReader(self._f)
             reader._summary = self._summary
-            for schema, ch, rec in reader.iter_messages(
+            for _schema, ch, rec in reader.iter_messages(
                 topics=None if wanted is None else sorted(wanted), starting_at=start_ns, ending_before=end_ns, log_time_order=True
             ):
                 yield BagMessage(ch.topic, self.topics[ch.topic], rec.log_time, rec.data)
@@ -289,7 +289,7 @@ class BagReader:
             if self._mm is None:
                 self._mm = mmap.mmap(self._f.fileno(), 0, access=mmap.ACCESS_READ)
             mm = self._mm
-            entries = []
+            entries: list[tuple[int, int, int]] = []  # (log time, record offset, channel id)
             for ci in chunks:
                 # chunk record: opcode, length, start/end time, uncompressed size, crc, compression, records
                 (comp_len,) = struct.unpack_from("<I", mm, ci.chunk_start_offset + 37)

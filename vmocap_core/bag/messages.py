@@ -100,6 +100,7 @@ def image_msg(image: np.ndarray, ns: int, frame_id: str, encoding: str | None = 
 def image_array(msg: dict) -> np.ndarray:
     """Image message -> (H, W[, C]) array; rgb8 is converted to BGR; 32FC<N> -> (H, W, N) float32."""
     enc, h, w, step = msg["encoding"], msg["height"], msg["width"], msg["step"]
+    dtype: np.dtype
     if enc.startswith("32FC"):
         dtype, ch = np.dtype("<f4"), int(enc[4:])
     elif enc in _IMAGE_ENC:
@@ -112,7 +113,7 @@ def image_array(msg: dict) -> np.ndarray:
     data = msg["data"]
     if step < row or len(data) < step * h:
         raise BagError(f"image {w}x{h} {enc}: step {step} / {len(data)} bytes do not fit")
-    arr = np.frombuffer(data, dtype=np.uint8, count=step * h).reshape(h, step)[:, :row]
+    arr: np.ndarray = np.frombuffer(data, dtype=np.uint8, count=step * h).reshape(h, step)[:, :row]
     arr = arr.view(dtype).reshape(h, w, ch) if ch > 1 or enc.startswith("32FC") else arr.view(dtype).reshape(h, w)
     if enc == "rgb8":
         arr = arr[..., ::-1]
@@ -210,7 +211,7 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
     whole = sources[0] is not None and sources[0][0].n_views == V and all(
         s is not None and s[0] is sources[0][0] and s[1] == i for i, s in enumerate(sources))
     if whole:  # every view of one PcmViews, in order (in-process): what its data would hold
-        views = sources[0][0]
+        views = sources[0][0]  # type: ignore[index]  # `whole` checked sources[0] is not None
         maps = views.maps.astype(np.float32, copy=True)
         maps[~np.asarray(views.valid, dtype=bool)] = np.nan
         presence = np.asarray(views.presence, dtype=np.float32).astype(np.float64)
@@ -230,7 +231,7 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
                 presence[i] = np.float32(views.presence[v])
     # (V, J): an all-NaN channel says nothing; only a channel whose first cell is NaN can be one
     flat = maps.reshape(V * J, H * W)
-    valid = np.full(V * J, H * W > 0)  # an empty map says nothing either
+    valid: np.ndarray = np.full(V * J, H * W > 0)  # an empty map says nothing either
     if H * W:
         maybe = np.flatnonzero(np.isnan(flat[:, 0]))
         valid[maybe] = ~np.isnan(flat[maybe]).all(axis=1)
@@ -341,7 +342,7 @@ def skeleton_markers(ns: int, keypoints: np.ndarray | None) -> dict:
         return {"markers": [{"header": header(ns, WORLD_FRAME), "ns": "vmocap", "action": 3}]}
     K = np.asarray(keypoints, dtype=np.float64)
     ok = np.isfinite(K).all(axis=1)
-    bones = _BONE_IDX[ok[_BONE_IDX].all(axis=1)].ravel()
+    bones = _BONE_IDX[ok[_BONE_IDX].all(axis=1)].ravel()  # type: ignore[index]  # numpy stub: all(axis=1) is an array
 
     def pts(idx: np.ndarray) -> np.ndarray:
         return K[idx]  # (N, 3): geometry_msgs/Point[] encoded as one block (see cdr)

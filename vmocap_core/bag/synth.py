@@ -8,6 +8,7 @@ vmocap_core.synthetic's noise model). Capture stamps start at `t0_ns`, one per 1
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -15,6 +16,9 @@ from ..camera import Rig
 from ..graph_config import Topics
 from . import messages as M
 from .mcap_io import BagWriter
+
+if TYPE_CHECKING:
+    from ..synthetic import NoiseModel
 
 
 def write_synthetic_bag(
@@ -31,7 +35,7 @@ def write_synthetic_bag(
     t0_ns: int = 1_000_000_000_000,
     seed: int = 0,
     compression: str = "none",
-    noise: "NoiseModel | None" = None,
+    noise: NoiseModel | None = None,
 ) -> Path:
     """noise: the heatmaps' noise model (default: the benchmark's, at this stride)."""
     from ..synthetic import NoiseModel, SyntheticPcmSource
@@ -52,8 +56,8 @@ def write_synthetic_bag(
                     w.write(topics.image(cam.name), "sensor_msgs/msg/Image", M.image_msg(img, t, cam.name), t)
             if views is not None:
                 views.stamp_ns = t
-                for (img, info), v in zip(M.pcm_msgs(views, rig), range(views.n_views)):
+                for (pcm_img, info), v in zip(M.pcm_msgs(views, rig), range(views.n_views)):
                     name = rig[int(views.camera[v])].name
-                    w.write(topics.pcm(name), "sensor_msgs/msg/Image", img, t)
+                    w.write(topics.pcm(name), "sensor_msgs/msg/Image", pcm_img, t)
                     w.write(topics.pcm_info(name), "sensor_msgs/msg/CameraInfo", info, t)
     return Path(path)

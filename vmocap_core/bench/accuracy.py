@@ -17,6 +17,7 @@ import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -114,7 +115,7 @@ def score_run(run: MotionRun) -> dict[str, object]:
     }
 
 
-def _pool(results: list[dict[str, object]], who: str) -> dict[str, float | None]:
+def _pool(results: list[dict[str, Any]], who: str) -> dict[str, float | None]:
     """Frame-weighted pooling of per-motion figures."""
     keys = ("mpjpe_mm", "pck50", "pck100", "pck150")
     out: dict[str, float | None] = {}
@@ -123,16 +124,16 @@ def _pool(results: list[dict[str, object]], who: str) -> dict[str, float | None]
         v = np.array([r[who][k] if r[who][k] is not None else np.nan for r in results], dtype=float)
         ok = np.isfinite(v)
         out[k] = float((v[ok] * n[ok]).sum() / n[ok].sum()) if ok.any() else None
-    groups: dict[str, dict[str, float | None]] = {}
+    groups: dict[str, dict[str, float] | None] = {}
     for g in ("head", "upper_body", "lower_body"):
         rows = [r[who]["groups"][g] for r in results if r[who]["groups"][g] is not None]
         groups[g] = None
         if rows:  # a clip never tracked has n = 0 and None figures: it adds nothing
             gn = np.array([row["n"] for row in rows], float)
-            ok = [(row, w) for row, w in zip(rows, gn) if w > 0 and all(row[k] is not None for k in keys)]
-            if ok:
-                total = sum(w for _, w in ok)
-                groups[g] = {k: float(sum(row[k] * w for row, w in ok) / total) for k in keys}
+            full = [(row, w) for row, w in zip(rows, gn) if w > 0 and all(row[k] is not None for k in keys)]
+            if full:
+                total = sum(w for _, w in full)
+                groups[g] = {k: float(sum(row[k] * w for row, w in full) / total) for k in keys}
     out["groups"] = groups  # type: ignore[assignment]
     out["bone_length_std_m"] = max(r[who]["bone_length_std_m"] for r in results)
     return out
@@ -212,7 +213,7 @@ def _fmt(v: object) -> str:
     return "   -  " if v is None else f"{v:6.1f}"
 
 
-def print_table(result: dict[str, object]) -> None:
+def print_table(result: dict[str, Any]) -> None:
     print(f"{'motion':<14}{'inv':>4} | {'method MPJPE':>12} {'PCK50':>6} {'PCK100':>6} {'PCK150':>6} | {'baseline MPJPE':>14} {'PCK100':>6} | ratio")
     for name, r in result["motions"].items():
         m, b = r["method"], r["baseline"]

@@ -100,9 +100,9 @@ def _time_pair(a: Callable[[], object], b: Callable[[], object], repeat: int, la
             fn()
             r.append((time.perf_counter() - t0) * 1e3)
     out = []
-    for r in map(np.array, runs):
-        out.append({"median": round(float(np.median(r)), 2), "p95": round(float(np.percentile(r, 95)), 2),
-                    "min": round(float(r.min()), 2), "max": round(float(r.max()), 2), "runs": int(r.size)})
+    for ms in map(np.array, runs):
+        out.append({"median": round(float(np.median(ms)), 2), "p95": round(float(np.percentile(ms, 95)), 2),
+                    "min": round(float(ms.min()), 2), "max": round(float(ms.max()), 2), "runs": int(ms.size)})
     return out[0], out[1]
 
 
@@ -131,17 +131,17 @@ def measure(repeat: int = 30, threads: int = DEFAULT_THREADS, quiet: bool = Fals
     result["landmark"] = {}
     result["detector"] = {}
     one = Crops([0], [(W - 1) / 2, (H - 1) / 2], [H], [0.0])
-    for t in (1, 2):
+    for t in (1, 2):  # the lambdas below run inside _time, within this iteration (B023 does not apply)
         lm = BlazePoseLandmark(threads=t)
         det = PoseDetector(threads=t)
         crops4 = pcm.crops_from_skeleton(standing)
         result["landmark"][f"threads_{t}"] = {
-            "per_image_ms": _time(lambda: lm.infer(images[:1], one), repeat, f"landmark 1 image, {t} thr", quiet),
-            "frame_set_ms": _time(lambda: lm.infer(images, crops4), repeat, f"landmark 4 views, {t} thr", quiet),
+            "per_image_ms": _time(lambda: lm.infer(images[:1], one), repeat, f"landmark 1 image, {t} thr", quiet),  # noqa: B023
+            "frame_set_ms": _time(lambda: lm.infer(images, crops4), repeat, f"landmark 4 views, {t} thr", quiet),  # noqa: B023
         }
         result["detector"][f"threads_{t}"] = {
-            "per_image_ms": _time(lambda: det.detect(images[:1]), repeat, f"detector 1 image, {t} thr", quiet),
-            "frame_set_ms": _time(lambda: det.detect(images), repeat, f"detector 4 images, {t} thr", quiet),
+            "per_image_ms": _time(lambda: det.detect(images[:1]), repeat, f"detector 1 image, {t} thr", quiet),  # noqa: B023
+            "frame_set_ms": _time(lambda: det.detect(images), repeat, f"detector 4 images, {t} thr", quiet),  # noqa: B023
         }
     result["per_image_ms"] = result["landmark"][f"threads_{threads}"]["per_image_ms"] if threads in (1, 2) else {}
     # the lite landmark model, when fetched (`vmocap models fetch --lite`)

@@ -49,7 +49,7 @@ def load_qualisys_intrinsics(path: str | Path) -> Rig:
         root = ET.parse(path).getroot()
     except ET.ParseError as exc:
         raise RigFileError(path, "xml", str(exc)) from None
-    out = []
+    out: list[Camera] = []
     for cam in root.iter("camera"):
         name = cam.get("serial", f"cam{len(out)}")
         intr, fov = cam.find("intrinsic"), cam.find("fov_video")

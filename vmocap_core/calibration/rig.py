@@ -11,9 +11,22 @@ import numpy as np
 from ..camera import Camera, Rig
 from ..errors import CalibrationError
 from .boards import Board, Detection
-from .geometry import (BoardPose, Intrinsics, SceneObservations, board_poses, build_problem, bundle_adjust,
-                       calibrate_intrinsics, compose, initial_rig, intr_matrices, intr_vector, invert, rigid_align,
-                       rotation_angle_deg)
+from .geometry import (
+    BoardPose,
+    Intrinsics,
+    SceneObservations,
+    board_poses,
+    build_problem,
+    bundle_adjust,
+    calibrate_intrinsics,
+    compose,
+    initial_rig,
+    intr_matrices,
+    intr_vector,
+    invert,
+    rigid_align,
+    rotation_angle_deg,
+)
 from .observe import CameraViews, explain_no_board
 
 

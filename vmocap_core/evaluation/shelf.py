@@ -30,8 +30,8 @@ from ..multiperson import (
     MultiPersonConfig,
     MultiPersonTracker,
     PcmRenderer,
-    associate,
     assemble_people,
+    associate,
     to_keypoints,
 )
 from .pcp import PART_GROUPS, ShelfScore, to_shelf15

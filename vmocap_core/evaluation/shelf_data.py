@@ -16,6 +16,7 @@ from typing import Iterator
 
 import numpy as np
 
+from ..camera import Rig
 from ..errors import DetectionFileError
 from ..keypoints import INDEX
 
@@ -183,7 +184,7 @@ def read_gt(path: str | Path) -> list[GtFrame]:
 
 @dataclass
 class ShelfData:
-    rig: "object"
+    rig: Rig
     views: list[list[ViewFrame]]  # [camera][frame]
     gt: list[GtFrame]
     names: list[str] = field(default_factory=list)

@@ -98,7 +98,10 @@ class UrdfKinematics:
             rpy = np.fromstring(o.get("rpy", "0 0 0"), sep=" ") if o is not None else np.zeros(3)
             ax = j.find("axis")
             axis = np.fromstring(ax.get("xyz", "1 0 0"), sep=" ") if ax is not None else np.array([1.0, 0, 0])
-            row = (j.get("name"), j.find("parent").get("link"), j.find("child").get("link"), xyz, _rpy_matrix(rpy),
+            parent, child = j.find("parent"), j.find("child")
+            if parent is None or child is None or not j.get("name"):
+                raise TfError(f"URDF joint {j.get('name')!r}: a joint needs a name, a parent and a child link")
+            row = (str(j.get("name")), str(parent.get("link")), str(child.get("link")), xyz, _rpy_matrix(rpy),
                    axis / np.linalg.norm(axis), kind == "prismatic")
             if kind == "fixed":
                 fixed.append(row)

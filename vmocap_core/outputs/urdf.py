@@ -39,16 +39,25 @@ AXES = ("x", "y", "z")
 def _joint_table() -> tuple[list[str], np.ndarray, list[str], list[str]]:
     """URDF joint names, their axis index (0 x, 1 y, 2 z), parent and child links, in the
     order of the model's 40 DOF without the root."""
-    names, axes, parents, children = [], [], [], []
+    names: list[str] = []
+    axes: list[int] = []
+    parents: list[str] = []
+    children: list[str] = []
     parent_of = {j: _parent_joint(j) for j in JOINTS[1:]}
     for j in JOINTS[1:]:
         parent = SEGMENT[parent_of[j]]
         if j in REVOLUTE:
-            names.append(j), axes.append(1), parents.append(parent), children.append(SEGMENT[j])
+            names.append(j)
+            axes.append(1)
+            parents.append(parent)
+            children.append(SEGMENT[j])
             continue
         links = [parent, f"{j}_rx_link", f"{j}_ry_link", SEGMENT[j]]
         for a in range(3):
-            names.append(f"{j}_r{AXES[a]}"), axes.append(a), parents.append(links[a]), children.append(links[a + 1])
+            names.append(f"{j}_r{AXES[a]}")
+            axes.append(a)
+            parents.append(links[a])
+            children.append(links[a + 1])
     return names, np.array(axes), parents, children
 
 
@@ -201,9 +210,9 @@ class SubjectModel:
                 mass, com = 0.0, np.zeros(3)
                 for a, b, r in segs[link]:
                     lines += _cylinder(a, b, r)
-                    mm = 1000.0 * np.pi * r * r * max(np.linalg.norm(b - a), 1e-3)
+                    mm = 1000.0 * np.pi * r * r * max(float(np.linalg.norm(b - a)), 1e-3)
                     mass, com = mass + mm, com + mm * (a + b) / 2
-                length = max(np.linalg.norm(b - a) for a, b, _ in segs[link])
+                length = max(float(np.linalg.norm(b - a)) for a, b, _ in segs[link])
                 lines += _inertial(com / mass, mass, max(r for *_, r in segs[link]), length)
             lines += ["  </link>"]
         for j in SPHERICAL:

@@ -33,8 +33,8 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-from ..keypoints import INDEX, KEYPOINTS, LOWER_BODY
 from ..errors import ModelError
+from ..keypoints import INDEX, KEYPOINTS, LOWER_BODY
 from . import fetch, selfcheck
 from .crops import Crops
 from .model import DEFAULT_THREADS, PcmModel

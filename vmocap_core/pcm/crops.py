@@ -55,6 +55,7 @@ class Crops:
     def select(self, keep: np.ndarray) -> "Crops":
         """The crops where `keep` (V,) is True."""
         keep = np.asarray(keep, dtype=bool).reshape(len(self))
+        assert self.valid is not None  # set by __post_init__
         return Crops(self.camera[keep], self.center[keep], self.side[keep], self.rotation[keep], self.valid[keep])
 
     def image_to_crop(self, n: int) -> np.ndarray:
@@ -143,7 +144,7 @@ def crops_from_skeleton(
     if kp.shape != (len(KEYPOINTS), 3):
         raise ModelError(f"keypoints must be ({len(KEYPOINTS)}, 3), got {kp.shape}")
     uv, front = rig.project(kp)  # (C, 25, 2), (C, 25)
-    uv = np.where(front[..., None] & np.isfinite(kp).all(axis=1)[None, :, None], uv, np.nan)
+    uv = np.where(front[..., None] & np.isfinite(kp).all(axis=1)[None, :, None], uv, np.nan)  # type: ignore[index]  # numpy stub: all(axis=1) is an array
     center, side, rot = crops_from_keypoints_2d(uv, rotation, margin)
     wh = np.array([[c.width, c.height] for c in rig.cameras], dtype=np.float64)
     half = np.where(np.isfinite(side), side, 0.0)[:, None] * 0.7072  # circumradius of the square

@@ -56,7 +56,7 @@ class OpenPoseModel(PcmModel):
         if path is None:
             path = fetch.model_path("openpose_mobilenet_thin")
         self.config = config
-        self.input_size = tuple(config.input_size)
+        self.input_size = (int(config.input_size[0]), int(config.input_size[1]))
         self.stride = float(config.stride)
         self.channels_last = config.channels_last
         self.rgb = config.rgb

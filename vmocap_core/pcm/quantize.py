@@ -4,7 +4,7 @@
 `build()`: no images and no network, deterministic (the same bytes on every run with the pinned
 onnx / onnxruntime), a few seconds. What is learnt from images lives in a committed file,
 `vmocap_core/data/pcm/<model>_int8.json`, written by `calibrate()` from real crops
-(`python -m vmocap_core.pcm.quantize calibrate`: the Pose2Sim demo videos, detector crops):
+(`python -m vmocap_core.pcm.int8_calibration`: the Pose2Sim demo videos, detector crops):
 equalization scales, activation ranges and the GPTQ rounding of the small convolutions.
 
 Steps of `build()`:
@@ -51,14 +51,11 @@ frames; one single-threaded 256 x 256 crop, interleaved runs at load ~2.5):
 
 from __future__ import annotations
 
-import argparse
 import base64
 import hashlib
 import json
 import logging
-import sys
 import tempfile
-import time
 import zlib
 from pathlib import Path
 from typing import Sequence
@@ -260,11 +257,11 @@ def equalize(model: onnx.ModelProto, scales: dict[str, list[float]]) -> None:
     for key, s in scales.items():
         if key not in groups:
             raise ModelError(f"equalization group {key} is not in the prepared graph")
-        s = np.asarray(s, np.float64)
+        sc = np.asarray(s, np.float64)
         for p in groups[key]["producers"]:
-            factor_out[p] = factor_out.get(p, 1.0) * s
+            factor_out[p] = factor_out.get(p, 1.0) * sc
         for r in groups[key]["readers"]:
-            factor_in[r] = factor_in.get(r, 1.0) / s
+            factor_in[r] = factor_in.get(r, 1.0) / sc
     for name in sorted(set(factor_out) | set(factor_in)):
         n = nodes[name]
         W = numpy_helper.to_array(inits[n.input[1]]).astype(np.float64)
@@ -381,7 +378,7 @@ def build(float_path: Path, dst: Path, calibration: Path | None = None) -> None:
     data = float_path.read_bytes()
     if calib.get("float_sha256") != _sha256_bytes(data):
         raise ModelError(f"{calibration} was calibrated on another {float_path.name} (converter changed?); "
-                         "recalibrate: python -m vmocap_core.pcm.quantize calibrate")
+                         "recalibrate: python -m vmocap_core.pcm.int8_calibration")
     model = prepare(onnx.load_from_string(data))
     names = {n.name for n in model.graph.node}
     missing = [n for n in calib["quantize_nodes"] if n not in names]
@@ -425,39 +422,6 @@ def span_nodes(model: onnx.ModelProto, first: str, last: str) -> list[str]:
             out.append(n.name)
             out += [c.name for c in consumers.get(n.output[0], []) if c.op_type == "Clip"]
     return list(dict.fromkeys(out))
-
-
-def calibration_crops(step: int = 2) -> np.ndarray:
-    """(N, 256, 256, 3) uint8 BGR crops of the person in the Pose2Sim demo videos (detector
-    crops, every `step`-th frame of each camera)."""
-    import cv2
-
-    from ..calibration.datasets import pose2sim_demo
-    from .blazepose import BlazePoseLandmark
-    from .crops import Crops
-    from .detector import PoseDetector
-    from .fetch import model_dir
-
-    demo = pose2sim_demo(fetch=True)
-    if demo is None:
-        raise ModelError("the Pose2Sim demo videos are needed for calibration")
-    # the cached float files directly: the cache manifest names the calibration file's checksum
-    det = PoseDetector(model_dir() / "pose_detection.onnx")
-    lm = BlazePoseLandmark(model_dir() / "pose_landmark_full.onnx", precision="float")
-    crops = []
-    for video in sorted((demo / "videos").glob("cam*.mp4")):
-        cap = cv2.VideoCapture(str(video))
-        k = 0
-        while True:
-            ok, img = cap.read()
-            if not ok:
-                break
-            if k % step == 0:
-                for d in det.detect([img])[0][:1]:
-                    c, side, rot = d.crop()
-                    crops.append(lm.sample([img], lm.views_from_crops(Crops([0], [c], [side], [rot])))[0])
-            k += 1
-    return np.stack(crops)
 
 
 def _tensor_values(model: onnx.ModelProto, x: np.ndarray, tensors: Sequence[str]):
@@ -560,25 +524,3 @@ def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: P
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(calib, indent=0, sort_keys=True) + "\n")
     return calib
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    from . import fetch
-
-    ap = argparse.ArgumentParser(prog="python -m vmocap_core.pcm.quantize", description=__doc__.split("\n")[0])
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    c = sub.add_parser("calibrate", help="write vmocap_core/data/pcm/<model>_int8.json from the Pose2Sim videos")
-    c.add_argument("--model", default="pose_landmark_full", choices=sorted(INT8_SPAN))
-    c.add_argument("--step", type=int, default=2, help="every N-th video frame")
-    args = ap.parse_args(argv)
-    t0 = time.perf_counter()
-    crops = calibration_crops(args.step)
-    calib = calibrate(fetch.model_dir() / f"{args.model}.onnx", crops, INT8_SPAN[args.model], calibration_path(args.model),
-                      KEEP_FLOAT.get(args.model, ()))
-    print(f"{calibration_path(args.model)}: {len(crops)} crops, {len(calib['quantize_nodes'])} nodes int8 "
-          f"({time.perf_counter() - t0:.0f} s)")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass, field
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -31,9 +31,10 @@ def _varint(buf: bytes, pos: int) -> tuple[int, int]:
         shift += 7
 
 
-def _fields(buf: bytes) -> Iterator[tuple[int, int, object]]:
+def _fields(buf: bytes) -> Iterator[tuple[int, int, Any]]:
     """(field number, wire type, value) of one message; value is int or bytes."""
     pos, end = 0, len(buf)
+    val: int | bytes  # by wire type
     while pos < end:
         key, pos = _varint(buf, pos)
         num, wt = key >> 3, key & 7
@@ -99,7 +100,7 @@ def _tensor(buf: bytes) -> np.ndarray:
     vals = floats if floats else ints
     if not vals:
         return np.zeros(shape, dtype=dtype)
-    arr = np.array(vals, dtype=dtype)
+    arr: np.ndarray = np.array(vals, dtype=dtype)
     return (np.full(n, arr[-1], dtype=dtype) if arr.size < n else arr).reshape(shape)  # TF repeats the last value
 
 
@@ -108,11 +109,11 @@ class Node:
     name: str
     op: str
     inputs: list[str] = field(default_factory=list)
-    attr: dict[str, object] = field(default_factory=dict)
+    attr: dict[str, Any] = field(default_factory=dict)  # int, float, bytes, list, shape or tensor by attr type
 
 
-def _attr(buf: bytes) -> object:
-    for num, wt, val in _fields(buf):
+def _attr(buf: bytes) -> Any:
+    for num, _wt, val in _fields(buf):
         if num == 2:
             return bytes(val)
         if num == 3:

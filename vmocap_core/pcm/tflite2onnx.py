@@ -15,7 +15,7 @@ Constant subgraphs (DENSIFY -> DEQUANTIZE of the weights) are folded at conversi
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import onnx
@@ -40,7 +40,7 @@ _NHWC_TO_NCHW = (0, 3, 1, 2)
 _NCHW_TO_NHWC = (0, 2, 3, 1)
 
 
-def _options(op: tflite.Operator, cls: type) -> object:
+def _options(op: tflite.Operator, cls: type) -> Any:  # the flatbuffer options class named by `cls`
     table = op.BuiltinOptions()
     if table is None:
         raise ModelError(f"operator without options where {cls.__name__} was expected")
@@ -49,7 +49,7 @@ def _options(op: tflite.Operator, cls: type) -> object:
     return opt
 
 
-def _index_vector(kind: int, table: object) -> np.ndarray:
+def _index_vector(kind: int, table: Any) -> np.ndarray:
     cls = {
         tflite.SparseIndexVector.Int32Vector: tflite.Int32Vector,
         tflite.SparseIndexVector.Uint16Vector: tflite.Uint16Vector,

@@ -53,7 +53,7 @@ class V4L2FrameSource(FrameSource):
                  read_timeout_ms: int = 2000, backend: Any = None) -> None:
         self.device = f"/dev/video{device}" if isinstance(device, int) else str(device)
         self.name = camera or os.path.basename(self.device)
-        self.req = {"width": width, "height": height, "fps": fps, "fourcc": fourcc}
+        self.req: dict[str, Any] = {"width": width, "height": height, "fps": fps, "fourcc": fourcc}
         if fourcc is not None and len(fourcc) != 4:
             raise SourceError(f"camera {self.name}: pixel format must be a FOURCC like MJPG or YUYV, not '{fourcc}'")
         self.mono = mono
@@ -78,7 +78,7 @@ class V4L2FrameSource(FrameSource):
         r = self.req
         # Order matters for V4L2: the pixel format first, then size, then rate.
         if r["fourcc"]:
-            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*r["fourcc"]))
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*r["fourcc"]))
         if r["width"]:
             cap.set(cv2.CAP_PROP_FRAME_WIDTH, r["width"])
         if r["height"]:

@@ -73,7 +73,7 @@ class CameraNode(VmocapNode):
         import importlib
 
         try:
-            factory = getattr(importlib.import_module("vmocap_core.sources"), "make_source")
+            factory = importlib.import_module("vmocap_core.sources").make_source
         except (ImportError, AttributeError):
             raise VmocapError(f"camera source {kind!r} is not available (vmocap_core.sources.make_source missing)") from None
         return factory(kind, uri, camera)
