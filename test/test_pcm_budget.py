@@ -80,4 +80,4 @@ def test_bench_cnn_command_prints_variants_and_ratios(crops, capsys) -> None:
     for rows in r["precisions"].values():
         assert set(rows) == {"published", "slim_224"}
         assert rows["published"]["frame_set"]["ratio_to_published"] == 1.0
-        assert rows["slim_224"]["per_crop"]["median_ms"] > 0
+        assert rows["slim_224"]["per_crop"]["median_ms"] > 0 and rows["slim_224"]["frame_set"]["cpu_ms"] > 0
