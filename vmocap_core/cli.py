@@ -16,6 +16,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "accuracy"), "vmocap_core.bench.accuracy", "synthetic multi-camera accuracy benchmark"),
     (("bench", "speed"), "vmocap_core.bench.speed", "back-end time per frame"),
     (("bench", "pcm"), "vmocap_core.bench.pcm", "PCM (CNN) inference time"),
+    (("bench", "cnn"), "vmocap_core.bench.cnn", "CNN budget: time of each model variant, interleaved"),
     (("bench", "graph"), "vmocap_ros.bench_graph", "latency and rate of the ROS 2 node graph"),
     (("models", "fetch"), "vmocap_core.pcm.fetch", "obtain and convert the PCM models (no hubs)"),
     (("models", "check"), "vmocap_core.pcm.selfcheck", "check the int8 CNN against the float one on this CPU"),

@@ -118,6 +118,7 @@ def measure(repeat: int = 30, threads: int = DEFAULT_THREADS, quiet: bool = Fals
     result["model"] = pcm.landmark.path.stem
     result["precision"] = pcm.landmark.precision  # what the self-check chose on this CPU
     result["precision_reason"] = pcm.landmark.precision_reason
+    result["input_size"] = pcm.landmark.input_size[0]  # pcm/budget.py (VMOCAP_PCM_INPUT)
     check = selfcheck.last_verdict()
     result["cpu"] = check.cpu.describe() if check else selfcheck.cpu_info().describe()
     result["int8_kernels"] = check.int8_kernels if check else None
@@ -185,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
     f = lambda d: f"median {d['median']:.1f} ms, p95 {d['p95']:.1f}, min {d['min']:.1f} ({d['runs']} runs)"  # noqa: E731
     print(f"PCM timing at {W}x{H}, {N_CAMERAS} cameras (load average before {r['loadavg_before'][0]:.2f}, after {r['loadavg_after'][0]:.2f})")
     print(f"CPU: {r['cpu']}")
-    print(f"precision: {r['precision']} ({r['precision_reason']})")
+    print(f"precision: {r['precision']} ({r['precision_reason']}), input {r['input_size']} x {r['input_size']}")
     print(f"tracking frame set ({r['views']} views, crops from the skeleton, {r['threads']} threads, parallel={r['parallel']}, "
           f"model {r['model']}): {f(r['frame_set_ms'])}")
     print(f"  the same with the float model (interleaved): {f(r['float_frame_set_ms'])}")

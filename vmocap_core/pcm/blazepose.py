@@ -35,7 +35,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from ..errors import ModelError
 from ..keypoints import INDEX, KEYPOINTS, LOWER_BODY
-from . import fetch, selfcheck
+from . import budget, fetch, selfcheck
 from .crops import Crops
 from .model import DEFAULT_THREADS, PcmModel
 from .runner import DEFAULT_PARALLEL
@@ -129,8 +129,12 @@ class BlazePoseLandmark(PcmModel):
 
     def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS, variant: str = "full",
                  min_presence: float | None = None, parallel: str = DEFAULT_PARALLEL, precision: str | None = None,
-                 session_config: dict[str, str] | None = None) -> None:
-        """min_presence: views below it are invalid (default 0.5, MediaPipe's tracking threshold);
+                 session_config: dict[str, str] | None = None, input_size: int | None = None,
+                 slim: bool = True) -> None:
+        """input_size: crop side in network pixels (budget.input_size: 256 is the published
+        network, smaller sizes run the same weights on smaller crops, maps of input_size / 4);
+        slim: the heatmap convolution computes only the channels used (same maps; False: all 39);
+        min_presence: views below it are invalid (default 0.5, MediaPipe's tracking threshold);
         parallel: "views" or "intra" (runner.py); precision: "auto", "int8" or "float" (None: see
         `resolve_precision`; "auto" and "int8" run the self-check once per process, and "int8"
         raises where it fails); `path` overrides the cached model file (no self-check: the
@@ -138,6 +142,10 @@ class BlazePoseLandmark(PcmModel):
         if variant not in VARIANTS:
             raise ModelError(f"BlazePose variant must be one of {VARIANTS}, got {variant!r}")
         self.variant = variant
+        side = budget.input_size(input_size)
+        self.input_size, self.file_input_size = (side, side), (budget.NATIVE_SIZE, budget.NATIVE_SIZE)
+        self.map_size = side // 4
+        self.slim = bool(slim)
         request = resolve_precision(variant, precision)
         self.precision_reason = f"{request} requested"
         if path is None and request in ("auto", "int8"):
@@ -165,9 +173,17 @@ class BlazePoseLandmark(PcmModel):
         out.CopyFrom(model)
         g = out.graph
         source, axis, transpose = _heatmap_planes(g, "Identity_3")
+        channels = np.maximum(CHANNEL, 0).astype(np.int64)
+        if self.slim and not transpose:  # the heatmap convolution computes only the channels gathered
+            slim = budget.slim_conv(out, source, channels)
+            if slim is not None:
+                out, channels = slim
+                g = out.graph
+        out = budget.resize_input(out, self.input_size[0], (["Identity_1"], ["Identity_3"]))
+        g = out.graph
         mask = self.channel_valid.astype(np.float32).reshape(1, -1, 1, 1)
         g.initializer.extend([
-            numpy_helper.from_array(np.maximum(CHANNEL, 0).astype(np.int64), "_vm_channels"),
+            numpy_helper.from_array(channels.astype(np.int64), "_vm_channels"),
             numpy_helper.from_array(mask, "_vm_mask"),
         ])
         nodes = [helper.make_node("Gather", [source, "_vm_channels"], ["_vm_g"], axis=axis)]
@@ -178,13 +194,14 @@ class BlazePoseLandmark(PcmModel):
             helper.make_node("Mul", ["_vm_sig", "_vm_mask"], ["pcm"]),
         ]
         g.node.extend(nodes)
-        g.output.append(helper.make_tensor_value_info("pcm", TensorProto.FLOAT, ["batch", len(KEYPOINTS), 64, 64]))
+        g.output.append(helper.make_tensor_value_info("pcm", TensorProto.FLOAT, ["batch", len(KEYPOINTS), self.map_size, self.map_size]))
         return out
 
     def decode(self, outputs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         maps, presence = outputs
-        if maps.ndim != 4 or maps.shape[1:] != (len(KEYPOINTS), 64, 64):
-            raise ModelError(f"{self.path}: heatmap output shape {maps.shape}, expected (V, {len(KEYPOINTS)}, 64, 64)")
+        expect = (len(KEYPOINTS), self.map_size, self.map_size)
+        if maps.ndim != 4 or maps.shape[1:] != expect:
+            raise ModelError(f"{self.path}: heatmap output shape {maps.shape}, expected (V, *{expect})")
         pres = np.nan_to_num(presence.reshape(len(maps)).astype(np.float64), nan=0.0)
         return maps, np.clip(pres, 0.0, 1.0)
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import ModelError
 from . import fetch
-from .quantize import INT8_SPAN, KEEP_FLOAT, calibrate, calibration_path
+from .quantize import EXTRA_SPANS, INT8_SPAN, KEEP_FLOAT, calibrate, calibration_path
 
 
 def calibration_crops(models: Path, step: int = 2) -> np.ndarray:
@@ -63,7 +63,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     models = fetch.model_dir()
     crops = calibration_crops(models, args.step)
     calib = calibrate(models / f"{args.model}.onnx", crops, INT8_SPAN[args.model], calibration_path(args.model),
-                      KEEP_FLOAT.get(args.model, ()))
+                      KEEP_FLOAT.get(args.model, ()), EXTRA_SPANS.get(args.model, ()))
     print(f"{calibration_path(args.model)}: {len(crops)} crops, {len(calib['quantize_nodes'])} nodes int8 "
           f"({time.perf_counter() - t0:.0f} s)")
     return 0

@@ -146,6 +146,7 @@ class PcmModel(abc.ABC):
     """Base of every PCM model. Subclasses set the class attributes and implement `decode`."""
 
     input_size: tuple[int, int]  # (W, H) of the network input
+    file_input_size: tuple[int, int] | None = None  # (W, H) of the model file when extend_graph resizes it
     stride: float  # network input pixels per map cell
     channels_last: bool = True  # NHWC input (TFLite-born models) or NCHW
     rgb: bool = True  # the network wants RGB (our images are BGR)
@@ -170,7 +171,7 @@ class PcmModel(abc.ABC):
         if len(model.graph.input) != 1:
             raise ModelError(f"{self.path}: expected one input, found {len(model.graph.input)}")
         shape = [d.dim_param or d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim]
-        w, h = self.input_size
+        w, h = self.file_input_size or self.input_size
         expect = (h, w, 3) if self.channels_last else (3, h, w)
         if len(shape) != 4 or tuple(shape[1:]) != expect:
             raise ModelError(f"{self.path}: input shape {shape} does not fit (batch, {expect})")

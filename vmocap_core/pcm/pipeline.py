@@ -114,7 +114,7 @@ class BlazePosePcm:
             crops = crops.select(np.array([images[c] is not None for c in crops.camera], dtype=bool))
         if len(crops) == 0:
             J = len(KEYPOINTS)
-            return PcmViews(np.zeros((0, J, 64, 64)), np.zeros((0, 2, 3)), np.zeros(0), np.arange(J),
+            return PcmViews(np.zeros((0, J, self.landmark.map_size, self.landmark.map_size)), np.zeros((0, 2, 3)), np.zeros(0), np.arange(J),
                             np.zeros((0, J), bool), np.zeros(0), stamp_ns)
         return self.landmark.infer(images, crops, stamp_ns)
 

@@ -43,6 +43,9 @@ frames; one single-threaded 256 x 256 crop, interleaved runs at load ~2.5):
 - KEEP_FLOAT, the 64 x 64 skip branch into the decoder (Conv_25 depthwise, Conv_27): quantizing
   it raised the p95 from 0.19 to 0.40 cells in an incremental test, and that depthwise
   convolution runs slower in int8 (0.4 vs 0.14 ms).
+- EXTRA_SPANS, the presence head's 8 x 8 and 4 x 4 blocks (Conv_149..Conv_179): 5-6 % less time
+  per crop, heatmaps untouched, presence of the self-check's borderline crop 0.62 (float 0.68,
+  previous build 0.60). Its 2 x 2 blocks too: 13 % less time, but that presence falls to 0.13.
 - what limits the accuracy now is the uint8 grid of the 24- and 32-channel residual streams at
   64 x 64 and 32 x 32 (ranges +-100..300, spread evenly over them, so no range choice helps);
   starting the int8 span at Conv_32 (32 x 32) gives 0.036 / 0.18 but only ~7 % less time than the
@@ -66,13 +69,18 @@ from onnx import numpy_helper, shape_inference
 
 from ..errors import ModelError
 
-QUANTIZER_VERSION = "2"  # bump when build() changes its output
+QUANTIZER_VERSION = "3"  # bump when build() changes its output
 DATA_DIR = Path(__file__).resolve().parents[1] / "data" / "pcm"
 INPUT = "input_1"
 # model -> (first, last) Conv/Add of the prepared graph quantized, in graph order (with the ReLU6
 # after each): the encoder after the 128 x 128 stem, before the decoder (module doc).
 INT8_SPAN: dict[str, tuple[str, str]] = {
     "pose_landmark_full": ("Conv_6", "Conv_108"),
+}
+# further int8 spans: the 8 x 8 and 4 x 4 part of the presence head (the branch only the presence
+# score reads; the heatmaps do not depend on it). Its 2 x 2 blocks stay float (module doc).
+EXTRA_SPANS: dict[str, tuple[tuple[str, str], ...]] = {
+    "pose_landmark_full": (("Conv_149", "Conv_179"),),
 }
 # convolutions inside the span that stay float: the 64 x 64 skip branch into the decoder (module doc)
 KEEP_FLOAT: dict[str, tuple[str, ...]] = {
@@ -439,7 +447,8 @@ def _tensor_values(model: onnx.ModelProto, x: np.ndarray, tensors: Sequence[str]
         yield dict(zip(tensors, sess.run(list(tensors), {INPUT: x[i : i + 1]})))
 
 
-def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: Path, keep_float: Sequence[str] = ()) -> dict:
+def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: Path, keep_float: Sequence[str] = (),
+              extra: Sequence[tuple[str, str]] = ()) -> dict:
     """Everything build() learns from `crops` ((N, 256, 256, 3) uint8 BGR), written to the
     calibration file `out`: the equalization scales, the activation ranges of the int8 nodes
     (`span` without the `keep_float` convolutions) and the GPTQ rounding of their weights."""
@@ -460,6 +469,7 @@ def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: P
     # 2. activation ranges (MinMax) of the int8 nodes, onnxruntime's calibrator
     drop = {c for k in keep_float for c in span_nodes(model, k, k)}
     quantize = [n for n in span_nodes(model, *span) if n not in drop]
+    quantize += [n for s in extra for n in span_nodes(model, *s) if n not in drop and n not in quantize]
 
     from onnxruntime.quantization import CalibrationDataReader
 
@@ -516,6 +526,7 @@ def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: P
         "crops": f"{len(crops)} detector crops of the Pose2Sim Demo_SinglePerson videos (pose2sim==0.10.49)",
         "span": list(span),
         "keep_float": list(keep_float),
+        "extra_spans": [list(s) for s in extra],
         "quantize_nodes": quantize,
         "equalization": scales,
         "gptq": gptq,

@@ -202,7 +202,8 @@ def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tup
 
     cpu = cpu_info()
     batch = reference_crops()
-    flt = BlazePoseLandmark(fetch.model_path(f"pose_landmark_{variant}"), threads=1, variant=variant, precision="float")
+    flt = BlazePoseLandmark(fetch.model_path(f"pose_landmark_{variant}"), threads=1, variant=variant, precision="float",
+                            input_size=CROP)
     ref = flt.decode(flt.run(batch))
 
     def result(precision: str, reason: str, used: str | None = None, ms: dict | None = None) -> CheckResult:
@@ -216,7 +217,8 @@ def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tup
         return result("float", f"no int8 model ({exc})")
     q = None
     for name in kernels:
-        q = BlazePoseLandmark(int8_path, threads=1, variant=variant, precision="int8", session_config=INT8_KERNELS[name])
+        q = BlazePoseLandmark(int8_path, threads=1, variant=variant, precision="int8", session_config=INT8_KERNELS[name],
+                              input_size=CROP)
         tried[name] = agreement(ref, q.decode(q.run(batch)), flt.channel_valid)
         if tried[name].ok:
             break
