@@ -19,6 +19,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "graph"), "vmocap_ros.bench_graph", "latency and rate of the ROS 2 node graph"),
     (("models", "fetch"), "vmocap_core.pcm.fetch", "obtain and convert the PCM models (no hubs)"),
     (("process",), "vmocap_core.process", "run the pipeline offline on an MCAP bag"),
+    (("export",), "vmocap_core.export.cli", "export a processed bag as BVH, C3D, TRC or CSV"),
     (("launch",), "vmocap_ros.launcher", "start the ROS 2 node graph from a config"),
     (("play",), "vmocap_ros.player", "play an MCAP bag onto ROS 2 topics"),
     (("record",), "vmocap_ros.recorder", "record ROS 2 topics into an MCAP bag"),

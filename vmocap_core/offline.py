@@ -112,10 +112,31 @@ def _second_ik(sk: Skeleton, targets: np.ndarray, q_first: np.ndarray, config: T
     return qs, kps
 
 
+def segments(stamps_ns: np.ndarray, tracked: np.ndarray) -> list[slice]:
+    """Runs of tracked frames, also split where frame sets are missing (a stamp step over 1.5
+    frame periods): the smoother must not bridge a gap."""
+    if len(stamps_ns) > 1:
+        dt = np.diff(stamps_ns)
+        jump = np.concatenate([[False], dt > 1.5 * np.median(dt)])
+    else:
+        jump = np.zeros(len(stamps_ns), dtype=bool)
+    out = []
+    for seg in runs(tracked):
+        cuts = [seg.start] + [int(i) for i in np.flatnonzero(jump[seg.start + 1:seg.stop]) + seg.start + 1] + [seg.stop]
+        out += [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+    return out
+
+
 def reconstruct(results: Sequence[TrackResult], config: TrackerConfig, progress: bool = False) -> list[TrackResult]:
     """The offline pass over the live tracker's results of a whole recording (one person):
     new results, one per input, "tracking" on every frame of a tracked segment (the
     identification phase included), the input's status elsewhere."""
+    return identify_and_reconstruct(results, config, progress)[0]
+
+
+def identify_and_reconstruct(results: Sequence[TrackResult], config: TrackerConfig,
+                             progress: bool = False) -> tuple[list[TrackResult], Skeleton]:
+    """`reconstruct`, also returning the identified skeleton."""
     tracked = np.array([r.status in FEEDBACK_STATUSES for r in results], dtype=bool)
     if not tracked.any():
         raise OfflineError("the recording has no tracked frame: nothing to reconstruct")
@@ -125,7 +146,7 @@ def reconstruct(results: Sequence[TrackResult], config: TrackerConfig, progress:
     out = list(results)
     names = results[0].joint_names
     lengths = sk.dims.bone_lengths()
-    segs = runs(tracked)
+    segs = segments(np.array([r.stamp_ns for r in results], dtype=np.int64), tracked)
     for seg in tqdm(segs, desc="offline segments", disable=not progress or len(segs) < 2, leave=False):
         m, w = markers[seg], weights[seg]
         q1, kp1 = _first_ik(sk, m, w, config)
@@ -135,4 +156,4 @@ def reconstruct(results: Sequence[TrackResult], config: TrackerConfig, progress:
             r = results[t]
             out[t] = TrackResult(r.stamp_ns, "tracking", sk.to_angles(q2[i]), names, kp2[i], kp1[i], r.scores,
                                  r.markers, lengths)
-    return out
+    return out, sk

@@ -68,7 +68,7 @@ class _Kalman:
             # position and a broad one in the derivatives.
             self.x = np.zeros((self.n, z.size))
             self.x[0] = z
-            self.P = np.diag([self.R] + [1e2] * (self.n - 1))
+            self.P = np.diag([self.R] + [1e6] * (self.n - 1))
             return self.x.copy(), self.P.copy(), self.x.copy(), self.P.copy()
         xp = self.F @ self.x
         Pp = self.F @ self.P @ self.F.T + self.Q
