@@ -74,8 +74,10 @@ def bvh_text(session: Session, frames: slice) -> str:
     for i, (_, parent, _) in enumerate(nodes):
         children.setdefault(parent, []).append(i)
     lines = ["HIERARCHY"]
+    order: list[int] = []  # depth-first: the order of the channels in each MOTION line
 
     def emit(i: int, depth: int) -> None:
+        order.append(i)
         name, parent, off = nodes[i]
         ind = "\t" * depth
         o = Z_TO_Y_UP @ off
@@ -97,7 +99,7 @@ def bvh_text(session: Session, frames: slice) -> str:
     cols = []
     root_pos = session.angles[frames][:, [session.joint_names.index(f"root_{a}") for a in "xyz"]]
     cols.append(root_pos @ Z_TO_Y_UP.T)
-    for name, parent, _ in nodes:
+    for name, _, _ in (nodes[i] for i in order):
         # R' = A R A^T: the same rotation seen in the Y-up frame; fixed keypoint joints: none.
         R = np.einsum("ij,tjk,lk->til", Z_TO_Y_UP, rot[name], Z_TO_Y_UP) if name in rot else np.tile(np.eye(3), (T, 1, 1))
         cols.append(Rotation.from_matrix(R).as_euler("ZXY", degrees=True))
