@@ -295,7 +295,9 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
 
     provider = make_model_provider(model, rig)
     sync: ApproximateSync[np.ndarray] = ApproximateSync(cams, max(tolerance_ns, 8_000_000), min_cameras=min_views)
-    pipe = TrackerPipeline(rig, dict(tracker or {}))
+    offline = bool((tracker or {}).get("offline"))
+    pipe = TrackerPipeline(rig, dict(tracker or {}, smoothing_lag_frames=0) if offline else dict(tracker or {}))
+    kept: list[tuple[Any, Any]] = []
     want = {topics.image(c): c for c in cams}
     stats = {"frames": 0, "tracking": 0, "seconds": 0.0, "pcm": provider.name}
     feedback = None
@@ -313,7 +315,11 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
                 markers, result = pipe.step(pcm)
                 feedback = feedback_of(result)
                 stats["seconds"] += time.perf_counter() - t0
-                _write_outputs(writer, topics, markers, result, fs.stamp_ns, stats)
+                if offline:
+                    kept.append((markers, result))
+                else:
+                    _write_outputs(writer, topics, markers, result, fs.stamp_ns, stats)
+                    _write_subject(writer, pipe.skeleton, result, stats)
             bar.update(len(sets))
 
         for m in reader.messages(list(want)):
@@ -321,6 +327,9 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
             handle(sync.add(want[m.topic], M.stamp_ns(msg), M.image_array(msg)))
         handle(sync.flush())
         bar.close()
+        if offline and kept:
+            _write_offline(writer, topics, kept, pipe.skeleton.config, stats, progress)
+    stats.pop("_subject", None)
     stats["sync"] = sync.stats().as_dict()
     stats["ms_per_frame"] = 1e3 * stats["seconds"] / max(stats["frames"], 1)
     return stats
