@@ -70,3 +70,14 @@ def test_lag_and_offline_modes_on_a_clip(walk) -> None:
     assert lag_run.status[-4] == "tracking"
     assert off["mpjpe_mm"] < lag["mpjpe_mm"] < live["mpjpe_mm"], (off, lag, live)
     assert off["bone_length_std_m"] < 1e-6
+
+
+def test_offline_on_a_recording_never_tracked_is_a_clear_error() -> None:
+    from vmocap_core.errors import VmocapError
+    from vmocap_core.offline import reconstruct
+    from vmocap_core.tracker import TrackResult
+
+    nan = np.full((25, 3), np.nan)
+    results = [TrackResult(k, "initializing", np.full(40, np.nan), [], nan, nan, np.zeros(25), nan) for k in range(5)]
+    with pytest.raises(VmocapError, match="no tracked frame"):
+        reconstruct(results, TrackerConfig(offline=True))

@@ -11,6 +11,7 @@ once (n x n) and the states of all channels (n, C) are updated together.
 from __future__ import annotations
 
 from collections import deque
+from typing import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,15 +82,17 @@ class _Kalman:
         return xp, Pp, self.x.copy(), self.P.copy()
 
 
-def _rts_back(F: np.ndarray, xs: np.ndarray, Ps: np.ndarray, xp: np.ndarray, Pp: np.ndarray,
-              xf: list[np.ndarray], Pf: list[np.ndarray], stop: int) -> tuple[np.ndarray, np.ndarray]:
-    """RTS backward recursion from the smoothed state (xs, Ps) of the last frame down to
-    index `stop` of the filtered lists; xp/Pp[k] are the predictions of frame k."""
-    for k in range(len(xf) - 2, stop - 1, -1):
+def _rts_back(F: np.ndarray, xp: list[np.ndarray], Pp: list[np.ndarray], xf: list[np.ndarray],
+              Pf: list[np.ndarray]) -> Iterator[np.ndarray]:
+    """RTS backward recursion over filtered frames: yields the smoothed states (n, C) from the
+    last frame to the first; xp/Pp[k] are the predictions of frame k."""
+    xs, Ps = xf[-1], Pf[-1]
+    yield xs
+    for k in range(len(xf) - 2, -1, -1):
         G = Pf[k] @ F.T @ np.linalg.inv(Pp[k + 1])
         xs = xf[k] + G @ (xs - xp[k + 1])
         Ps = Pf[k] + G @ (Ps - Pp[k + 1]) @ G.T
-    return xs, Ps
+        yield xs
 
 
 def rts_smooth(x: np.ndarray, model: MotionModel) -> np.ndarray:
@@ -99,19 +102,9 @@ def rts_smooth(x: np.ndarray, model: MotionModel) -> np.ndarray:
     T = x.shape[0]
     flat = x.reshape(T, -1)
     kf = _Kalman(model)
-    xp, Pp, xf, Pf = [], [], [], []
-    for t in range(T):
-        a, b, c, d = kf.step(flat[t])
-        xp.append(a), Pp.append(b), xf.append(c), Pf.append(d)
-    out = np.empty_like(flat)
-    xs, Ps = xf[-1], Pf[-1]
-    out[-1] = xs[0]
-    F = kf.F
-    for k in range(T - 2, -1, -1):
-        G = Pf[k] @ F.T @ np.linalg.inv(Pp[k + 1])
-        xs = xf[k] + G @ (xs - xp[k + 1])
-        Ps = Pf[k] + G @ (Ps - Pp[k + 1]) @ G.T
-        out[k] = xs[0]
+    steps = [kf.step(flat[t]) for t in range(T)]
+    back = _rts_back(kf.F, *(list(v) for v in zip(*steps)))
+    out = np.array([xs[0] for xs in back])[::-1]
     return out.reshape(x.shape)
 
 
@@ -136,11 +129,9 @@ class FixedLagSmoother:
         self._hist.append(self._kf.step(x.reshape(-1)))
         if len(self._hist) <= self.lag:
             return None
-        xp = [h[0] for h in self._hist]
-        Pp = [h[1] for h in self._hist]
-        xf = [h[2] for h in self._hist]
-        Pf = [h[3] for h in self._hist]
-        xs, _ = _rts_back(self._kf.F, xf[-1], Pf[-1], xp, Pp, xf, Pf, 0)
+        xs = None
+        for xs in _rts_back(self._kf.F, *(list(v) for v in zip(*self._hist))):
+            pass  # down to the oldest frame of the window
         return xs[0].reshape(x.shape)
 
 
