@@ -77,7 +77,8 @@ def identify_subject(frames: np.ndarray, max_fit_error_m: float, n_fit: int = 16
     return refine_offsets(sk, sub, q0)
 
 
-def _first_ik(sk: Skeleton, markers: np.ndarray, weights: np.ndarray, config: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
+def _first_ik(sk: Skeleton, markers: np.ndarray, weights: np.ndarray, config: TrackerConfig,
+              bar: tqdm) -> tuple[np.ndarray, np.ndarray]:
     """Forward first IK over one segment: (q (T, nq), keypoints (T, 25, 3))."""
     T = len(markers)
     w0 = np.where(np.isfinite(markers[0]).all(axis=1), weights[0], 0.0)
@@ -90,10 +91,12 @@ def _first_ik(sk: Skeleton, markers: np.ndarray, weights: np.ndarray, config: Tr
                      regularization=config.ik_regularization, prior=q if prior_w > 0 else None, prior_weight=prior_w)
         q = r.q
         qs[t], kps[t] = r.q, r.keypoints
+        bar.update()
     return qs, kps
 
 
-def _second_ik(sk: Skeleton, targets: np.ndarray, q_first: np.ndarray, config: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
+def _second_ik(sk: Skeleton, targets: np.ndarray, q_first: np.ndarray, config: TrackerConfig,
+               bar: tqdm) -> tuple[np.ndarray, np.ndarray]:
     """Second IK to the smoothed keypoints (warm start; restart from the first IK's pose when
     the fit stays poor, as the live stage does)."""
     T = len(targets)
@@ -109,6 +112,7 @@ def _second_ik(sk: Skeleton, targets: np.ndarray, q_first: np.ndarray, config: T
             r = retry if retry.cost < r.cost else r
         q = r.q
         qs[t], kps[t] = r.q, r.keypoints
+        bar.update()
     return qs, kps
 
 
@@ -147,13 +151,15 @@ def identify_and_reconstruct(results: Sequence[TrackResult], config: TrackerConf
     names = results[0].joint_names
     lengths = sk.dims.bone_lengths()
     segs = segments(np.array([r.stamp_ns for r in results], dtype=np.int64), tracked)
-    for seg in tqdm(segs, desc="offline segments", disable=not progress or len(segs) < 2, leave=False):
+    bar = tqdm(total=2 * int(tracked.sum()), desc="offline IK", unit="frame", disable=not progress, leave=False)
+    for seg in segs:
         m, w = markers[seg], weights[seg]
-        q1, kp1 = _first_ik(sk, m, w, config)
+        q1, kp1 = _first_ik(sk, m, w, config, bar)
         smooth = smooth_keypoints(kp1, config)
-        q2, kp2 = _second_ik(sk, smooth, q1, config)
+        q2, kp2 = _second_ik(sk, smooth, q1, config, bar)
         for i, t in enumerate(range(seg.start, seg.stop)):
             r = results[t]
             out[t] = TrackResult(r.stamp_ns, "tracking", sk.to_angles(q2[i]), names, kp2[i], kp1[i], r.scores,
                                  r.markers, lengths)
+    bar.close()
     return out, sk
