@@ -22,6 +22,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("models", "check"), "vmocap_core.pcm.selfcheck", "check the int8 CNN against the float one on this CPU"),
     (("process",), "vmocap_core.process", "run the pipeline offline on an MCAP bag"),
     (("config", "check"), "vmocap_core.config_check", "validate a graph config and print the resolved parameters"),
+    (("export",), "vmocap_core.export.cli", "export a processed bag as BVH, C3D, TRC or CSV"),
     (("launch",), "vmocap_ros.launcher", "start the ROS 2 node graph from a config"),
     (("play",), "vmocap_ros.player", "play an MCAP bag onto ROS 2 topics"),
     (("record",), "vmocap_ros.recorder", "record ROS 2 topics into an MCAP bag"),

@@ -25,6 +25,7 @@ from .bag import BagReader, BagWriter
 from .bag import messages as M
 from .camera import Rig
 from .errors import BagError, HeatmapError
+from .export.session import SUBJECT_STATUS
 from .graph_config import Topics
 from .heatmaps import PcmViews
 from .keypoints import KEYPOINTS, indices
@@ -224,7 +225,10 @@ def process_bag(
             return _process_images(reader, out_path, rig, cams, topics, tracker, model, tolerance_ns,
                                    min_views, progress)
         asm = PcmAssembler(rig, view_names, kp, tolerance_ns, min_views)
-        pipe = TrackerPipeline(rig, dict(tracker or {}))
+        offline = bool((tracker or {}).get("offline"))
+        # Offline: the live pass without lag; its results are kept for the whole-recording pass.
+        pipe = TrackerPipeline(rig, dict(tracker or {}, smoothing_lag_frames=0) if offline else dict(tracker or {}))
+        kept: list[tuple[Any, Any]] = []
         subject = SubjectOutputs(rig)
         by_topic = {}
         for v in view_names:
@@ -240,7 +244,11 @@ def process_bag(
                     t0 = time.perf_counter()
                     markers, result = pipe.step(pcm)
                     stats["seconds"] += time.perf_counter() - t0
-                    _write_outputs(writer, topics, markers, result, pcm.stamp_ns, stats, subject)
+                    if offline:
+                        kept.append((markers, result))
+                    else:
+                        _write_outputs(writer, topics, markers, result, pcm.stamp_ns, stats, subject)
+                        _write_subject(writer, pipe.skeleton, result, stats)
                 bar.update(len(pcms))
 
             for m in reader.messages(list(by_topic)):
@@ -249,9 +257,12 @@ def process_bag(
                 handle(asm.add_image(view, msg) if kind == "image" else asm.add_info(view, msg))
             handle(asm.flush())
             bar.close()
+            if offline and kept:
+                _write_offline(writer, topics, kept, pipe.skeleton.config, stats, progress, subject)
             if asm.bad_views and stats["frames"] == 0:
                 raise HeatmapError(f"{in_path}: no usable PCM frame set ({asm.bad_views} rejected): {asm.last_error}")
             st = asm.sync.stats().as_dict()
+            stats.pop("_subject", None)
             writer.write(Topics.diagnostics, DIAG, M.diagnostics_msg(reader.end_ns, [
                 (0, "vmocap_process: sync", "offline", {k: json.dumps(v) for k, v in st.items()}),
             ]), reader.end_ns)
@@ -278,6 +289,33 @@ def _write_outputs(writer: BagWriter, topics: Topics, markers, result, stamp_ns:
     stats["tracking"] += result.status == "tracking"
 
 
+def _write_subject(writer: BagWriter, stage: Any, result: Any, stats: dict[str, Any]) -> None:
+    """The subject's body dimensions (what a BVH export needs) on /diagnostics, whenever the
+    live skeleton stage starts tracking with a new identification."""
+    sk = stage.skeleton
+    if result.status == "tracking" and sk is not None and stats.get("_subject") is not sk:
+        stats["_subject"] = sk
+        writer.write(Topics.diagnostics, DIAG, subject_message(result.stamp_ns, sk.dims), result.stamp_ns)
+
+
+def subject_message(stamp_ns: int, dims: Any) -> dict:
+    return M.diagnostics_msg(stamp_ns, [(0, SUBJECT_STATUS, "body dimensions (m)", {"dims": json.dumps(dims.to_dict())})])
+
+
+def _write_offline(writer: BagWriter, topics: Topics, kept: list, config: Any, stats: dict[str, Any],
+                   progress: bool, subject: SubjectOutputs | None = None) -> None:
+    """The whole-recording pass (offline.py) over the live results, then the outputs."""
+    from .offline import identify_and_reconstruct
+
+    t0 = time.perf_counter()
+    results, sk = identify_and_reconstruct([r for _, r in kept], config, progress=progress)
+    stats["seconds"] += time.perf_counter() - t0
+    first = next(r.stamp_ns for r in results if r.status == "tracking")
+    writer.write(Topics.diagnostics, DIAG, subject_message(first, sk.dims), first)
+    for (markers, _), result in zip(kept, results):
+        _write_outputs(writer, topics, markers, result, result.stamp_ns, stats, subject)
+
+
 def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topics: Topics, tracker, model: str,
                     tolerance_ns: int, min_views: int, progress: bool) -> dict[str, Any]:
     """Images (raw or compressed) -> approximate-time sync -> CNN (crops from the previous frame's skeleton) ->
@@ -286,7 +324,9 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
 
     provider = make_model_provider(model, rig)
     sync: ApproximateSync[np.ndarray] = ApproximateSync(cams, max(tolerance_ns, 8_000_000), min_cameras=min_views)
-    pipe = TrackerPipeline(rig, dict(tracker or {}))
+    offline = bool((tracker or {}).get("offline"))
+    pipe = TrackerPipeline(rig, dict(tracker or {}, smoothing_lag_frames=0) if offline else dict(tracker or {}))
+    kept: list[tuple[Any, Any]] = []
     subject = SubjectOutputs(rig)
     want = {str(_image_topic(reader, topics, c)): c for c in cams}  # every camera has one (process_bag)
     compressed = {t for t in want if t.endswith("/compressed")}
@@ -306,7 +346,11 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
                 markers, result = pipe.step(pcm)
                 feedback = feedback_of(result)
                 stats["seconds"] += time.perf_counter() - t0
-                _write_outputs(writer, topics, markers, result, fs.stamp_ns, stats, subject)
+                if offline:
+                    kept.append((markers, result))
+                else:
+                    _write_outputs(writer, topics, markers, result, fs.stamp_ns, stats, subject)
+                    _write_subject(writer, pipe.skeleton, result, stats)
             bar.update(len(sets))
 
         for m in reader.messages(list(want)):
@@ -315,6 +359,9 @@ def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topi
             handle(sync.add(want[m.topic], M.stamp_ns(msg), image))
         handle(sync.flush())
         bar.close()
+        if offline and kept:
+            _write_offline(writer, topics, kept, pipe.skeleton.config, stats, progress, subject)
+    stats.pop("_subject", None)
     stats["sync"] = sync.stats().as_dict()
     stats["ms_per_frame"] = 1e3 * stats["seconds"] / max(stats["frames"], 1)
     return stats
@@ -351,6 +398,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recover", action="store_true", help="read a truncated bag up to the damage")
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--json", action="store_true", help="print the counts as JSON")
+    parser.add_argument("--offline", action="store_true", help="offline mode: whole-recording identification, "
+                        "RTS smoother, second IK (tracker.offline)")
+    parser.add_argument("--plots", type=Path, default=None, help="write joint-angle and keypoint-speed plots (PNG) here")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -368,8 +418,11 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(rig_path)
     if p["cameras"]:
         rig = rig.subset(p["cameras"])
+    tracker = cfg.tracker_dict(p)
+    if args.offline:
+        tracker["offline"] = True
     stats = process_bag(
-        args.input, args.output, rig, tracker=cfg.tracker_dict(p), keypoints=p["pcm_keypoints"],
+        args.input, args.output, rig, tracker=tracker, keypoints=p["pcm_keypoints"],
         views=p["views"] or None, namespace=p["namespace"], tolerance_ns=int(p["sync_tolerance_ms"] * 1e6),
         min_views=p["min_cameras"], recover=args.recover, progress=not args.no_progress,
         model=cfg.node_params("vmocap_pcm")["model"] if cfg.node_params("vmocap_pcm")["source"] == "model" else "blazepose",
@@ -379,6 +432,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"{stats['frames']} frame sets, {stats['tracking']} tracked, "
               f"{stats['ms_per_frame']:.2f} ms per frame -> {args.output}")
+    if args.plots:
+        from .export.plots import plot_session
+        from .export.session import load_session
+
+        for f in plot_session(load_session(args.output), args.plots):
+            print(f"plot: {f}")
     return 0
 
 

@@ -34,6 +34,7 @@ from .one_euro import OneEuroFilter
 from .peak_refinement import refine_markers
 from .peak_refinement import warm_up as warm_up_refinement
 from .skeleton import BodyDimensions, Skeleton
+from .smoothing import FixedLagSmoother, MotionModel
 from .triangulation import triangulate_robust
 
 N_KP = len(KEYPOINTS)
@@ -87,6 +88,23 @@ class TrackerConfig:
     filter_order: int = 1
     filter_cutoff_hz: float = 3.0
     filter_lag_compensation: bool = True
+    # Our addition, smoothing.py: a Rauch-Tung-Striebel smoother of the first IK's keypoints on
+    # a kinematic motion model ("cv" constant velocity, "ca" constant acceleration).
+    # smoothing_lag_frames > 0 replaces the low-pass above live: fixed-lag smoothing, each
+    # output is the frame that many frames back (status "smoothing" while the window fills).
+    smoothing_lag_frames: int = 0
+    smoother_model: str = "ca"
+    smoother_process_noise: float = 2000.0  # (m/s^3)^2/Hz for "ca", (m/s^2)^2/Hz for "cv"
+    smoother_measurement_noise_m: float = 0.02
+    # Offline mode (offline.py, whole recordings only): identification on all tracked frames,
+    # first IK, fixed-interval smoothing ("rts" with the model above, or zero-phase "gaussian"),
+    # second IK. Read by `vmocap process` and `vmocap bench accuracy`; the live tracker ignores it.
+    offline: bool = False
+    offline_smoother: str = "rts"
+    offline_gaussian_sigma_frames: float = 1.5
+    offline_ik_iterations: int = 3
+    offline_ik_prior_weight: float = 5e-4  # weaker than live: the causal prior lags, the smoother does its work
+    offline_second_ik_iterations: int = 3
     # Initialization (II-C)
     init_frames: int = 5  # consecutive agreeing frames needed
     # Our addition: after the provisional fit on those frames, track for this long (status
@@ -129,6 +147,11 @@ class TrackerConfig:
         if self.filter_kind not in ("one_euro", "butterworth"):
             raise ValueError(f"filter_kind must be 'one_euro' or 'butterworth', not {self.filter_kind!r}")
         make_filter(self)  # the filter's own checks (cutoffs, order)
+        if self.smoothing_lag_frames < 0 or self.offline_smoother not in ("rts", "gaussian"):
+            raise ValueError("smoothing_lag_frames must be >= 0, offline_smoother 'rts' or 'gaussian'")
+        if self.offline_ik_iterations < 1 or self.offline_second_ik_iterations < 1 or self.offline_ik_prior_weight < 0:
+            raise ValueError("offline IK iterations must be >= 1 and the prior weight >= 0")
+        smoother_model(self)  # the motion model's own checks
 
     @property
     def identify_frames(self) -> int:
@@ -161,15 +184,21 @@ def make_filter(config: TrackerConfig) -> LowPassFilter | OneEuroFilter:
     return LowPassFilter(config.filter_order, config.filter_cutoff_hz, config.fps, config.filter_lag_compensation)
 
 
+def smoother_model(config: TrackerConfig) -> MotionModel:
+    """The kinematic model of the RTS smoothers (fixed-lag live, fixed-interval offline)."""
+    return MotionModel(config.smoother_model, config.smoother_process_noise, config.smoother_measurement_noise_m,
+                       config.fps)
+
+
 # Statuses whose raw keypoints are fed back to the lattice search (the others re-initialize);
 # only "tracking" results are output.
-FEEDBACK_STATUSES = ("tracking", "identifying")
+FEEDBACK_STATUSES = ("tracking", "identifying", "smoothing")
 
 
 @dataclass
 class TrackResult:
     stamp_ns: int
-    status: str  # "initializing" | "identifying" | "tracking" | "lost"
+    status: str  # "initializing" | "identifying" | "smoothing" | "tracking" | "lost"
     q: np.ndarray  # (40,) published DOF after the second IK (see Skeleton.to_angles)
     joint_names: list[str]
     keypoints: np.ndarray  # (25, 3) filtered output
@@ -493,6 +522,10 @@ class SkeletonStage:
         self._q_raw: np.ndarray | None = None
         self._q_out: np.ndarray | None = None
         self._filter = make_filter(self.config)
+        # Fixed-lag mode: the smoother and the frames (stamp, weights, markers, first-IK q) it delays.
+        lag = self.config.smoothing_lag_frames
+        self._lag = FixedLagSmoother(smoother_model(self.config), lag) if lag > 0 else None
+        self._delayed: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=lag + 1)
         self.status = "initializing"
         self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
         self._last_stamp: int | None = None
@@ -510,6 +543,9 @@ class SkeletonStage:
         self._identify = None
         self._q_raw = self._q_out = None
         self._filter.reset()
+        if self._lag is not None:
+            self._lag.reset()
+        self._delayed.clear()
         self.status = "initializing"
 
     def step(self, markers: Markers) -> TrackResult:
@@ -532,14 +568,24 @@ class SkeletonStage:
         if self._identify is not None:
             return self._identifying(markers, first.keypoints)
         t1 = time.perf_counter()
-        smooth = self._filter(first.keypoints, dt) if isinstance(self._filter, OneEuroFilter) else self._filter(first.keypoints)
+        frame = (markers.stamp_ns, markers.weights.copy(), markers.positions.copy(), first.q)
+        if self._lag is not None:
+            smooth = self._lag(first.keypoints)
+            self._delayed.append(frame)
+            if smooth is None:
+                return self._smoothing(markers, first.keypoints)
+            frame = self._delayed[0]  # the output is the frame `lag` back
+        elif isinstance(self._filter, OneEuroFilter):
+            smooth = self._filter(first.keypoints, dt)
+        else:
+            smooth = self._filter(first.keypoints)
         t2 = time.perf_counter()
         second = solve_ik(sk, self._q_out, smooth, np.ones(N_KP), cfg.second_ik_iterations,
                           damping=cfg.ik_damping, regularization=cfg.ik_regularization)
         if second.cost > cfg.second_ik_restart_m**2:
             # The smoothed targets lie near the first IK's pose: restart from it when the
             # warm start is caught in another branch (e.g. an arm twisted at a joint limit).
-            retry = solve_ik(sk, first.q, smooth, np.ones(N_KP), cfg.second_ik_iterations,
+            retry = solve_ik(sk, frame[3], smooth, np.ones(N_KP), cfg.second_ik_iterations,
                              damping=cfg.ik_damping, regularization=cfg.ik_regularization)
             if retry.cost < second.cost:
                 second = retry
@@ -548,9 +594,15 @@ class SkeletonStage:
         angles = sk.to_angles(second.q)
         t3 = time.perf_counter()
         self.timings = {"ik": t1 - t0, "filter": t2 - t1, "ik2": t3 - t2}
-        return TrackResult(markers.stamp_ns, "tracking", angles, self._joint_names,
-                           second.keypoints, first.keypoints, markers.weights.copy(),
-                           markers.positions.copy(), sk.dims.bone_lengths(), sk.dims)
+        return TrackResult(frame[0], "tracking", angles, self._joint_names,
+                           second.keypoints, first.keypoints, frame[1], frame[2], sk.dims.bone_lengths(), sk.dims)
+
+    def _smoothing(self, markers: Markers, raw: np.ndarray) -> TrackResult:
+        """Fixed-lag window filling: feedback, no output yet."""
+        self.status = "smoothing"
+        nan = np.full((N_KP, 3), np.nan)
+        return TrackResult(markers.stamp_ns, "smoothing", np.full(40, np.nan), self._joint_names, nan, raw.copy(),
+                           markers.weights.copy(), markers.positions.copy(), {})
 
     def _skipped_interval(self, stamp_ns: int) -> float | None:
         """Seconds since the previous frame set when frame sets were skipped (a graph that falls
@@ -622,6 +674,12 @@ class SkeletonStage:
         self._q_out = fit.q.copy()
         self._filter.reset()
         self._filter(fit.keypoints)
+        if self._lag is not None:
+            self._lag.reset()
+            self._delayed.clear()
+            self._delayed.append((markers.stamp_ns, markers.weights.copy(), markers.positions.copy(), fit.q.copy()))
+            self._lag(fit.keypoints)
+            return self._smoothing(markers, fit.keypoints)
         self.status = "tracking"
         return TrackResult(markers.stamp_ns, "tracking", sk.to_angles(fit.q), self._joint_names, fit.keypoints,
                            fit.keypoints.copy(), markers.weights.copy(), markers.positions.copy(),

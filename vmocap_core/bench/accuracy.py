@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from ..metrics import bone_length_std, jitter, table_one
 from ..motion import Motion, extend, load_motion, resample
+from ..offline import reconstruct
 from ..skeleton import BONES
 from ..synthetic import SyntheticPcmSource, benchmark_rig
 from ..tracker import SpatiotemporalFilter, TrackerConfig, make_filter
@@ -64,24 +65,20 @@ def run_motion(motion: Motion, seed: int = 0, config: TrackerConfig | None = Non
     centre = np.nanmean(motion.positions[:, 0], axis=0)
     rig = benchmark_rig(centre)
     source = SyntheticPcmSource(rig, motion.positions, motion.present, seed=seed, fps=RATE_HZ)
-    tracker = SpatiotemporalFilter(rig, config)
+    # Offline: the live pass without lag, the whole-clip pass afterwards.
+    tracker = SpatiotemporalFilter(rig, replace(config, smoothing_lag_frames=0) if config.offline else config)
     # The same low-pass filter as the method's (lag compensation included).
     base_filter = make_filter(config)
     T = len(source)
     method = np.full((T, 25, 3), np.nan)
     baseline = np.full((T, 25, 3), np.nan)
     score = np.zeros(T)
-    status = []
+    results = []
     last_base = np.full((source.channels.size, 3), np.nan)
     for t in tqdm(range(T), desc=motion.name, disable=not progress, leave=False):
         rot = tracker.tilt() if rotation else None
         pcm = source.render(t, rot)
-        r = tracker.step(pcm)
-        status.append(r.status)
-        if r.status == "tracking":
-            method[t] = r.keypoints
-            seen = r.scores[source.channels]
-            score[t] = float(seen.mean() / len(rig))
+        results.append(tracker.step(pcm))
         # Baseline: same PCMs, the upright input (triangulation pipelines do not rotate).
         pcm0 = pcm if rot is None else source.render(t, None)
         uv, val = pcm0.peaks()
@@ -90,6 +87,16 @@ def run_motion(motion: Motion, seed: int = 0, config: TrackerConfig | None = Non
         last_base = pts
         if np.isfinite(pts).all():
             baseline[t, source.channels] = base_filter(pts)
+    if config.offline:
+        results = reconstruct(results, config)
+    # By stamp: a fixed-lag result is the frame `lag` steps back.
+    status = ["initializing"] * T
+    for r in results:
+        t = int(round(r.stamp_ns * RATE_HZ / 1e9))
+        status[t] = r.status
+        if r.status == "tracking":
+            method[t] = r.keypoints
+            score[t] = float(r.scores[source.channels].mean() / len(rig))
     tracked = [i for i, s in enumerate(status) if s == "tracking"]
     return MotionRun(motion, method, baseline, score, status, tracked[0] if tracked else T)
 
@@ -179,6 +186,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plots", type=Path, help="write MPJPE/score plots (PNG) into this folder")
     parser.add_argument("--no-rotation", action="store_true", help="disable the trunk-tilt input rotation")
     parser.add_argument("--config", type=Path, help="tracker parameters (YAML mapping)")
+    parser.add_argument("--offline", action="store_true",
+                        help="offline mode: whole-clip identification, RTS smoother, second IK (offline.py)")
+    parser.add_argument("--lag", type=int, metavar="N", help="live fixed-lag smoothing over N frames (smoothing_lag_frames)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -191,6 +201,10 @@ def run(args: argparse.Namespace) -> int:
         import yaml
 
         cfg.update(yaml.safe_load(args.config.read_text()) or {})
+    if args.offline:
+        cfg["offline"] = True
+    if args.lag is not None:
+        cfg["smoothing_lag_frames"] = args.lag
     config = TrackerConfig.from_dict(cfg)
     per_motion: dict[str, dict[str, object]] = {}
     if args.plots:

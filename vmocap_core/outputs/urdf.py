@@ -151,6 +151,34 @@ def base_pose(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a[:3].copy(), q if q[3] >= 0 else -q
 
 
+def quaternion_to_rotvec(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions (N, 4) x y z w -> rotation vectors (N, 3), angle in [0, pi]."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    q = q * np.where(q[:, 3:] < 0, -1.0, 1.0)
+    s = np.linalg.norm(q[:, :3], axis=1)
+    angle = 2.0 * np.arctan2(s, q[:, 3])
+    return q[:, :3] * np.where(s > 1e-12, angle / np.where(s > 1e-12, s, 1.0), 2.0)[:, None]
+
+
+def model_angles(positions: np.ndarray, base: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Inverse of `joint_positions` + `base_pose`: the 34 URDF joint positions and the pelvis
+    pose -> the model's 40 DOF (Skeleton.to_angles order; rotation vectors of angle <= pi)."""
+    pos = np.asarray(positions, dtype=np.float64).reshape(len(JOINT_NAMES))
+    a, b, c = pos[_SPH_OUT[:, None] + np.arange(3)].T
+    ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
+    one, zero = np.ones_like(a), np.zeros_like(a)
+    Rx = np.stack([one, zero, zero, zero, ca, -sa, zero, sa, ca], 1).reshape(-1, 3, 3)
+    Ry = np.stack([cb, zero, sb, zero, one, zero, -sb, zero, cb], 1).reshape(-1, 3, 3)
+    Rz = np.stack([cc, -sc, zero, sc, cc, zero, zero, zero, one], 1).reshape(-1, 3, 3)
+    out = np.empty(40)
+    out[_SPH_40[:, None] + np.arange(3)] = quaternion_to_rotvec(matrix_to_quaternion(Rx @ Ry @ Rz))
+    out[_HINGE_40] = pos[_HINGE_OUT]
+    t, q = base
+    out[:3] = np.asarray(t, dtype=np.float64)
+    out[3:6] = quaternion_to_rotvec(np.asarray(q, dtype=np.float64))[0]
+    return out
+
+
 # ------------------------------------------------------------------------------ the URDF
 @dataclass
 class SubjectModel:

@@ -1,0 +1,83 @@
+"""RTS smoothers (smoothing.py), the live fixed-lag mode and the offline mode on the synthetic
+benchmark (short clip)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from vmocap_core.bench.accuracy import BUNDLED, RATE_HZ, prepare, run_motion, score_run
+from vmocap_core.smoothing import FixedLagSmoother, MotionModel, gaussian_smooth, rts_smooth, runs
+from vmocap_core.tracker import TrackerConfig
+
+MODEL = MotionModel("ca", 2000.0, 0.02, 60.0)
+
+
+def test_rts_follows_a_parabola_without_lag_and_removes_noise() -> None:
+    t = np.arange(240) / 60.0
+    truth = np.stack([0.5 * 3.0 * t**2, np.sin(2 * np.pi * 0.5 * t), 0.3 * t], axis=1)  # (T, 3)
+    noisy = truth + np.random.default_rng(0).normal(0, 0.02, truth.shape)
+    sm = rts_smooth(noisy, MODEL)
+    err_noisy = np.linalg.norm(noisy - truth, axis=1).mean()
+    err_sm = np.linalg.norm(sm - truth, axis=1).mean()
+    assert err_sm < 0.6 * err_noisy
+    # a noise-free parabola is the model's own motion: reproduced (no lag at either end)
+    clean = rts_smooth(truth[:, :1], MODEL)
+    assert np.abs(clean - truth[:, :1]).max() < 1e-6
+
+
+def test_fixed_lag_is_the_rts_estimate_given_the_data_so_far() -> None:
+    x = np.random.default_rng(1).normal(0, 1, (50, 4, 3)).cumsum(axis=0) * 0.01
+    lag = 3
+    f = FixedLagSmoother(MODEL, lag)
+    outs = [f(s) for s in x]
+    assert all(o is None for o in outs[:lag])
+    for t in (lag, 20, 49):
+        ref = rts_smooth(x[: t + 1], MODEL)[t - lag]
+        assert np.allclose(outs[t], ref, atol=1e-12)
+
+
+def test_nan_frames_are_not_measurements_and_runs_split_gaps() -> None:
+    x = np.linspace(0, 1, 30)[:, None] * np.ones((1, 3))
+    x[10] = np.nan
+    sm = rts_smooth(x, MODEL)
+    assert np.isfinite(sm).all() and np.allclose(sm, np.linspace(0, 1, 30)[:, None], atol=1e-6)
+    assert runs(np.array([0, 1, 1, 0, 1, 0, 0, 1, 1, 1], bool)) == [slice(1, 3), slice(4, 5), slice(7, 10)]
+    assert np.allclose(gaussian_smooth(np.ones((5, 2)), 1.5), 1.0)
+    with pytest.raises(ValueError):
+        MotionModel("jerk", 1.0, 0.1, 60.0)
+    with pytest.raises(ValueError):
+        TrackerConfig.from_dict({"smoothing_lag_frames": -1})
+
+
+@pytest.fixture(scope="module")
+def walk():
+    m = prepare(BUNDLED / "walk.npz")
+    n = int(2.5 * RATE_HZ)
+    return dataclasses.replace(m, positions=m.positions[:n])
+
+
+def test_lag_and_offline_modes_on_a_clip(walk) -> None:
+    """Fixed lag: outputs the frame `lag` back (same stamps as the live frames); offline: more
+    accurate than live on the same PCMs, constant bone lengths."""
+    live = score_run(run_motion(walk, 0, TrackerConfig(fps=RATE_HZ)))["method"]
+    lag_run = run_motion(walk, 0, TrackerConfig(fps=RATE_HZ, smoothing_lag_frames=3))
+    lag = score_run(lag_run)["method"]
+    off = score_run(run_motion(walk, 0, TrackerConfig(fps=RATE_HZ, offline=True)))["method"]
+    assert "tracking" not in lag_run.status[-3:]  # the last 3 frames still wait for their lag
+    assert lag_run.status[-4] == "tracking"
+    assert off["mpjpe_mm"] < lag["mpjpe_mm"] < live["mpjpe_mm"], (off, lag, live)
+    assert off["bone_length_std_m"] < 1e-6
+
+
+def test_offline_on_a_recording_never_tracked_is_a_clear_error() -> None:
+    from vmocap_core.errors import VmocapError
+    from vmocap_core.offline import reconstruct
+    from vmocap_core.tracker import TrackResult
+
+    nan = np.full((25, 3), np.nan)
+    results = [TrackResult(k, "initializing", np.full(40, np.nan), [], nan, nan, np.zeros(25), nan) for k in range(5)]
+    with pytest.raises(VmocapError, match="no tracked frame"):
+        reconstruct(results, TrackerConfig(offline=True))
