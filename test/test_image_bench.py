@@ -1,0 +1,91 @@
+"""Image-level benchmark: a rendered body, the real CNN, the offline pipeline, 3D truth."""
+
+from __future__ import annotations
+
+import argparse
+import ctypes.util
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+CLIP = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
+pytestmark = pytest.mark.skipif(
+    ctypes.util.find_library("OSMesa") is None or importlib.util.find_spec("anny") is None
+    or importlib.util.find_spec("pyrender") is None,
+    reason="needs libosmesa6, pyrender-maintained and anny==0.6.2 (scripts/setup.sh)")
+
+
+@pytest.fixture(scope="module")
+def rig():
+    from vmocap_core.render.recording import scale_rig
+    from vmocap_core.rig_io import load_rig
+
+    return scale_rig(load_rig(REPO / "config" / "benchmark_rig.yaml"), 0.5)
+
+
+def test_truth_reprojects_onto_the_rendered_body(rig):
+    """Every truth keypoint projects inside the body's silhouette (image with the body minus
+    the same scene without it), in every camera, through the lens distortion."""
+    from vmocap_core.keypoints import KEYPOINTS
+    from vmocap_core.render.body import load_body
+    from vmocap_core.render.pose import clip_joints, segment_transforms, skin
+    from vmocap_core.render.recording import ClipSpec, prepare_motion
+    from vmocap_core.render.scene import Appearance, SceneRenderer
+
+    spec = ClipSpec(CLIP, 20, 60.0, 0)
+    m = prepare_motion(spec)
+    body = load_body("slim")
+    A, b = segment_transforms(body, clip_joints(m.positions, KEYPOINTS))
+    scene = SceneRenderer(rig, body, Appearance.draw(np.random.default_rng(1)), 1)
+    try:
+        for k in (0, 19):
+            with_body = scene.render(skin(body, A[k], b[k]))
+            empty = scene.render(skin(body, A[k], b[k]) + np.array([0.0, 0.0, -50.0]))
+            uv, _ = rig.project(m.positions[k][m.present])
+            for c in range(len(rig)):
+                mask = np.abs(with_body[c].astype(int) - empty[c].astype(int)).sum(axis=2) > 0
+                assert 200 < mask.sum() < mask.size // 4
+                px = np.round(uv[c]).astype(int)
+                near = [mask[v - 1:v + 2, u - 1:u + 2].any() for u, v in px]  # 1 px for the joint on an edge
+                assert all(near), f"frame {k} camera {c}: keypoints off the body: {np.flatnonzero(~np.array(near))}"
+    finally:
+        scene.close()
+
+
+def test_same_seed_same_bytes(rig, tmp_path):
+    from vmocap_core.bag import BagReader
+    from vmocap_core.render.recording import ClipSpec, render_recording
+
+    spec = ClipSpec(CLIP, 3, 60.0, 7)
+    a = render_recording(spec, rig, tmp_path / "a", progress=False)
+    b = render_recording(spec, rig, tmp_path / "b", progress=False)
+    assert a.name == b.name  # content-hash cache key
+    assert render_recording(spec, rig, tmp_path / "a", progress=False) == a  # cache hit
+
+    def payloads(p):
+        with BagReader(p) as r:
+            return [(m.topic, bytes(m.data)) for m in r.messages(list(r.topics))]
+
+    pa, pb = payloads(a), payloads(b)
+    assert len(pa) == 3 * (2 * len(rig) + 1)
+    assert pa == pb
+    other = render_recording(ClipSpec(CLIP, 3, 60.0, 8), rig, tmp_path / "a", progress=False)
+    assert payloads(other) != pa
+
+
+def test_short_clip_through_the_offline_pipeline(rig, tmp_path):
+    """Render, write the MCAP, run the real CNN + tracker on it (`vmocap process` path), score."""
+    from vmocap_core.bench import images
+
+    args = argparse.Namespace(frames=45, seed=0, cache=tmp_path / "cache", out=tmp_path / "out", json=True,
+                              configs=["rot-int8"], no_synthetic=True, tracker={"identify_seconds": 0.25})
+    args.out.mkdir()
+    row = images.run_clip(CLIP, rig, args)
+    r = row["rot-int8"]
+    assert r["mpjpe_mm"] is not None and np.isfinite(r["mpjpe_mm"])
+    assert r["mpjpe_mm"] < 80.0, r
+    assert r["tracked_pct"] > 90
+    assert (args.out / "walk.png").exists()
