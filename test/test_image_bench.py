@@ -40,10 +40,11 @@ def test_truth_reprojects_onto_the_rendered_body(rig):
     body = load_body("slim")
     A, b = segment_transforms(body, clip_joints(m.positions, KEYPOINTS))
     scene = SceneRenderer(rig, body, Appearance.draw(np.random.default_rng(1)), 1)
+    scene.fit_box([skin(body, A[k], b[k]) for k in (0, 19)])
     try:
         for k in (0, 19):
             with_body = scene.render(skin(body, A[k], b[k]))
-            empty = scene.render(skin(body, A[k], b[k]) + np.array([0.0, 0.0, -50.0]))
+            empty = [bg for bg in scene.empty_room()]
             uv, _ = rig.project(m.positions[k][m.present])
             for c in range(len(rig)):
                 mask = np.abs(with_body[c].astype(int) - empty[c].astype(int)).sum(axis=2) > 0
@@ -76,16 +77,23 @@ def test_same_seed_same_bytes(rig, tmp_path):
     assert payloads(other) != pa
 
 
-def test_short_clip_through_the_offline_pipeline(rig, tmp_path):
-    """Render, write the MCAP, run the real CNN + tracker on it (`vmocap process` path), score."""
+def test_short_clip_offline_and_through_the_node_graph(rig, tmp_path):
+    """Render, write the MCAP, run the real CNN + tracker on it offline (`vmocap process`
+    path) and through the ROS 2 node graph (camera node playing the MCAP), score both."""
     from vmocap_core.bench import images
+    from vmocap_core.rig_io import save_rig
 
     args = argparse.Namespace(frames=45, seed=0, cache=tmp_path / "cache", out=tmp_path / "out", json=True,
-                              configs=["rot-int8"], no_synthetic=True, tracker={"identify_seconds": 0.25})
+                              configs=["rot-int8"], no_synthetic=True, graph="first", graph_rate=0.25,
+                              rig_file=tmp_path / "rig.yaml")
+    save_rig(rig, args.rig_file)
     args.out.mkdir()
     row = images.run_clip(CLIP, rig, args)
-    r = row["rot-int8"]
-    assert r["mpjpe_mm"] is not None and np.isfinite(r["mpjpe_mm"])
-    assert r["mpjpe_mm"] < 80.0, r
-    assert r["tracked_pct"] > 90
+    for run in ("rot-int8", "graph:rot-int8"):
+        r = row[run]
+        assert r["mpjpe_mm"] is not None and np.isfinite(r["mpjpe_mm"]), (run, r)
+        assert r["mpjpe_mm"] < 80.0, (run, r)
+        assert r["tracked_pct"] > 80, (run, r)
+        assert 0 < r["link_length_error_mm"] < 60, (run, r)
+    assert row["graph:rot-int8"]["frame_sets_out"] >= 30
     assert (args.out / "walk.png").exists()

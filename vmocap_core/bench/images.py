@@ -12,6 +12,7 @@ it, the link-length error, and the synthetic benchmark's MPJPE for the same clip
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import sys
 import tempfile
@@ -30,7 +31,7 @@ from ..skeleton import BONES
 from .accuracy import RATE_HZ, default_motions
 
 REPO = Path(__file__).resolve().parents[2]
-DEFAULT_CACHE = REPO / "models" / "render_cache"
+DEFAULT_CACHE = REPO / "out" / "render_cache"
 CONFIGS = {"rot-int8": ("all", "int8"), "rot-float": ("all", "float"),
            "norot-int8": ("none", "int8"), "norot-float": ("none", "float")}
 
@@ -140,7 +141,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="rotation (rot: all, norot: none) x CNN precision")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="rendered recordings (by content hash)")
-    parser.add_argument("--out", type=Path, default=Path("image_bench"), help="report, overlays, graph outputs")
+    parser.add_argument("--out", type=Path, default=REPO / "out" / "image_bench", help="report, overlays, graph outputs")
+    parser.add_argument("--graph", default="first", choices=("first", "all", "none"),
+                        help="replay through the ROS 2 node graph too: for the first config (default), all, or none")
+    parser.add_argument("--graph-rate", type=float, default=0.2,
+                        help="playback speed of the recording in the graph (0.2: 12 Hz, so the CNN keeps up)")
     parser.add_argument("--no-synthetic", action="store_true", help="skip the synthetic benchmark's figure")
     parser.add_argument("--json", action="store_true")
 
@@ -168,6 +173,12 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
         row[name] = score(est, truth)
         if name == args.configs[0]:
             overlay(rec, rig, truth, est, len(stamps) // 2, args.out / f"{path.stem}.png")
+        graph = getattr(args, "graph", "none")
+        if graph == "all" or (graph == "first" and name == args.configs[0]):
+            # vmocap_ros is imported by name (as cli.py does): vmocap_core itself never imports rclpy
+            g = importlib.import_module("vmocap_ros.bench_images_graph")
+            est_g, counts = g.run_graph(rec, args.rig_file, stamps, rotation, precision, RATE_HZ, args.graph_rate, args.out)
+            row[f"graph:{name}"] = {**score(est_g, truth), **counts}
     if not args.no_synthetic:
         row["synthetic_mpjpe_mm"] = synthetic_figure(path, args.seed)
     return row
@@ -180,20 +191,23 @@ def _pool(rows: list[dict[str, Any]], name: str, key: str) -> float | None:
 
 def run(args: argparse.Namespace) -> int:
     from ..render.recording import scale_rig
-    from ..rig_io import load_rig
+    from ..rig_io import load_rig, save_rig
 
     files = args.clips or default_motions()
     if not files:
         raise VmocapError("no motion clips (give --clips)")
     rig = scale_rig(load_rig(args.rig), args.scale)
     args.out.mkdir(parents=True, exist_ok=True)
+    args.rig_file = args.out / "rig.yaml"  # the (scaled) rig the graph loads
+    save_rig(rig, args.rig_file)
     clips = {p.stem: run_clip(p, rig, args) for p in files}
     summary = {}
     for label, inv in (("regular", False), ("inverted", True)):
         rows = [r for r in clips.values() if r["inverted"] == inv]
         if rows:
+            runs = [c for c in list(args.configs) + [f"graph:{c}" for c in args.configs] if all(c in r for r in rows)]
             summary[label] = {c: {k: _pool(rows, c, k) for k in ("mpjpe_mm", "pck50", "mpjpe_without_offset_mm",
-                                                                 "link_length_error_mm")} for c in args.configs}
+                                                                 "link_length_error_mm")} for c in runs}
     result = {"clips": clips, "summary": summary, "frames": args.frames, "scale": args.scale, "seed": args.seed}
     (args.out / "report.json").write_text(json.dumps(result, indent=1))
     if args.json:
@@ -212,10 +226,13 @@ def _f(v: float | None, fmt: str = "6.1f") -> str:
 
 
 def print_table(result: dict[str, Any], configs: list[str]) -> None:
-    print(f"{'clip':<14}{'inv':>4} {'shape':>8} | " + " | ".join(f"{c:>19}" for c in configs) + " | synthetic")
-    print(f"{'':<28} | " + " | ".join(f"{'MPJPE  PCK50  -off':>19}" for _ in configs) + " |")
+    first = next(iter(result["clips"].values()))
+    runs = list(configs) + [f"graph:{c}" for c in configs if f"graph:{c}" in first]
+    print(f"{'clip':<14}{'inv':>4} {'shape':>8} | " + " | ".join(f"{c:>19}" for c in runs) + " | synthetic")
+    print(f"{'':<28} | " + " | ".join(f"{'MPJPE  PCK50  -off':>19}" for _ in runs) + " |")
     for name, r in result["clips"].items():
-        cells = [f"{_f(r[c]['mpjpe_mm'])} {_f(r[c]['pck50'], '5.1f')} {_f(r[c].get('mpjpe_without_offset_mm'))}" for c in configs]
+        cells = [f"{_f(r[c]['mpjpe_mm'])} {_f(r[c]['pck50'], '5.1f')} {_f(r[c].get('mpjpe_without_offset_mm'))}"
+                 if c in r else f"{'':>19}" for c in runs]
         print(f"{name:<14}{'yes' if r['inverted'] else 'no':>4} {r['shape']:>8} | " + " | ".join(cells)
               + f" | {_f(r.get('synthetic_mpjpe_mm'))}")
     for label, s in result["summary"].items():

@@ -26,7 +26,7 @@ from .pose import clip_joints, segment_transforms, skin
 from .scene import Appearance, SceneRenderer
 
 TRUTH_TOPIC = "/vmocap/truth/keypoints"
-RENDER_VERSION = 1  # bump when the rendered bytes change for the same inputs
+RENDER_VERSION = 2  # bump when the rendered bytes change for the same inputs
 T0_NS = 1_000_000_000_000
 
 
@@ -100,6 +100,7 @@ def render_recording(spec: ClipSpec, rig: Rig, cache_dir: Path, progress: bool =
     floor_z = float(min(0.0, np.percentile(lowest, 5)))
     rng = np.random.default_rng(spec.rng_seed())
     scene = SceneRenderer(rig, body, Appearance.draw(rng), spec.rng_seed(), floor_z)
+    scene.fit_box(verts)
     topics = Topics()
     tmp = out.with_suffix(".part")
     try:

@@ -159,6 +159,7 @@ class DistortionMap:
 
 class SceneRenderer:
     """One scene (floor, walls, lights, the body's current pose) seen by every rig camera."""
+    # pyrender returns linear depth (0 where nothing was drawn): the z-test compares metres
 
     def __init__(self, rig: Rig, body: Body, look: Appearance, seed: int, floor_z: float = 0.0,
                  centre: np.ndarray = np.zeros(2)) -> None:
@@ -182,40 +183,87 @@ class SceneRenderer:
             a = k * np.pi / 2
             rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
             self.lights.append((rot @ look.sun_direction, look.ambient * look.sun_intensity / np.pi))
+        # The room is static: drawn once per camera (colour and depth); each frame draws the
+        # body alone and keeps its pixels where they are nearer than the room's (a z-test).
+        self.room = pr.Scene(bg_color=[0.0, 0.0, 0.0, 1.0])
         self.scene = pr.Scene(bg_color=[0.0, 0.0, 0.0, 1.0])
         cx, cy, h = float(centre[0]), float(centre[1]), ROOM_HALF
         z0, zt = floor_z, floor_z + ROOM_HEIGHT
         c = lambda x, y, z: [cx + x, cy + y, z]  # noqa: E731
         floor = np.array([c(-h, -h, z0), c(h, -h, z0), c(h, h, z0), c(-h, h, z0)])
-        self.scene.add(_quad(pr, floor, 7.0, floor_image(look, rng), self._shade(np.array([0.0, 0.0, 1.0]))))
+        self.room.add(_quad(pr, floor, 7.0, floor_image(look, rng), self._shade(np.array([0.0, 0.0, 1.0]))))
         for (x0, y0), (x1, y1) in (((-h, -h), (h, -h)), ((h, -h), (h, h)), ((h, h), (-h, h)), ((-h, h), (-h, -h))):
             wall = np.array([c(x0, y0, z0), c(x1, y1, z0), c(x1, y1, zt), c(x0, y0, zt)])
             inward = -np.array([x0 + x1, y0 + y1, 0.0]) / (2 * h)
-            self.scene.add(_quad(pr, wall, 3.0, wall_image(look, rng), self._shade(inward)))
+            self.room.add(_quad(pr, wall, 3.0, wall_image(look, rng), self._shade(inward)))
         ceiling = np.array([c(-h, -h, zt), c(h, -h, zt), c(h, h, zt), c(-h, h, zt)])
-        self.scene.add(_quad(pr, ceiling, 1.0, np.full((4, 4, 3), 200, np.uint8), 0.4))
+        self.room.add(_quad(pr, ceiling, 1.0, np.full((4, 4, 3), 200, np.uint8), 0.4))
         self.albedo = self.colours[:, :3] ** 2.2
         self.maps = [DistortionMap(c) for c in rig]
         self.cam_nodes = []
+        self.backgrounds: list[tuple[np.ndarray, np.ndarray]] = []
+        self.box_size = max(m.canvas[0] for m in self.maps), max(m.canvas[1] for m in self.maps)
+        self._box_renderer = None
+        room_renderers: dict[tuple[int, int], object] = {}
         for c, m in zip(rig, self.maps):
-            # pyrender's pixel centres sit at +0.5, OpenCV's at integers: shift the principal point
-            cam = pr.IntrinsicsCamera(c.K[0, 0], c.K[1, 1], c.K[0, 2] + m.pad_x + 0.5, c.K[1, 2] + m.pad_y + 0.5,
-                                      znear=0.05, zfar=40.0)
             pose = np.eye(4)
             pose[:3, :3] = c.R.T @ np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes -> OpenGL's
             pose[:3, 3] = c.center
-            self.cam_nodes.append(self.scene.add(cam, pose=pose))
+            nodes = []
+            for scene in (self.room, self.scene):
+                # pyrender's pixel centres sit at +0.5, OpenCV's at integers: shift the principal point
+                cam = pr.IntrinsicsCamera(c.K[0, 0], c.K[1, 1], c.K[0, 2] + m.pad_x + 0.5, c.K[1, 2] + m.pad_y + 0.5,
+                                          znear=0.05, zfar=40.0)
+                nodes.append(scene.add(cam, pose=pose))
+            self.room.main_camera_node = nodes[0]
+            if m.canvas not in room_renderers:
+                room_renderers[m.canvas] = pr.OffscreenRenderer(*m.canvas)
+            rgb, depth = room_renderers[m.canvas].render(self.room)
+            self.backgrounds.append((rgb, np.where(depth > 0, depth, np.inf)))
+            self.cam_nodes.append(nodes[1])
+        for r in room_renderers.values():
+            r.delete()
         self.body_node = None
-        self.renderers: dict[tuple[int, int], object] = {}
 
     def _shade(self, normals: np.ndarray) -> np.ndarray:
         """Lambert shading of unit normals (..., 3) under the scene's lights."""
         return 0.05 + sum(w * np.maximum(0.0, -normals @ d) for d, w in self.lights)
 
-    def _renderer(self, size: tuple[int, int]):
-        if size not in self.renderers:
-            self.renderers[size] = self.pr.OffscreenRenderer(*size)
-        return self.renderers[size]
+    def fit_box(self, frames: list[np.ndarray]) -> None:
+        """Draw the body in a fixed box just large enough for it in every frame and camera (one
+        OSMesa context of that size: OSMesa cannot resize a context's buffer)."""
+        boxes = [self._body_box(c, m, v, (0, 0)) for v in frames for c, m in zip(self.rig, self.maps)]
+        sizes = np.array([b[2:] for b in boxes if b is not None])
+        if len(sizes):
+            q = 32
+            w, h = (-(-sizes.max(axis=0) // q) * q).tolist()
+            self.box_size = (min(w, self.box_size[0]), min(h, self.box_size[1]))
+        self.close()
+
+    def _renderer(self):
+        if self._box_renderer is None:
+            self._box_renderer = self.pr.OffscreenRenderer(*self.box_size)
+        return self._box_renderer
+
+    @staticmethod
+    def _body_box(cam: Camera, m: "DistortionMap", vertices: np.ndarray, size: tuple[int, int]) -> tuple[int, int, int, int] | None:
+        """(x0, y0, w, h): a box of `size` (or the body's own size, if larger) on the canvas
+        around the body's pinhole projection, inside the canvas; None when the body is not in front."""
+        pc = vertices @ cam.R.T + cam.t
+        pc = pc[pc[:, 2] > 0.05]
+        if len(pc) == 0:
+            return None
+        u = cam.K[0, 0] * pc[:, 0] / pc[:, 2] + cam.K[0, 2] + m.pad_x
+        v = cam.K[1, 1] * pc[:, 1] / pc[:, 2] + cam.K[1, 2] + m.pad_y
+        W, H = m.canvas
+        u0, u1 = max(int(np.floor(u.min())) - 2, 0), min(int(np.ceil(u.max())) + 3, W)
+        v0, v1 = max(int(np.floor(v.min())) - 2, 0), min(int(np.ceil(v.max())) + 3, H)
+        if u1 <= u0 or v1 <= v0:
+            return None
+        w, h = min(max(size[0], u1 - u0), W), min(max(size[1], v1 - v0), H)
+        x0 = min(max((u0 + u1 - w) // 2, 0), W - w)
+        y0 = min(max((v0 + v1 - h) // 2, 0), H - h)
+        return x0, y0, w, h
 
     def render(self, vertices: np.ndarray) -> list[np.ndarray]:
         """BGR uint8 images (one per rig camera) of the body with these posed vertices."""
@@ -230,13 +278,29 @@ class SceneRenderer:
             self.scene.remove_node(self.body_node)
         self.body_node = self.scene.add(pr.Mesh([prim]))
         out = []
-        for node, m in zip(self.cam_nodes, self.maps):
-            self.scene.main_camera_node = node
-            rgb, _ = self._renderer(m.canvas).render(self.scene)
-            out.append(np.ascontiguousarray(m.apply(rgb)[..., ::-1]))
+        for c, node, m, (bg, bg_depth) in zip(self.rig, self.cam_nodes, self.maps, self.backgrounds):
+            canvas = bg.copy()
+            box = self._body_box(c, m, vertices, self.box_size)
+            if box is not None and box[2:] != self.box_size:
+                raise VmocapError(f"the body does not fit the render box {self.box_size} (call fit_box)")
+            if box is not None:
+                # only the body's box is drawn: the principal point moves by the box's corner
+                x0, y0, w, h = box
+                node.camera.cx = c.K[0, 2] + m.pad_x + 0.5 - x0
+                node.camera.cy = c.K[1, 2] + m.pad_y + 0.5 - y0
+                self.scene.main_camera_node = node
+                rgb, depth = self._renderer().render(self.scene)
+                sub = (slice(y0, y0 + h), slice(x0, x0 + w))
+                body = (depth > 0) & (depth < bg_depth[sub])
+                canvas[sub] = np.where(body[..., None], rgb, bg[sub])
+            out.append(np.ascontiguousarray(m.apply(canvas)[..., ::-1]))
         return out
 
+    def empty_room(self) -> list[np.ndarray]:
+        """BGR images of the room without the body (as render() delivers them)."""
+        return [np.ascontiguousarray(m.apply(bg)[..., ::-1]) for m, (bg, _) in zip(self.maps, self.backgrounds)]
+
     def close(self) -> None:
-        for r in self.renderers.values():
-            r.delete()
-        self.renderers.clear()
+        if self._box_renderer is not None:
+            self._box_renderer.delete()
+            self._box_renderer = None
