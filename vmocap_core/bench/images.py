@@ -164,6 +164,7 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
     stamps, truth = read_truth(rec)
     row: dict[str, Any] = {"recording": str(rec), "shape": spec.shape(), "frames": len(stamps),
                            "inverted": load_motion(path).is_inverted()}
+    curves: dict[str, np.ndarray] = {}
     for name in args.configs:
         rotation, precision = CONFIGS[name]
         out = args.out / f"{path.stem}_{name}.mcap"
@@ -171,6 +172,7 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
                     provider=_Provider(rig, rotation, precision))
         est = read_estimates(out, stamps)
         row[name] = score(est, truth)
+        curves[name] = frame_mpjpe(est, truth)
         if name == args.configs[0]:
             overlay(rec, rig, truth, est, len(stamps) // 2, args.out / f"{path.stem}.png")
         graph = getattr(args, "graph", "none")
@@ -179,9 +181,35 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
             g = importlib.import_module("vmocap_ros.bench_images_graph")
             est_g, counts = g.run_graph(rec, args.rig_file, stamps, rotation, precision, RATE_HZ, args.graph_rate, args.out)
             row[f"graph:{name}"] = {**score(est_g, truth), **counts}
+            curves[f"graph:{name}"] = frame_mpjpe(est_g, truth)
     if not args.no_synthetic:
         row["synthetic_mpjpe_mm"] = synthetic_figure(path, args.seed)
+    plot_curves(path.stem, row, curves, args.out / f"{path.stem}_mpjpe.png")
     return row
+
+
+def frame_mpjpe(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(T,) mean error (mm) over the clip's keypoints per frame (NaN while not tracking)."""
+    present = np.isfinite(truth).all(axis=(0, 2))
+    return np.linalg.norm(est[:, present] - truth[:, present], axis=-1).mean(axis=1) * 1000
+
+
+def plot_curves(name: str, row: dict[str, Any], curves: dict[str, np.ndarray], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 3.2))
+    for k, v in curves.items():
+        ax.plot(np.arange(len(v)) / RATE_HZ, v, label=f"{k} ({row[k]['mpjpe_mm'] or float('nan'):.1f} mm)", lw=1)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("MPJPE (mm)")
+    ax.set_title(f"{name}{' (inverted)' if row['inverted'] else ''}: rendered images, {row['shape']} body")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def _pool(rows: list[dict[str, Any]], name: str, key: str) -> float | None:
