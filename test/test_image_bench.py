@@ -72,6 +72,13 @@ def test_same_seed_same_bytes(rig, tmp_path):
 
     pa, pb = payloads(a), payloads(b)
     assert len(pa) == 3 * (2 * len(rig) + 1)
+    from mcap.reader import make_reader  # the reference reader sees the same channels and schemas
+
+    with open(a, "rb") as fh:
+        seen = {(ch.topic, sc.name) for sc, ch, _ in make_reader(fh).iter_messages()}
+    assert ("/vmocap/truth/keypoints", "sensor_msgs/msg/PointCloud2") in seen
+    assert {(f"/vmocap/{c.name}/image_raw", "sensor_msgs/msg/Image") for c in rig} <= seen
+    assert {(f"/vmocap/{c.name}/camera_info", "sensor_msgs/msg/CameraInfo") for c in rig} <= seen
     assert pa == pb
     other = render_recording(ClipSpec(CLIP, 3, 60.0, 8), rig, tmp_path / "a", progress=False)
     assert payloads(other) != pa

@@ -15,7 +15,6 @@ import argparse
 import importlib
 import json
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
