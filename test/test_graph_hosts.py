@@ -107,10 +107,19 @@ def test_pcm_workers_on_another_host_and_a_worker_that_dies_and_returns(tmp_path
     assert tracker.returncode == 0, logs[-1]
     silent, js = _timeline(out)
     assert len(js) > 60, "tracked over the network"
-    gone = next((t for t, names in silent if "cam3" in names), None)
-    assert gone is not None, "the dead worker's camera is reported missing"
-    back = next((t for t, names in silent if t > gone and "cam3" not in names), None)
+    # the longest stretch of diagnostics naming cam3 silent (a loaded machine may also report a
+    # short one while the worker lags), and the first report after it without cam3
+    runs, start = [], None
+    for (t, names), nxt in zip(silent, silent[1:] + [(None, None)]):
+        if "cam3" in names and start is None:
+            start = t
+        if start is not None and (nxt[1] is None or "cam3" not in nxt[1]):
+            runs.append((start, nxt[0]))
+            start = None
+    assert runs, "the dead worker's camera is reported missing"
+    gone, back = max(runs, key=lambda r: (r[1] or silent[-1][0]) - r[0])
     assert back is not None, "the returning worker is used again"
+    assert back - gone >= 2e9, "cam3 was silent while its worker was down"
     during = [t for t in js if gone <= t <= back]
     # tracking went on with three views (10 Hz at least of the 30 while cam3 was missing)
     assert len(during) >= 10 * (back - gone) / 1e9, (len(during), (back - gone) / 1e9)

@@ -15,6 +15,7 @@ from .errors import VmocapError
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "accuracy"), "vmocap_core.bench.accuracy", "synthetic multi-camera accuracy benchmark"),
     (("bench", "speed"), "vmocap_core.bench.speed", "back-end time per frame"),
+    (("bench", "images"), "vmocap_core.bench.images", "image-level benchmark: rendered body, real CNN, 3D truth"),
     (("bench", "pcm"), "vmocap_core.bench.pcm", "PCM (CNN) inference time"),
     (("bench", "cnn"), "vmocap_core.bench.cnn", "CNN budget: time of each model variant, interleaved"),
     (("bench", "graph"), "vmocap_ros.bench_graph", "latency and rate of the ROS 2 node graph"),

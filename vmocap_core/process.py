@@ -207,10 +207,11 @@ def process_bag(
     recover: bool = False,
     progress: bool = True,
     model: str = "blazepose",
+    provider: Any = None,
 ) -> dict[str, Any]:
     """Run the pipeline over the PCM topics of a bag (or, when it has none, over its camera
-    images with the CNN `model`); write the graph's outputs to out_path (log time = capture
-    stamp). Returns counts and the time per frame."""
+    images with the CNN `model`, or the given PCM `provider`); write the graph's outputs to
+    out_path (log time = capture stamp). Returns counts and the time per frame."""
     from tqdm import tqdm
 
     topics = Topics(namespace)
@@ -223,7 +224,7 @@ def process_bag(
                 raise BagError(f"{in_path}: neither PCM topics under {topics.ns}/pcm/ nor images "
                                f"{topics.image('CAM')} of at least 2 rig cameras")
             return _process_images(reader, out_path, rig, cams, topics, tracker, model, tolerance_ns,
-                                   min_views, progress)
+                                   min_views, progress, provider)
         asm = PcmAssembler(rig, view_names, kp, tolerance_ns, min_views)
         offline = bool((tracker or {}).get("offline"))
         # Offline: the live pass without lag; its results are kept for the whole-recording pass.
@@ -317,12 +318,12 @@ def _write_offline(writer: BagWriter, topics: Topics, kept: list, config: Any, s
 
 
 def _process_images(reader: BagReader, out_path, rig: Rig, cams: list[str], topics: Topics, tracker, model: str,
-                    tolerance_ns: int, min_views: int, progress: bool) -> dict[str, Any]:
+                    tolerance_ns: int, min_views: int, progress: bool, provider: Any = None) -> dict[str, Any]:
     """Images (raw or compressed) -> approximate-time sync -> CNN (crops from the previous frame's skeleton) ->
     tracker: what vmocap_pcm + vmocap_markers + vmocap_skeleton do, frame set by frame set."""
     from tqdm import tqdm
 
-    provider = make_model_provider(model, rig)
+    provider = provider or make_model_provider(model, rig)
     sync: ApproximateSync[np.ndarray] = ApproximateSync(cams, max(tolerance_ns, 8_000_000), min_cameras=min_views)
     offline = bool((tracker or {}).get("offline"))
     pipe = TrackerPipeline(rig, dict(tracker or {}, smoothing_lag_frames=0) if offline else dict(tracker or {}))

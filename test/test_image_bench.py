@@ -1,0 +1,106 @@
+"""Image-level benchmark: a rendered body, the real CNN, the offline pipeline, 3D truth."""
+
+from __future__ import annotations
+
+import argparse
+import ctypes.util
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+CLIP = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
+pytestmark = pytest.mark.skipif(
+    ctypes.util.find_library("OSMesa") is None or importlib.util.find_spec("anny") is None
+    or importlib.util.find_spec("pyrender") is None,
+    reason="needs libosmesa6, pyrender-maintained and anny==0.6.2 (scripts/setup.sh)")
+
+
+@pytest.fixture(scope="module")
+def rig():
+    from vmocap_core.render.recording import scale_rig
+    from vmocap_core.rig_io import load_rig
+
+    return scale_rig(load_rig(REPO / "config" / "benchmark_rig.yaml"), 0.5)
+
+
+def test_truth_reprojects_onto_the_rendered_body(rig):
+    """Every truth keypoint projects inside the body's silhouette (image with the body minus
+    the same scene without it), in every camera, through the lens distortion."""
+    from vmocap_core.keypoints import KEYPOINTS
+    from vmocap_core.render.body import load_body
+    from vmocap_core.render.pose import clip_joints, segment_transforms, skin
+    from vmocap_core.render.recording import ClipSpec, prepare_motion
+    from vmocap_core.render.scene import Appearance, SceneRenderer
+
+    spec = ClipSpec(CLIP, 20, 60.0, 0)
+    m = prepare_motion(spec)
+    body = load_body("slim")
+    A, b = segment_transforms(body, clip_joints(m.positions, KEYPOINTS))
+    scene = SceneRenderer(rig, body, Appearance.draw(np.random.default_rng(1)), 1)
+    scene.fit_box([skin(body, A[k], b[k]) for k in (0, 19)])
+    try:
+        for k in (0, 19):
+            with_body = scene.render(skin(body, A[k], b[k]))
+            empty = [bg for bg in scene.empty_room()]
+            uv, _ = rig.project(m.positions[k][m.present])
+            for c in range(len(rig)):
+                mask = np.abs(with_body[c].astype(int) - empty[c].astype(int)).sum(axis=2) > 0
+                assert 200 < mask.sum() < mask.size // 4
+                px = np.round(uv[c]).astype(int)
+                near = [mask[v - 1:v + 2, u - 1:u + 2].any() for u, v in px]  # 1 px for the joint on an edge
+                assert all(near), f"frame {k} camera {c}: keypoints off the body: {np.flatnonzero(~np.array(near))}"
+    finally:
+        scene.close()
+
+
+def test_same_seed_same_bytes(rig, tmp_path):
+    from vmocap_core.bag import BagReader
+    from vmocap_core.render.recording import ClipSpec, render_recording
+
+    spec = ClipSpec(CLIP, 3, 60.0, 7)
+    a = render_recording(spec, rig, tmp_path / "a", progress=False)
+    b = render_recording(spec, rig, tmp_path / "b", progress=False)
+    assert a.name == b.name  # content-hash cache key
+    assert render_recording(spec, rig, tmp_path / "a", progress=False) == a  # cache hit
+
+    def payloads(p):
+        with BagReader(p) as r:
+            return [(m.topic, bytes(m.data)) for m in r.messages(list(r.topics))]
+
+    pa, pb = payloads(a), payloads(b)
+    assert len(pa) == 3 * (2 * len(rig) + 1)
+    from mcap.reader import make_reader  # the reference reader sees the same channels and schemas
+
+    with open(a, "rb") as fh:
+        seen = {(ch.topic, sc.name) for sc, ch, _ in make_reader(fh).iter_messages()}
+    assert ("/vmocap/truth/keypoints", "sensor_msgs/msg/PointCloud2") in seen
+    assert {(f"/vmocap/{c.name}/image_raw", "sensor_msgs/msg/Image") for c in rig} <= seen
+    assert {(f"/vmocap/{c.name}/camera_info", "sensor_msgs/msg/CameraInfo") for c in rig} <= seen
+    assert pa == pb
+    other = render_recording(ClipSpec(CLIP, 3, 60.0, 8), rig, tmp_path / "a", progress=False)
+    assert payloads(other) != pa
+
+
+def test_short_clip_offline_and_through_the_node_graph(rig, tmp_path):
+    """Render, write the MCAP, run the real CNN + tracker on it offline (`vmocap process`
+    path) and through the ROS 2 node graph (camera node playing the MCAP), score both."""
+    from vmocap_core.bench import images
+    from vmocap_core.rig_io import save_rig
+
+    args = argparse.Namespace(frames=45, seed=0, cache=tmp_path / "cache", out=tmp_path / "out", json=True,
+                              configs=["rot-int8"], no_synthetic=True, graph="first", graph_rate=0.25,
+                              rig_file=tmp_path / "rig.yaml")
+    save_rig(rig, args.rig_file)
+    args.out.mkdir()
+    row = images.run_clip(CLIP, rig, args)
+    for run in ("rot-int8", "graph:rot-int8"):
+        r = row[run]
+        assert r["mpjpe_mm"] is not None and np.isfinite(r["mpjpe_mm"]), (run, r)
+        assert r["mpjpe_mm"] < 80.0, (run, r)
+        assert r["tracked_pct"] > 80, (run, r)
+        assert 0 < r["link_length_error_mm"] < 60, (run, r)
+    assert row["graph:rot-int8"]["frame_sets_out"] >= 30
+    assert (args.out / "walk.png").exists()

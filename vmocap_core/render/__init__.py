@@ -1,0 +1,1 @@
+"""Rendering a textured human body performing a motion clip in a calibrated rig."""

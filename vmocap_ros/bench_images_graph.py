@@ -1,0 +1,108 @@
+"""The image benchmark's recordings through the ROS 2 node graph (`vmocap bench images --graph`).
+
+The graph's own vmocap_camera node plays the rendered MCAP (original stamps, slowed down by
+`rate` so the CNN keeps up on a small machine), vmocap_pcm runs the CNN (rotation and
+precision as asked), vmocap_markers and vmocap_skeleton track; all nodes in one process
+(`vmocap launch`, single_process). A subscriber here collects /vmocap/keypoints by capture
+stamp until the recording's last frame set came out (or the graph fell silent).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from vmocap_core.errors import VmocapError
+from vmocap_core.keypoints import KEYPOINTS
+
+REPO = Path(__file__).resolve().parent.parent
+NODES = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]
+
+
+def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, fps: float, rate: float) -> Path:
+    cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
+    cfg["/**"]["ros__parameters"].update(rig=str(rig_path), pcm_keypoints=[""])  # the CNN's 25 channels
+    cfg["vmocap_camera"]["ros__parameters"].update(source="bag", uri=str(rec), rate=float(rate), loop=False,
+                                                    restamp=False, wait_subscribers=120.0)
+    cfg["vmocap_pcm"]["ros__parameters"].update(source="model", model="blazepose", rotation=rotation)
+    for n in ("vmocap_markers", "vmocap_skeleton"):
+        cfg[n]["ros__parameters"].setdefault("tracker", {})["fps"] = float(fps)
+    cfg["vmocap_launch"] = {"mode": "single_process", "nodes": NODES,
+                            "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
+    path = work / f"graph_{rec.stem}_{rotation}.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, precision: str, fps: float,
+              rate: float, work: Path, silent_s: float = 30.0) -> tuple[np.ndarray, dict]:
+    """Estimates (T, 25, 3) at `stamps` (NaN where none came out) and counts."""
+    from vmocap_core.bag import cdr
+    from vmocap_core.bag import messages as M
+
+    from .common import init_rclpy, msg_class, prepare_env, qos
+    from .run_node import make_executor
+
+    cfg = graph_config(work, rec, rig_path, rotation, fps, rate)
+    env = dict(os.environ)
+    prepare_env(env)
+    env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+    env["VMOCAP_PCM_PRECISION"] = precision  # read by the CNN in vmocap_pcm
+    env["PYTHONUNBUFFERED"] = "1"
+    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION")})
+    if "FASTRTPS_DEFAULT_PROFILES_FILE" in env:
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = env["FASTRTPS_DEFAULT_PROFILES_FILE"]
+    rclpy = init_rclpy()
+    node = rclpy.create_node("vmocap_bench_images_probe")
+    got: dict[int, np.ndarray] = {}
+    last_rx = [0.0]
+
+    def on_keypoints(data: bytes) -> None:
+        d = cdr.decode("sensor_msgs/msg/PointCloud2", data)
+        P, _, _ = M.cloud_keypoints(d)
+        got[M.stamp_ns(d)] = P if P is not None else np.full((len(KEYPOINTS), 3), np.nan)
+        last_rx[0] = time.monotonic()
+
+    node.create_subscription(msg_class("sensor_msgs/msg/PointCloud2"), "/vmocap/keypoints", on_keypoints, qos(200), raw=True)
+    ex = make_executor()
+    ex.add_node(node)
+    log = open(work / f"{cfg.stem}.log", "w")
+    launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
+                              stdout=log, stderr=subprocess.STDOUT)
+    last = int(stamps[-1])
+    expected_s = len(stamps) / fps / rate
+    deadline = time.monotonic() + 180.0 + 3.0 * expected_s
+    try:
+        while time.monotonic() < deadline and last not in got:
+            ex.spin_once(timeout_sec=0.1)
+            if launch.poll() is not None:
+                raise VmocapError(f"the node graph exited early (log: {log.name})")
+            if got and time.monotonic() - last_rx[0] > silent_s:
+                break  # the graph fell silent: the tail of the recording was dropped
+    finally:
+        if launch.poll() is None:
+            launch.send_signal(signal.SIGINT)
+        try:
+            launch.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            launch.kill()
+            launch.wait()
+        log.close()
+        ex.remove_node(node)
+        ex.shutdown()
+        node.destroy_node()
+    if not got:
+        raise VmocapError(f"no keypoints came out of the node graph (log: {log.name})")
+    row = {int(s): i for i, s in enumerate(stamps)}
+    est = np.full((len(stamps), len(KEYPOINTS), 3), np.nan)
+    for s, P in got.items():
+        if s in row:
+            est[row[s]] = P
+    return est, {"frame_sets_out": len(got), "frame_sets_in": len(stamps), "rate": rate}
