@@ -20,6 +20,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from ..calibration.geometry import rodrigues
 from ..keypoints import KEYPOINTS
 from ..skeleton import JOINTS, KEYPOINT_PARENTS, LIMITS, REVOLUTE, BodyDimensions, Skeleton
 
@@ -82,19 +83,6 @@ _HINGE_OUT = np.array([JOINT_NAMES.index(n) for n in _HINGES])
 
 
 # ------------------------------------------------------------------------------ rotations
-def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
-    """Rotation vectors (N, 3) -> matrices (N, 3, 3) (Rodrigues)."""
-    v = np.asarray(v, dtype=np.float64).reshape(-1, 3)
-    theta = np.linalg.norm(v, axis=1)
-    small = theta < 1e-12
-    k = v / np.where(small, 1.0, theta)[:, None]
-    K = np.zeros((len(v), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s, c = np.sin(theta)[:, None, None], (1.0 - np.cos(theta))[:, None, None]
-    return np.eye(3) + s * K + c * (K @ K)
-
-
 def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
     """Matrices (N, 3, 3) -> unit quaternions (N, 4) as x y z w, w >= 0."""
     R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
@@ -276,7 +264,7 @@ def _rpy_z_to(d: np.ndarray) -> np.ndarray:
     axis = np.cross(z, d)
     s, c = np.linalg.norm(axis), float(d[2])
     v = axis / s * np.arctan2(s, c) if s > 1e-12 else (np.array([np.pi, 0, 0]) if c < 0 else np.zeros(3))
-    R = rotvec_to_matrix(v)[0]
+    R = rodrigues(v)[0]
     return np.array([np.arctan2(R[2, 1], R[2, 2]), np.arctan2(-R[2, 0], np.hypot(R[2, 1], R[2, 2])),
                      np.arctan2(R[1, 0], R[0, 0])])
 
