@@ -380,7 +380,7 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         "feed": args.feed,
         "tracking_frames": int(len(s["joint_states"])),
         # share of the frame sets out (keypoints go out also while not tracking) with the person tracked
-        "tracking_pct": round(100.0 * len({st for _, st in s["joint_states"]}) / max(len(sets_out), 1), 1),
+        "tracking_pct": round(100.0 * len({st for _, st in s["joint_states"]} & sets_out) / max(len(sets_out), 1), 1),
         "precision": status.get("vmocap_pcm", {}).get("precision", "n/a"),
         "node_status": {n: {k: v for k, v in status[n].items() if k in ("frames", "sync", "queue_dropped", "feedback_timeouts", "queued", "tracking")}
                         for n in NODES if n in status},
