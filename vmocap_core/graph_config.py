@@ -105,6 +105,8 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("output", "", "MCAP file to write (renamed from .partial when closed)", path=True),
         Param("topics", [""], "topics to record; empty: the graph outputs"),
         Param("compression", "none", "MCAP chunk compression", choices=("none", "zstd", "lz4")),
+        Param("chunk_kb", 256, "MCAP chunk size (KiB): a killed recorder loses at most the chunk being filled "
+              "(the graph's outputs fill 256 KiB in about a second; images much faster)", 16, 65536),
     ],
 }
 TRACKER_NODES = ("vmocap_markers", "vmocap_skeleton")  # these also take tracker.* parameters

@@ -29,7 +29,8 @@ class RecorderNode(VmocapNode):
 
         if not self.p["output"]:
             raise VmocapError("vmocap_recorder: parameter 'output' (an .mcap path) is required")
-        self.writer = BagWriter(self.p["output"], compression=self.p["compression"]).open()
+        # small chunks: on SIGKILL only the chunk being filled is lost (`--recover` reads the rest)
+        self.writer = BagWriter(self.p["output"], compression=self.p["compression"], chunk_size=self.p["chunk_kb"] << 10).open()
         self.known = recorded_outputs(self.topics)
         self.wanted = list(self.p["topics"]) or list(self.known)
         self.subscribed: set[str] = set()
