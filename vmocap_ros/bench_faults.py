@@ -70,7 +70,8 @@ def _frame_sets(reader) -> int:
 
 
 # ------------------------------------------------------------------ faults in the PCM stream
-def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: list[str], env: dict[str, str]) -> dict:
+def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: list[str], env: dict[str, str],
+              probe) -> dict:
     """vmocap_markers + vmocap_skeleton + vmocap_recorder fed by `vmocap play` with the bag's
     heatmaps (bag stamps; deep queues: every frame set is processed)."""
     frames, bad_views = 150, ["cam1"]
@@ -98,13 +99,19 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
             topics = [f"/vmocap/pcm/{c}/{k}" for c in feed for k in PCM_TOPICS]
             players.append(H.Proc.start(H.vmocap_cmd("play", str(src), "--no-clock", "--quiet", "--topics", *topics,
                                                      "--expect", *topics, "--wait-subscribers", "60"), env))
-        if name == "camera_pause":  # cam3's frames withheld for 1.5 s, then sent again
-            time.sleep(2.0)
+        if name == "camera_pause":  # once tracking, cam3's frames withheld for 1.5 s, then sent again
+            probe.recording = False
+            probe.spin_for(0.5)  # drain what an earlier run left queued
+            probe.clear(all_=True)
+            probe.min_stamp, probe.recording = 0, True
+            if not H.wait_for(lambda: probe.spin_for(0.1) or len(probe.samples["joint_states"]) > 10, 60.0):
+                raise RuntimeError("no output before the pause")
             os.kill(players[1].popen.pid, signal.SIGSTOP)
             pause = (time.time_ns(), 0)
-            time.sleep(1.5)
+            probe.spin_for(1.5)
             os.kill(players[1].popen.pid, signal.SIGCONT)
             pause = (pause[0], time.time_ns())
+            probe.recording = False
         for p in players:
             if p.popen.wait(timeout=120) != 0:
                 raise RuntimeError(f"player failed:\n{p.text}")
@@ -198,7 +205,8 @@ def graph_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps
             have = sorted(st for _, st in o.joint_states)
             prefix = not have or set(want[: sum(s <= have[-1] for s in want)]) <= set(have)
             r.update(survived=prefix, diagnosed=not o.closed, frames_lost=max(len(want) - len(have), 0),
-                     recorded_before_kill=len(want), recovered=len(have), file_bytes=partial.stat().st_size)
+                     recorded_before_kill=len(want), recovered=len(have), file_bytes=partial.stat().st_size,
+                     bound_bytes=_chunk_size())
     finally:
         if ref is not None and ref.popen.poll() is None:
             ref.stop()
@@ -207,10 +215,17 @@ def graph_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps
     return r
 
 
+def _chunk_size() -> int:
+    """The recorder's MCAP chunk size: what a SIGKILL can lose at most (plus the OS buffer)."""
+    import inspect
+
+    from vmocap_core.bag import BagWriter
+
+    return int(inspect.signature(BagWriter.__init__).parameters["chunk_size"].default)
+
+
 # ------------------------------------------------------------------------------ driver
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="vmocap_faults_"))
     work.mkdir(parents=True, exist_ok=True)
     env = H.env_for(100 + os.getpid() % 100)
@@ -223,8 +238,35 @@ def run(args: argparse.Namespace) -> int:
             return 2
     pcm_bag = H.synthetic_bag(work / "pcm.mcap", 150, images=False)
     cam_bag = H.synthetic_bag(work / "cams.mcap", 30, images=True) if any(f in GRAPH_FAULTS for f, _ in plan) else None
+    probe = _probe(env) if any(m is not None for _, m in plan) else None
     faults: dict[str, dict] = {}
-    for f, m in tqdm(plan, desc="faults", disable=args.json, file=sys.stderr):
+    try:
+        _run_plan(plan, work, env, probe, pcm_bag, cam_bag, faults, args.json)
+    finally:
+        if probe is not None:
+            probe.close()
+            probe.rclpy.shutdown()
+    out = {"faults": faults, "tried": len(faults), "survived": sum(r["survived"] for r in faults.values()),
+           "diagnosed": sum(r["diagnosed"] for r in faults.values()), "workdir": str(work)}
+    print(json.dumps(out) if args.json else f"{out['survived']} of {out['tried']} faults survived, {out['diagnosed']} diagnosed")
+    return 0 if all(r.get("error") is None for r in faults.values()) else 1
+
+
+def _probe(env: dict[str, str]):
+    """A node in this process receiving joint_states (bench_graph.Probe), on the graph's domain."""
+    from .bench_graph import Probe
+    from .common import init_rclpy
+
+    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION") if k in env})
+    if "FASTRTPS_DEFAULT_PROFILES_FILE" in env:
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = env["FASTRTPS_DEFAULT_PROFILES_FILE"]
+    return Probe(init_rclpy(), ["cam0"], input_topic=False)
+
+
+def _run_plan(plan, work: Path, env: dict[str, str], probe, pcm_bag, cam_bag, faults: dict[str, dict], quiet: bool) -> None:
+    from tqdm import tqdm
+
+    for f, m in tqdm(plan, desc="faults", disable=quiet, file=sys.stderr):
         key = f if m is None else f"{f}:{m}"
         d = work / key.replace(":", "_")
         d.mkdir(exist_ok=True)
@@ -232,16 +274,12 @@ def run(args: argparse.Namespace) -> int:
             if m is None:
                 faults[key] = bag_fault(f, d, work / "pcm.mcap", pcm_bag[1], pcm_bag[2], env)
             elif f in PCM_FAULTS:
-                faults[key] = pcm_fault(f, m, d, work / "pcm.mcap", pcm_bag[1], pcm_bag[2], env)
+                faults[key] = pcm_fault(f, m, d, work / "pcm.mcap", pcm_bag[1], pcm_bag[2], env, probe)
             else:
                 faults[key] = graph_fault(f, m, d, work / "cams.mcap", cam_bag[1], cam_bag[2], env)
         except Exception as exc:  # noqa: BLE001 - a fault that breaks the harness is a failed fault, reported
             faults[key] = {"survived": False, "diagnosed": False, "frames_lost": -1, "error": f"{type(exc).__name__}: {exc}"[:2000]}
-        if not args.json:
+        if not quiet:
             r = faults[key]
             tqdm.write(f"{key:34s} survived {r['survived']!s:5s} diagnosed {r['diagnosed']!s:5s} "
                        f"frames lost {r['frames_lost']}  {r.get('error', '')}", file=sys.stderr)
-    out = {"faults": faults, "tried": len(faults), "survived": sum(r["survived"] for r in faults.values()),
-           "diagnosed": sum(r["diagnosed"] for r in faults.values()), "workdir": str(work)}
-    print(json.dumps(out) if args.json else f"{out['survived']} of {out['tried']} faults survived, {out['diagnosed']} diagnosed")
-    return 0 if all(r.get("error") is None for r in faults.values()) else 1

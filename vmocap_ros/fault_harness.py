@@ -172,6 +172,8 @@ class Outputs:
         from vmocap_core.bag import messages as M
         from vmocap_core.errors import VmocapError
 
+        if path.stat().st_size < 8:  # killed before anything reached the disk
+            return cls([], {}, False)
         closed = True
         try:
             BagReader(path).open().close()
