@@ -83,7 +83,9 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
         how = "absent" if name == "person_leaves" else name.split("_", 1)[1]
         src = H.alter_heatmaps(bag, work / f"{name}.mcap", window, bad_views, how)
     out = work / f"{name}_{mode}_out.mcap"
-    extra = {"vmocap_markers": {"queue_depth": 100, "silent_after_ms": 300.0, "feedback_timeout_ms": 1000.0},
+    # silent after 1 s of stamp time: the two players of camera_pause start up to ~1 s apart, and
+    # a camera whose stamps trail the others by more than that is never used again (sync.py)
+    extra = {"vmocap_markers": {"queue_depth": 100, "silent_after_ms": 1000.0, "feedback_timeout_ms": 1000.0},
              "vmocap_skeleton": {"queue_depth": 100}}
     nodes = ["vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]
     cfg = H.write_config(work / f"{name}_{mode}.yaml", rig_path, kps, nodes, _mode(mode), out,
@@ -99,7 +101,7 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
             topics = [f"/vmocap/pcm/{c}/{k}" for c in feed for k in PCM_TOPICS]
             players.append(H.Proc.start(H.vmocap_cmd("play", str(src), "--no-clock", "--quiet", "--topics", *topics,
                                                      "--expect", *topics, "--wait-subscribers", "60"), env))
-        if name == "camera_pause":  # once tracking, cam3's frames withheld for 1.5 s, then sent again
+        if name == "camera_pause":  # once tracking, cam3's frames withheld for 2.5 s, then sent again
             probe.recording = False
             probe.spin_for(0.5)  # drain what an earlier run left queued
             probe.clear(all_=True)
@@ -108,7 +110,7 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
                 raise RuntimeError("no output before the pause")
             os.kill(players[1].popen.pid, signal.SIGSTOP)
             pause = (time.time_ns(), 0)
-            probe.spin_for(1.5)
+            probe.spin_for(2.5)
             os.kill(players[1].popen.pid, signal.SIGCONT)
             pause = (pause[0], time.time_ns())
             probe.recording = False
