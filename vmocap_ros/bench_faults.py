@@ -20,7 +20,8 @@ from pathlib import Path
 from . import fault_harness as H
 
 BAG_FAULTS = ["truncated_bag:process", "truncated_bag:play", "corrupted_bag:process", "corrupted_bag:play"]
-PCM_FAULTS = ["heatmaps_nan", "heatmaps_inf", "heatmaps_negative", "person_leaves", "camera_pause"]
+PCM_FAULTS = ["heatmaps_nan", "heatmaps_inf", "heatmaps_negative", "person_leaves", "camera_pause", "calibration_rotated",
+              "calibration_moved"]
 GRAPH_FAULTS = ["launcher_sigint", "launcher_sigterm", "recorder_sigkill", "node_killed"]
 PROCESSES_ONLY = {"node_killed"}  # one process: killing a node kills the graph (that is recorder_sigkill)
 PCM_TOPICS = ("heatmaps", "camera_info")
@@ -82,6 +83,8 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
     if name.startswith("heatmaps_") or name == "person_leaves":
         how = "absent" if name == "person_leaves" else name.split("_", 1)[1]
         src = H.alter_heatmaps(bag, work / f"{name}.mcap", window, bad_views, how)
+    if name.startswith("calibration_"):  # the bag is right, the rig the graph is given is not
+        rig_path = H.miscalibrated(rig_path, work / "wrong.rig.yaml", "cam2", name.split("_")[1])
     out = work / f"{name}_{mode}_out.mcap"
     # silent after 1 s of stamp time: the two players of camera_pause start up to ~1 s apart, and
     # a camera whose stamps trail the others by more than that is never used again (sync.py)
@@ -148,6 +151,11 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
         during = sum(pause[0] <= t <= pause[1] for t, _ in o.joint_states)
         r.update(survived=rc == 0 and back and during >= 10 * (pause[1] - pause[0]) / 1e9, diagnosed=gone is not None,
                  outputs_while_paused=during)
+    elif name.startswith("calibration_"):
+        # vmocap_markers' per-camera reprojection residuals and a WARN naming the camera
+        res = [v.get("residual_px:cam2") for _, _, _, v in o.diag.get("vmocap_markers", []) if "residual_px:cam2" in v]
+        r.update(survived=rc == 0 and len(got) >= 0.5 * frames, diagnosed=bool(res) and o.warned("vmocap_markers", "cam2"),
+                 residual_px_cam2=res[-1] if res else None)
     else:
         r.update(survived=rc == 0 and len(after) >= 0.5 * (frames - window.stop),
                  diagnosed=any(o.warned(n) for n in ("vmocap_markers", "vmocap_skeleton")), tracked_after=len(after))

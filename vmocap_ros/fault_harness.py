@@ -68,6 +68,28 @@ def alter_heatmaps(src: Path, dst: Path, frames: range, views: list[str], how: s
     return dst
 
 
+def miscalibrated(rig_path: Path, out: Path, camera: str, how: str) -> Path:
+    """The rig with one camera turned by 5 degrees about its vertical axis (`rotated`) or its
+    centre moved by 10 cm along world x (`moved`), the others as they were."""
+    import dataclasses
+
+    from vmocap_core.rig_io import load_rig, save_rig
+
+    rig = load_rig(rig_path)
+    cams = []
+    for cam in rig:
+        if cam.name == camera:
+            if how == "rotated":
+                a = np.deg2rad(5.0)
+                turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+                cam = dataclasses.replace(cam, R=turn @ cam.R, t=turn @ cam.t)
+            else:  # centre C = -R^T t moved by d: t' = t - R d
+                cam = dataclasses.replace(cam, t=cam.t - cam.R @ np.array([0.1, 0.0, 0.0]))
+        cams.append(cam)
+    save_rig(type(rig)(cams), out)
+    return out
+
+
 def damage(src: Path, dst: Path, how: str, at: float = 0.6, seed: int = 0) -> Path:
     """A truncated copy (the first `at` of the bytes) or a corrupted one (64 KiB of random bytes
     written at `at` of the file; footer and summary intact)."""
