@@ -172,7 +172,7 @@ def wait_for(pred, timeout: float, step: float = 0.1) -> bool:
 
 def wait_ready(launch: Proc, nodes: list[str], timeout: float = 90.0) -> None:
     def ready() -> bool:
-        text = " ".join(l for l in launch.lines if l.startswith("READY"))
+        text = " ".join(line for line in launch.lines if line.startswith("READY"))
         return all(n in text for n in nodes)
 
     if not wait_for(lambda: ready() or launch.popen.poll() is not None, timeout) or not ready():
