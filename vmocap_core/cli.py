@@ -19,6 +19,8 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "pcm"), "vmocap_core.bench.pcm", "PCM (CNN) inference time"),
     (("bench", "cnn"), "vmocap_core.bench.cnn", "CNN budget: time of each model variant, interleaved"),
     (("bench", "graph"), "vmocap_ros.bench_graph", "latency and rate of the ROS 2 node graph"),
+    (("bench", "faults"), "vmocap_ros.bench_faults", "inject faults into the node graph, bags and recorder"),
+    (("bench", "soak"), "vmocap_ros.bench_soak", "the node graph for minutes: RSS, rate, drops, latency per minute"),
     (("models", "fetch"), "vmocap_core.pcm.fetch", "obtain and convert the PCM models (no hubs)"),
     (("models", "check"), "vmocap_core.pcm.selfcheck", "check the int8 CNN against the float one on this CPU"),
     (("process",), "vmocap_core.process", "run the pipeline offline on an MCAP bag"),

@@ -248,7 +248,9 @@ class BagReader:
             missing = wanted - set(self.topics)
             if missing:
                 raise BagError(f"{self.path}: no topic(s) {sorted(missing)}; the bag has {sorted(self.topics)}")
-        if self.damaged is not None:
+        # recovery reads linearly with CRC checks even when the summary is intact: a corrupted
+        # chunk in the middle then ends the read there instead of failing it
+        if self.damaged is not None or self.recover:
             for m in self._stream_messages(wanted):
                 if (start_ns is None or m.log_time_ns >= start_ns) and (end_ns is None or m.log_time_ns < end_ns):
                     yield m

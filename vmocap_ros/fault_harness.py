@@ -1,0 +1,228 @@
+"""What `vmocap bench faults` builds its faults from: real MCAP bags (synthetic subject, benchmark
+rig), altered copies of them, graph configs, the launcher and players as processes, and the
+graph's own recording (outputs and /diagnostics) read back."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parent.parent
+MOTION = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
+FPS = 30.0
+T0 = 1_000_000_000_000  # the synthetic bags' first stamp (ns)
+
+
+def stamp_of(k: int) -> int:
+    return T0 + int(round(k * 1e9 / FPS))
+
+
+def synthetic_bag(path: Path, frames: int, images: bool, size: tuple[int, int] = (320, 240)):
+    """A bag of `frames` frame sets (4 cameras, PCM topics, images optional) and its rig."""
+    from vmocap_core.bag.synth import write_synthetic_bag
+    from vmocap_core.keypoints import KEYPOINTS
+    from vmocap_core.motion import load_motion, resample
+    from vmocap_core.rig_io import save_rig
+    from vmocap_core.synthetic import benchmark_rig
+
+    rig = benchmark_rig(width=size[0], height=size[1])
+    m = resample(load_motion(MOTION), FPS)
+    if not path.exists():
+        write_synthetic_bag(path, rig, m.positions, m.present, frames, fps=FPS, images=images)
+    rig_path = path.with_suffix(".rig.yaml")
+    save_rig(rig, rig_path)
+    return rig, rig_path, [KEYPOINTS[i] for i in np.flatnonzero(m.present)]
+
+
+def alter_heatmaps(src: Path, dst: Path, frames: range, views: list[str], how: str) -> Path:
+    """A copy of `src` whose heatmaps of `views` in `frames` are NaN, +Inf, negative, or say
+    "nobody here" (`absent`: every keypoint channel NaN, presence 0)."""
+    from vmocap_core.bag import BagReader, BagWriter
+    from vmocap_core.bag import cdr
+
+    lo, hi = stamp_of(frames.start), stamp_of(frames.stop)
+    with BagReader(src) as r, BagWriter(dst) as w:
+        for m in r.messages():
+            data: bytes | dict = bytes(m.data)
+            view = m.topic.split("/")[-2] if "/pcm/" in m.topic else ""
+            if m.topic.endswith("/heatmaps") and view in views and lo <= m.log_time_ns < hi:
+                msg = cdr.decode(m.type, data)
+                ch = int(msg["encoding"][4:])
+                a = np.frombuffer(bytes(msg["data"]), np.float32).reshape(msg["height"], msg["width"], ch).copy()
+                if how == "absent":
+                    a[..., :-1], a[..., -1] = np.nan, 0.0
+                else:
+                    a[..., :-1] = {"nan": np.nan, "inf": np.inf, "negative": -1.0}[how]
+                msg["data"] = a.tobytes()
+                data = cdr.encode(m.type, msg)
+            w.write(m.topic, m.type, data, m.log_time_ns)
+    return dst
+
+
+def miscalibrated(rig_path: Path, out: Path, camera: str, how: str) -> Path:
+    """The rig with one camera turned by 5 degrees about its vertical axis (`rotated`) or its
+    centre moved by 10 cm along world x (`moved`), the others as they were."""
+    import dataclasses
+
+    from vmocap_core.rig_io import load_rig, save_rig
+
+    rig = load_rig(rig_path)
+    cams = []
+    for cam in rig:
+        if cam.name == camera:
+            if how == "rotated":
+                a = np.deg2rad(5.0)
+                turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+                cam = dataclasses.replace(cam, R=turn @ cam.R, t=turn @ cam.t)
+            else:  # centre C = -R^T t moved by d: t' = t - R d
+                cam = dataclasses.replace(cam, t=cam.t - cam.R @ np.array([0.1, 0.0, 0.0]))
+        cams.append(cam)
+    save_rig(type(rig)(cams), out)
+    return out
+
+
+def damage(src: Path, dst: Path, how: str, at: float = 0.6, seed: int = 0) -> Path:
+    """A truncated copy (the first `at` of the bytes) or a corrupted one (64 KiB of random bytes
+    written at `at` of the file; footer and summary intact)."""
+    raw = bytearray(src.read_bytes())
+    cut = int(len(raw) * at)
+    if how == "truncated":
+        raw = raw[:cut]
+    else:
+        raw[cut:cut + 65536] = np.random.default_rng(seed).integers(0, 256, 65536, dtype=np.uint8).tobytes()
+    dst.write_bytes(bytes(raw))
+    return dst
+
+
+def write_config(path: Path, rig_path: Path, kps: list[str], nodes: list[str], mode: str, output: Path,
+                 groups: list[list[str]] | None = None, extra: dict | None = None) -> Path:
+    cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
+    cfg["/**"]["ros__parameters"].update(rig=str(rig_path), pcm_keypoints=kps)
+    cfg["vmocap_pcm"]["ros__parameters"]["model"] = str(MOTION)
+    cfg["vmocap_recorder"]["ros__parameters"]["output"] = str(output)
+    cfg["vmocap_launch"] = {"mode": mode, "nodes": nodes, "groups": groups or [],
+                            "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
+    # the synthetic heatmaps' noise (6 px, false peaks, swaps) is harsher than the CNN's: a wider
+    # skeleton-fit bound lets the subject initialize on these bags (as test/test_graph_hosts.py)
+    for n in ("vmocap_markers", "vmocap_skeleton"):
+        cfg[n]["ros__parameters"].setdefault("tracker", {})["init_max_fit_error_m"] = 0.08
+    for section, params in (extra or {}).items():
+        cfg.setdefault(section, {"ros__parameters": {}})["ros__parameters"].update(params)
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def vmocap_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "vmocap_core.cli", *args]
+
+
+@dataclass
+class Proc:
+    """A child process whose output is collected by a thread (no pipe can fill up)."""
+
+    popen: subprocess.Popen
+    lines: list[str] = field(default_factory=list)
+
+    @classmethod
+    def start(cls, cmd: list[str], env: dict[str, str]) -> "Proc":
+        p = cls(subprocess.Popen(cmd, env=env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+        threading.Thread(target=lambda: p.lines.extend(p.popen.stdout), daemon=True).start()  # type: ignore[arg-type]
+        return p
+
+    @property
+    def text(self) -> str:
+        return "".join(self.lines)
+
+    def pids(self) -> dict[str, int]:
+        """The launcher's children (processes mode): `vmocap launch: N processes: a+b[pid], ...`."""
+        for line in self.lines:
+            if line.startswith("vmocap launch:") and "processes:" in line:
+                items = line.rsplit("processes: ", 1)[1].split(", ")
+                return {i.split("[")[0]: int(i.split("[")[1].rstrip("]\n")) for i in items}
+        return {}
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 30.0) -> int:
+        if self.popen.poll() is None:
+            self.popen.send_signal(sig)
+        try:
+            return self.popen.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.popen.kill()
+            self.popen.wait()
+            raise RuntimeError(f"{self.popen.args[3:5]} did not stop on signal {sig}:\n{self.text[-2000:]}") from None
+
+
+def wait_for(pred, timeout: float, step: float = 0.1) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(step)
+    return bool(pred())
+
+
+def wait_ready(launch: Proc, nodes: list[str], timeout: float = 90.0) -> None:
+    def ready() -> bool:
+        text = " ".join(line for line in launch.lines if line.startswith("READY"))
+        return all(n in text for n in nodes)
+
+    if not wait_for(lambda: ready() or launch.popen.poll() is not None, timeout) or not ready():
+        raise RuntimeError(f"the graph did not start:\n{launch.text[-3000:]}")
+
+
+@dataclass
+class Outputs:
+    """The graph's recording read back: joint_states (receive time, stamp) and per node the
+    diagnostics (receive time, level, message, values)."""
+
+    joint_states: list[tuple[int, int]]
+    diag: dict[str, list[tuple[int, int, str, dict[str, str]]]]
+    closed: bool  # footer written: the bag opens without recovery
+
+    @classmethod
+    def read(cls, path: Path, recover: bool = False) -> "Outputs":
+        from vmocap_core.bag import BagReader
+        from vmocap_core.bag import messages as M
+        from vmocap_core.errors import VmocapError
+
+        if path.stat().st_size < 8:  # killed before anything reached the disk
+            return cls([], {}, False)
+        closed = True
+        try:
+            BagReader(path).open().close()
+        except VmocapError:
+            closed = False
+        js, diag = [], {}
+        with BagReader(path, recover=recover or not closed) as r:
+            for m in r.messages():
+                if m.topic.endswith("/joint_states"):
+                    js.append((m.log_time_ns, M.stamp_ns(m.decode())))
+                elif m.topic == "/diagnostics":
+                    for s in m.decode()["status"]:
+                        lvl = s["level"][0] if isinstance(s["level"], (bytes, bytearray)) else int(s["level"])
+                        diag.setdefault(s["name"], []).append(
+                            (m.log_time_ns, lvl, s["message"], {v["key"]: v["value"] for v in s["values"]}))
+        return cls(js, diag, closed)
+
+    def warned(self, node: str, text: str = "") -> bool:
+        return any(lvl >= 1 and text in msg for _, lvl, msg, _ in self.diag.get(node, []))
+
+
+def env_for(domain: int) -> dict[str, str]:
+    from .common import prepare_env
+
+    env = dict(os.environ)
+    prepare_env(env)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
+    env["ROS_DOMAIN_ID"] = str(domain)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
