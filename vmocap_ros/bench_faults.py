@@ -227,11 +227,9 @@ def graph_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps
 
 def _chunk_size() -> int:
     """The recorder's MCAP chunk size: what a SIGKILL can lose at most (plus the OS buffer)."""
-    import inspect
+    from vmocap_core.graph_config import NODE_PARAMS
 
-    from vmocap_core.bag import BagWriter
-
-    return int(inspect.signature(BagWriter.__init__).parameters["chunk_size"].default)
+    return next(int(p.default) for p in NODE_PARAMS["vmocap_recorder"] if p.name == "chunk_kb") << 10
 
 
 # ------------------------------------------------------------------------------ driver

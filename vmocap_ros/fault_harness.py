@@ -46,8 +46,7 @@ def synthetic_bag(path: Path, frames: int, images: bool, size: tuple[int, int] =
 def alter_heatmaps(src: Path, dst: Path, frames: range, views: list[str], how: str) -> Path:
     """A copy of `src` whose heatmaps of `views` in `frames` are NaN, +Inf, negative, or say
     "nobody here" (`absent`: every keypoint channel NaN, presence 0)."""
-    from vmocap_core.bag import BagReader, BagWriter
-    from vmocap_core.bag import cdr
+    from vmocap_core.bag import BagReader, BagWriter, cdr
 
     lo, hi = stamp_of(frames.start), stamp_of(frames.stop)
     with BagReader(src) as r, BagWriter(dst) as w:
