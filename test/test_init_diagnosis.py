@@ -132,3 +132,21 @@ def test_a_turned_camera_is_named_while_tracking_goes_on(tmp_path: Path) -> None
     assert "cam2 disagrees with the other cameras" in mk["message"]
     residual = {k.split(":")[1]: float(v) for k, v in values.items() if k.startswith("residual_px:")}
     assert residual["cam2"] > 3 * max(residual[c] for c in ("cam0", "cam1", "cam3"))
+
+
+def test_corrupted_heatmaps_are_counted_per_camera() -> None:
+    """What the markers node WARNs about: non-finite or out-of-range values in valid channels;
+    an entirely-NaN channel is the messages' "no information" and does not count."""
+    from vmocap_core.heatmaps import PcmViews
+
+    maps = np.random.default_rng(1).random((2, 3, 8, 8)).astype(np.float32)
+    maps[1, 2] = np.nan  # channel without information (invalid)
+    maps[0, 1, 2, 2], maps[0, 0, 1, 1], maps[1, 0, 3, 3] = np.inf, -0.5, 1.5
+    valid = np.ones((2, 3), bool)
+    valid[1, 2] = False
+    pcm = PcmViews(maps=maps, image_to_map=np.zeros((2, 2, 3)), camera=np.array([0, 3]), keypoints=np.arange(3),
+                   valid=valid, presence=np.ones(2), stamp_ns=0)
+    assert pcm.corrupted() == {0: 2, 3: 1}
+    clean = PcmViews(maps=np.clip(np.nan_to_num(maps), 0, 1), image_to_map=np.zeros((2, 2, 3)), camera=np.array([0, 3]),
+                     keypoints=np.arange(3), valid=valid, presence=np.ones(2), stamp_ns=0)
+    assert clean.corrupted() == {}

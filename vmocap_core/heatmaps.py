@@ -93,6 +93,25 @@ class PcmViews:
             stamp_ns=self.stamp_ns,
         )
 
+    def corrupted(self) -> dict[int, int]:
+        """Per camera index, how many values of its valid channels are not finite or outside
+        [0, 1] (what `sanitized` cleans up silently); {} for clean maps. An entirely-NaN channel
+        is the documented "no information" and does not count."""
+        valid = np.asarray(self.valid, dtype=bool)
+        if self.maps.size == 0 or not valid.any():
+            return {}
+        m = self.maps[valid]  # (n, h, w)
+        if np.isfinite(m).all() and m.min() >= 0.0 and m.max() <= 1.0:
+            return {}
+        bad = (~np.isfinite(m) | (np.nan_to_num(m, nan=0.0) < 0.0) | (np.nan_to_num(m, nan=0.0) > 1.0)).sum(axis=(1, 2))
+        views = np.nonzero(valid)[0]
+        out: dict[int, int] = {}
+        for v, n in zip(views, bad):
+            if n:
+                c = int(self.camera[v])
+                out[c] = out.get(c, 0) + int(n)
+        return out
+
     def peaks(self, channels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Per view and channel (all, or the given channel indices), the image pixel of the
         heatmap maximum (V, J', 2) and its value (V, J'); NaN cells are ignored."""

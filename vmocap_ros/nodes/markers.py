@@ -25,7 +25,8 @@ from vmocap_core.process import (
 from ..transport import Transport
 from .base import InitWatch, VmocapNode
 
-CAMERA_CHECK_EVERY = 10  # frame sets between per-camera residual checks (~0.3 ms each)
+CAMERA_CHECK_EVERY = 10  # frame sets between per-camera residual and heatmap checks (~0.3 ms each)
+HEATMAP_WARN_S = 5.0  # a corrupted-heatmap WARN stays this long after the last corrupted frame set
 
 
 class MarkersNode(VmocapNode):
@@ -51,6 +52,7 @@ class MarkersNode(VmocapNode):
         self.init_watch = InitWatch(p["init_warn_s"], self.stage.config.init_max_reprojection_px, self.rig.names)
         self.presence: dict[str, float] = {}  # CNN presence per camera, last triangulated frame set
         self.cameras = OddCamera()  # per-camera reprojection residuals while tracking
+        self._heatmaps_bad_at = float("-inf")
         # markers and feedback are transient-local: a frame processed before the other node's
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
         self.pub = self.publisher(CLOUD, self.topics.markers, depth=p["queue_depth"], latched=True)
@@ -83,8 +85,22 @@ class MarkersNode(VmocapNode):
             self.counts["frames"] += 1
             self.proc.add(1e3 * (time.perf_counter() - t0))
             self.record_age(pcm.stamp_ns)
-            if markers.kind == "lattice" and self.counts["frames"] % CAMERA_CHECK_EVERY == 0:
-                self._check_cameras(pcm, markers.positions)
+            if self.counts["frames"] % CAMERA_CHECK_EVERY == 0:
+                self._check_heatmaps(pcm)
+                if markers.kind == "lattice":
+                    self._check_cameras(pcm, markers.positions)
+
+    def _check_heatmaps(self, pcm: Any) -> None:
+        """WARN (for HEATMAP_WARN_S) when heatmaps arrive with values the lattice search has to
+        clean up (NaN, Inf, negative, above 1): a broken CNN or transport must not pass silently."""
+        bad = pcm.corrupted()
+        now = time.monotonic()
+        if bad:
+            names = ", ".join(f"{self.rig[c].name} ({n} values)" for c, n in sorted(bad.items()))
+            self.problems["heatmaps"] = f"heatmaps not finite or outside [0, 1] from {names}: cleaned, affected keypoints dropped"
+            self._heatmaps_bad_at = now
+        elif now - self._heatmaps_bad_at > HEATMAP_WARN_S:
+            self.problems.pop("heatmaps", None)
 
     def _check_cameras(self, pcm: Any, positions: np.ndarray) -> None:
         """After the markers went out: per-camera residuals, and a WARN naming a camera that
