@@ -120,3 +120,23 @@ def test_camera_back_from_silence_is_matched_again_even_if_its_first_frame_is_la
     late_sets = [s for s in out if s.stamp_ns >= 13 * 33 * MS]
     # after the first set back (whose cam0 frame went alone), every set is complete again
     assert len(late_sets) == 7 and all(s.complete for s in late_sets)
+
+
+def test_a_camera_whose_stamps_lag_is_reported_not_silently_ignored():
+    """cam1's stamps trail the others by 1 s (a clock offset, or its source started early):
+    every frame of it arrives after its set went out; `lagging` names it (the nodes WARN)."""
+    from vmocap_core.sync import lagging
+
+    sync = ApproximateSync(["cam0", "cam1", "cam2"], 8_000_000, min_cameras=2, silent_after_ns=300_000_000)
+    period = 33_333_333
+    before = dict(sync.stats().late)
+    sets = []
+    for k in range(60):
+        t = 10**12 + k * period
+        sets += sync.add("cam0", t, k)
+        sets += sync.add("cam2", t, k)
+        if k >= 30:
+            sets += sync.add("cam1", t - 10**9, k)  # one second behind
+    late = dict(sync.stats().late)
+    assert all("cam1" not in fs.items for fs in sets[30:])
+    assert set(lagging(before, late)) == {"cam1"} and lagging(late, late) == {}

@@ -221,3 +221,13 @@ class ApproximateSync(Generic[T]):
 
 
 _DROPPED: Any = object()
+
+
+LATE_WARN = 5  # late frames of one camera within one diagnostics period that make it a problem
+
+
+def lagging(before: dict[str, int], now: dict[str, int], threshold: int = LATE_WARN) -> dict[str, int]:
+    """Cameras whose `late` count (SyncStats.late) grew by at least `threshold` since `before`:
+    their frames keep arriving after their frame set was emitted, so they are never used (a
+    clock or stamps behind the others by more than the tolerance, or a source that stalls)."""
+    return {n: c - before.get(n, 0) for n, c in now.items() if c - before.get(n, 0) >= threshold}

@@ -18,6 +18,7 @@ from vmocap_core.bag import cdr
 from vmocap_core.bag import messages as M
 from vmocap_core.errors import VmocapError
 from vmocap_core.process import DIAG, IMAGE
+from vmocap_core.sync import lagging
 
 from ..common import Topics, declare, msg_class, qos
 from ..transport import Output, Transport
@@ -78,6 +79,7 @@ class VmocapNode(Node):
         self.age = Stat()  # capture stamp -> end of processing, ms (this node's clock)
         self.age_note = ""
         self._frames_done = 0  # frame sets processed, for the achieved rate in the diagnostics
+        self._late_before: dict[str, int] = {}
         self._rate_mark = (time.monotonic(), 0)
         self.problems: dict[str, str] = {}
         self._pending_subs: list = []
@@ -127,6 +129,18 @@ class VmocapNode(Node):
     # -- diagnostics ---------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
         return {}
+
+    def watch_late(self, late: dict[str, int]) -> None:
+        """WARN naming cameras whose frames keep coming too late to be used (sync.lagging);
+        called with SyncStats.late once per diagnostics period."""
+        grown = lagging(self._late_before, late)
+        self._late_before = dict(late)
+        if grown:
+            self.problems["late"] = ("frames of " + ", ".join(f"{n} ({k} in the last period)" for n, k in grown.items())
+                                     + " arrive after their frame set went out and are not used: stamps behind the "
+                                     "other cameras (clock offset) or a stalling source")
+        else:
+            self.problems.pop("late", None)
 
     def record_age(self, stamp_ns: int) -> None:
         """Capture stamp -> now on this node's clock (sim time under use_sim_time). Stamps of a

@@ -148,6 +148,7 @@ class PcmNode(VmocapNode):
 
     def status(self) -> dict[str, Any]:
         st = self.sync.stats()
+        self.watch_late(st.late)
         return dict(self.counts, frames=self.frames, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
                     queued=len(self.sets), precision=getattr(self.provider, "precision", "n/a"),
                     precision_reason=getattr(self.provider, "precision_reason", "n/a"))
