@@ -388,7 +388,6 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
 
 
 def run(args: argparse.Namespace) -> int:
-    from .common import prepare_env
 
     work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="vmocap_bench_graph_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -401,13 +400,7 @@ def run(args: argparse.Namespace) -> int:
         rig, bag, rig_path, kps, motion = _pose2sim_bag(work, args)
     else:
         rig, bag, rig_path, kps, motion = _bag(work, args)
-    env = dict(os.environ)
-    prepare_env(env)
-    env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
-    env["PYTHONUNBUFFERED"] = "1"
-    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION")})
-    if "FASTRTPS_DEFAULT_PROFILES_FILE" in env:
-        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = env["FASTRTPS_DEFAULT_PROFILES_FILE"]
+    env = graph_env()
     from .common import init_rclpy
 
     rclpy = init_rclpy()
@@ -466,6 +459,21 @@ def run(args: argparse.Namespace) -> int:
             print(f"   {row['cores']} core(s) {row['cameras']} cameras: {row['rate_hz']:.2f} Hz, {row['dropped_pct']:.2f} %, "
                   f"{row['p95_ms']:.1f} ms, {row['tracking_pct']:.1f} %")
     return 0
+
+
+def graph_env() -> dict[str, str]:
+    """The environment of the graph a benchmark starts (localhost discovery, a domain of its own),
+    also applied to this process, whose probe node joins that graph."""
+    from .common import prepare_env
+
+    env = dict(os.environ)
+    prepare_env(env)
+    env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+    env["PYTHONUNBUFFERED"] = "1"
+    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION")})
+    if "FASTRTPS_DEFAULT_PROFILES_FILE" in env:
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = env["FASTRTPS_DEFAULT_PROFILES_FILE"]
+    return env
 
 
 def _cpu_flags() -> str:

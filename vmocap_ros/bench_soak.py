@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from . import bench_graph as G
-    from .common import init_rclpy, prepare_env
+    from .common import init_rclpy
 
     if args.minutes <= 0:
         print("bench soak: --minutes must be > 0", file=sys.stderr)
@@ -61,13 +61,7 @@ def run(args: argparse.Namespace) -> int:
     c["vmocap_launch"]["nodes"].append("vmocap_recorder")
     c["vmocap_recorder"]["ros__parameters"]["output"] = str(work / "soak_out.mcap")
     cfg.write_text(yaml.safe_dump(c))
-    env = dict(os.environ)
-    prepare_env(env)
-    env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
-    env["PYTHONUNBUFFERED"] = "1"
-    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION")})
-    if "FASTRTPS_DEFAULT_PROFILES_FILE" in env:
-        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = env["FASTRTPS_DEFAULT_PROFILES_FILE"]
+    env = G.graph_env()
     rclpy = init_rclpy()
     probe = G.Probe(rclpy, rig.names, input_topic=False)
     launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
