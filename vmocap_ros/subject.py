@@ -28,16 +28,6 @@ def tf_available() -> bool:
     return True
 
 
-def node_rig(p: dict[str, Any]) -> Any:
-    """The rig of the node's parameters (None when it names none)."""
-    if not p.get("rig"):
-        return None
-    from vmocap_core.rig_io import load_rig
-
-    rig = load_rig(p["rig"])
-    return rig.subset(p["cameras"]) if p.get("cameras") else rig
-
-
 def skeleton_outputs(node: Any) -> tuple[SubjectOutputs, dict[str, Any]]:
     """SubjectOutputs of a skeleton node and its extra publishers by topic."""
     t = node.topics
@@ -46,7 +36,7 @@ def skeleton_outputs(node: Any) -> tuple[SubjectOutputs, dict[str, Any]]:
     if tf_available():
         pubs[t.tf] = node.publisher(TF_TYPE, t.tf, depth=TF_DEPTH)
         pubs[t.tf_static] = node.publisher(TF_TYPE, t.tf_static, depth=1, latched=True)
-    return SubjectOutputs(node_rig(node.p)), pubs
+    return SubjectOutputs(node.rig), pubs
 
 
 def recorded_outputs(topics: Any) -> dict[str, str]:
@@ -59,4 +49,4 @@ def recorded_outputs(topics: Any) -> dict[str, str]:
 
 def recorder_tf(node: Any) -> TfFromStates | None:
     """The recorder's TF source when /tf does not travel over DDS (None when it does)."""
-    return None if tf_available() else TfFromStates(node.topics, node_rig(node.p))
+    return None if tf_available() else TfFromStates(node.topics, node.rig)

@@ -56,7 +56,6 @@ class VmocapNode(Node):
     """Base: validated parameters (declared with descriptions/ranges), raw pub/sub helpers,
     CPU accounting, a 1 Hz /diagnostics status."""
 
-    needs_rig = True
 
     def __init__(self, name: str, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
                  transport: Transport | None = None) -> None:
@@ -69,7 +68,7 @@ class VmocapNode(Node):
         self.config = config
         self.topics = Topics(self.p["namespace"])
         self.rig = None
-        if self.p["rig"] and self.needs_rig:
+        if self.p["rig"]:  # nodes that can run without one (skeleton, recorder) use it for names and frames
             from vmocap_core.rig_io import load_rig
 
             rig = load_rig(self.p["rig"])

@@ -20,8 +20,6 @@ class RecorderNode(VmocapNode):
     """Topics -> MCAP (CDR bytes as received). The file is complete and renamed from .partial
     when the node is closed (Ctrl-C/SIGTERM of the launcher or `vmocap record`)."""
 
-    needs_rig = False
-
     def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
                  transport: Transport | None = None, name: str = "vmocap_recorder") -> None:
         super().__init__(name, config, overrides, transport)

@@ -18,8 +18,6 @@ class SkeletonNode(VmocapNode):
     """NS/markers -> SkeletonStage (IK, IIR, second IK) -> NS/joint_states, NS/keypoints,
     NS/skeleton and the feedback NS/feedback."""
 
-    needs_rig = True  # only for the camera names in the diagnostics; runs without one too
-
     def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
                  transport: Transport | None = None, name: str = "vmocap_skeleton") -> None:
         super().__init__(name, config, overrides, transport)
