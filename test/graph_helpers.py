@@ -27,10 +27,10 @@ def domain_env(offset: int = 0) -> dict[str, str]:
 
 def synthetic_bag(path: Path, frames: int = 30, fps: float = 30.0, images: bool = False, size=(1024, 768), noise=None):
     from vmocap_core.bag.synth import write_synthetic_bag
+    from vmocap_core.cameras.rig_file import save_rig
     from vmocap_core.keypoints import KEYPOINTS
     from vmocap_core.motion import load_motion, resample
-    from vmocap_core.rig_io import save_rig
-    from vmocap_core.synthetic import benchmark_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
 
     rig = benchmark_rig(width=size[0], height=size[1])
     m = resample(load_motion(MOTION), fps)

@@ -166,8 +166,8 @@ def test_writer_is_atomic(tmp_path: Path) -> None:
 
 
 def test_pcm_message_roundtrip_exact() -> None:
-    from vmocap_core.heatmaps import PcmViews, stride_affine
-    from vmocap_core.synthetic import benchmark_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
+    from vmocap_core.pcm.views import PcmViews, stride_affine
 
     rig = benchmark_rig()
     rng = np.random.default_rng(2)
@@ -192,7 +192,7 @@ def test_pcm_message_roundtrip_exact() -> None:
     K = np.asarray(pairs[1][1]["k"]).reshape(3, 3)
     cam = rig[0]
     xc = cam.R @ X[0] + cam.t
-    from vmocap_core.heatmaps import apply_affine
+    from vmocap_core.pcm.views import apply_affine
 
     expect = apply_affine(A[1], uv[0, 0])
     # distorted normalized coordinates = K_cam^-1 uv; then the heatmap K maps them to the map
@@ -203,8 +203,8 @@ def test_pcm_message_roundtrip_exact() -> None:
 def test_pcm_messages_without_data_decode_like_the_data() -> None:
     """In one process vmocap_pcm hands its PcmViews to vmocap_markers inside data-less Image
     dicts: the decoded frame set equals, bit for bit, the one decoded from the data."""
-    from vmocap_core.heatmaps import PcmViews, stride_affine
-    from vmocap_core.synthetic import benchmark_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
+    from vmocap_core.pcm.views import PcmViews, stride_affine
 
     rig = benchmark_rig()
     rng = np.random.default_rng(3)
@@ -230,7 +230,7 @@ def test_pcm_messages_without_data_decode_like_the_data() -> None:
 
 
 def test_camera_info_mismatch_is_reported() -> None:
-    from vmocap_core.synthetic import benchmark_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
 
     cam = benchmark_rig()[0]
     good = M.camera_info_msg(cam, 0)

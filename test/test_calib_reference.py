@@ -34,7 +34,7 @@ def test_charuco_rig_matches_reference(tmp_path, capsys):
     # camera 1 sees the board from behind: only the mirrored decoding finds it
     cam1 = out["cameras"][1]
     assert cam1["mirrored_views"] >= 10 and cam1["rms"] < 2.0
-    from vmocap_core.rig_io import load_rig
+    from vmocap_core.cameras.rig_file import load_rig
 
     rig = load_rig(tmp_path / "rig.yaml")
     assert rig.names == ["0", "1", "2", "3"]

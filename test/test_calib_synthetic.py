@@ -11,7 +11,7 @@ from vmocap_core.calibration import CharucoBoard, SceneObservations, calibrate_r
 from vmocap_core.calibration.boards import Detection
 from vmocap_core.calibration.geometry import rodrigues
 from vmocap_core.calibration.observe import CameraViews
-from vmocap_core.camera import Camera, Rig, look_at
+from vmocap_core.cameras.projection import Camera, Rig, look_at
 from vmocap_core.errors import CalibrationError
 
 W, H = 960, 720

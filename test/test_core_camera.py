@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from vmocap_core.camera import Camera, Rig, look_at
+from vmocap_core.cameras.projection import Camera, Rig, look_at
+from vmocap_core.cameras.rig_file import load_panoptic_cameras, load_rig, load_shelf_calibration, save_rig
 from vmocap_core.errors import RigFileError
-from vmocap_core.rig_io import load_panoptic_cameras, load_rig, load_shelf_calibration, save_rig
 
 
 def make_rig(dist_list):

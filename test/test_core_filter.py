@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from vmocap_core.apps.metrics import bone_length_std, jitter, summarize, table_one
 from vmocap_core.errors import MotionFileError
-from vmocap_core.iir import LowPassFilter
 from vmocap_core.keypoints import INDEX
-from vmocap_core.metrics import bone_length_std, jitter, summarize, table_one
+from vmocap_core.method.iir import LowPassFilter
 from vmocap_core.motion import extend, load_motion, resample
 
 
@@ -78,7 +78,7 @@ def test_bone_length_std_and_jitter():
 
 
 def test_motion_files(tmp_path):
-    from vmocap_core.bench.accuracy import default_motions
+    from vmocap_core.apps.bench.accuracy import default_motions
 
     files = default_motions()
     assert any(f.stem == "cartwheel" for f in files)
@@ -99,7 +99,7 @@ def test_one_euro_smooths_still_keypoints_and_follows_fast_ones():
     """Two keypoints: one still with 5 mm noise, one moving at 3 m/s. The still one's noise is
     more than halved; the moving one trails far less than a fixed first-order filter at
     min_cutoff would make it (its cutoff rose with its speed)."""
-    from vmocap_core.one_euro import OneEuroFilter
+    from vmocap_core.method.one_euro import OneEuroFilter
 
     rate, n = 60.0, 240
     rng = np.random.default_rng(0)
@@ -118,7 +118,7 @@ def test_one_euro_smooths_still_keypoints_and_follows_fast_ones():
 
 
 def test_one_euro_constant_input_nan_restart_and_bad_parameters():
-    from vmocap_core.one_euro import OneEuroFilter
+    from vmocap_core.method.one_euro import OneEuroFilter
 
     f = OneEuroFilter(1.0, 10.0, 60.0)
     x = np.array([[0.1, 0.2, 1.0], [0.5, -0.3, 1.2]])
@@ -137,7 +137,7 @@ def test_one_euro_constant_input_nan_restart_and_bad_parameters():
 def test_one_euro_follows_the_real_interval_of_skipped_samples() -> None:
     """A 60 Hz filter fed every second sample with dt = 1/30 s behaves as a 30 Hz filter: a
     graph that skips frame sets does not see them as a jump."""
-    from vmocap_core.one_euro import OneEuroFilter
+    from vmocap_core.method.one_euro import OneEuroFilter
 
     t = np.arange(0, 2, 1 / 60)
     x = np.stack([np.sin(3 * t), 0.5 * t, np.cos(2 * t)], -1)[:, None]  # (T, 1, 3)

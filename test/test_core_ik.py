@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from vmocap_core.ik import solve_ik
 from vmocap_core.keypoints import INDEX, KEYPOINTS
-from vmocap_core.skeleton import BONES, Skeleton
+from vmocap_core.method.ik import solve_ik
+from vmocap_core.method.skeleton import BONES, Skeleton
 
 
 def random_pose(sk: Skeleton, seed: int) -> np.ndarray:
@@ -95,8 +95,8 @@ def test_angles_roundtrip():
 def test_compiled_kinematics_equal_pinocchio():
     """The compiled forward kinematics / Jacobians (_ik_kernels) against Pinocchio's placements
     and the numpy assembly, on random poses of a non-default subject."""
-    from vmocap_core import _ik_kernels
-    from vmocap_core.skeleton import BodyDimensions
+    from vmocap_core.method import _ik_kernels
+    from vmocap_core.method.skeleton import BodyDimensions
 
     assert _ik_kernels.AVAILABLE, "numba is pinned in requirements.lock"
     sk = Skeleton(BodyDimensions(thigh=0.47, shoulder_forward=0.03, shoulder_drop=-0.02, waist_ratio=0.35))
@@ -109,7 +109,7 @@ def test_compiled_kinematics_equal_pinocchio():
 
 
 def test_compiled_lm_step_equals_the_normal_equations():
-    from vmocap_core import _ik_kernels
+    from vmocap_core.method import _ik_kernels
 
     rng = np.random.default_rng(0)
     J = rng.normal(size=(25, 3, 40))

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vmocap_core import _kernels
-from vmocap_core.camera import Camera, Rig, look_at
-from vmocap_core.heatmaps import PcmViews, stride_affine
+from vmocap_core.cameras.projection import Camera, Rig, look_at
 from vmocap_core.keypoints import indices
-from vmocap_core.lattice import PcmSampler, lattice_offsets, lattice_search
-from vmocap_core.triangulation import triangulate
+from vmocap_core.method import _lattice_kernels as _kernels
+from vmocap_core.method.lattice import PcmSampler, lattice_offsets, lattice_search
+from vmocap_core.method.triangulation import triangulate
+from vmocap_core.pcm.views import PcmViews, stride_affine
 
 
 def rig4() -> Rig:

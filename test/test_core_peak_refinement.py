@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 from test_core_lattice import gaussian_pcm, rig4
 
-from vmocap_core import _kernels
-from vmocap_core.heatmaps import PcmViews
-from vmocap_core.lattice import lattice_search
-from vmocap_core.peak_refinement import local_peaks, refine_markers, refine_markers_numpy
-from vmocap_core.triangulation import triangulate
+from vmocap_core.method import _lattice_kernels as _kernels
+from vmocap_core.method.lattice import lattice_search
+from vmocap_core.method.refinement import local_peaks, refine_markers, refine_markers_numpy
+from vmocap_core.method.triangulation import triangulate
+from vmocap_core.pcm.views import PcmViews
 
 
 def rotated_crop_affine(centre_px: np.ndarray, side_px: float, angle: float, cells: int = 64) -> np.ndarray:

@@ -8,9 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from vmocap_core.bench.accuracy import BUNDLED, RATE_HZ, prepare, run_motion, score_run
-from vmocap_core.smoothing import FixedLagSmoother, MotionModel, gaussian_smooth, rts_smooth, runs
-from vmocap_core.tracker import TrackerConfig
+from vmocap_core.apps.bench.accuracy import BUNDLED, RATE_HZ, prepare, run_motion, score_run
+from vmocap_core.method.smoothing import FixedLagSmoother, MotionModel, gaussian_smooth, rts_smooth, runs
+from vmocap_core.method.tracker import TrackerConfig
 
 MODEL = MotionModel("ca", 2000.0, 0.02, 60.0)
 
@@ -74,8 +74,8 @@ def test_lag_and_offline_modes_on_a_clip(walk) -> None:
 
 def test_offline_on_a_recording_never_tracked_is_a_clear_error() -> None:
     from vmocap_core.errors import VmocapError
-    from vmocap_core.offline import reconstruct
-    from vmocap_core.tracker import TrackResult
+    from vmocap_core.method.offline import reconstruct
+    from vmocap_core.method.tracker import TrackResult
 
     nan = np.full((25, 3), np.nan)
     results = [TrackResult(k, "initializing", np.full(40, np.nan), [], nan, nan, np.zeros(25), nan) for k in range(5)]

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vmocap_core.bench.accuracy import default_motions, prepare, run_motion, score_run
-from vmocap_core.heatmaps import PcmViews
-from vmocap_core.synthetic import SyntheticPcmSource, benchmark_rig
-from vmocap_core.tracker import SpatiotemporalFilter, TrackerConfig, trunk_tilt
+from vmocap_core.apps.bench.accuracy import default_motions, prepare, run_motion, score_run
+from vmocap_core.method.tracker import SpatiotemporalFilter, TrackerConfig, trunk_tilt
+from vmocap_core.pcm.synthetic import SyntheticPcmSource, benchmark_rig
+from vmocap_core.pcm.views import PcmViews
 
 
 def punch():
@@ -47,7 +47,7 @@ def test_identification_phase_improves_link_lengths():
     lengths nearer the truth than the 5-frame provisional fit, and the output's bones are
     constant from its first frame."""
     from vmocap_core.keypoints import INDEX
-    from vmocap_core.skeleton import BONES
+    from vmocap_core.method.skeleton import BONES
 
     m = punch()
     m.positions = m.positions[:120]

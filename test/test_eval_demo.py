@@ -28,7 +28,7 @@ def _models_present() -> bool:
 
 @needs_demo
 def test_qualisys_rig_matches_the_file_and_sees_the_scene() -> None:
-    from vmocap_core.demo import load_qualisys_rig, video_paths, video_sizes
+    from vmocap_core.apps.demo import load_qualisys_rig, video_paths, video_sizes
 
     qca = DEMO / "calibration" / "Calib.qca.txt"
     sizes = video_sizes(video_paths(DEMO))
@@ -53,8 +53,15 @@ def test_qualisys_rig_matches_the_file_and_sees_the_scene() -> None:
 @needs_demo
 @pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
 def test_demo_pipeline_tracks_the_walker(tmp_path: Path) -> None:
+    from vmocap_core.apps.demo import (
+        load_qualisys_rig,
+        reprojection_errors,
+        run_pipeline,
+        video_paths,
+        video_sizes,
+        videos_to_bag,
+    )
     from vmocap_core.bag import BagReader
-    from vmocap_core.demo import load_qualisys_rig, reprojection_errors, run_pipeline, video_paths, video_sizes, videos_to_bag
 
     videos = video_paths(DEMO)
     rig = load_qualisys_rig(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
@@ -80,9 +87,9 @@ def test_demo_pipeline_tracks_the_walker(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(not (SHELF / "gt.txt").exists(), reason="../shared/data/shelf not present")
 def test_report_markdown_from_a_real_shelf_run(tmp_path: Path) -> None:
+    from vmocap_core.apps.evaluation.shelf import evaluate
+    from vmocap_core.apps.evaluation.shelf_data import load_shelf
     from vmocap_core.cli import main
-    from vmocap_core.evaluation.shelf import evaluate
-    from vmocap_core.evaluation.shelf_data import load_shelf
 
     res = evaluate(load_shelf(SHELF, max_frames=10), progress=False)
     shelf_json = tmp_path / "shelf.json"
@@ -100,7 +107,7 @@ def test_report_markdown_from_a_real_shelf_run(tmp_path: Path) -> None:
 @pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
 def test_demo_on_the_node_graph(tmp_path: Path) -> None:
     pytest.importorskip("rclpy")
-    from vmocap_core.demo import (
+    from vmocap_core.apps.demo import (
         load_qualisys_rig,
         recording_from_graph,
         reprojection_errors,
@@ -109,7 +116,7 @@ def test_demo_on_the_node_graph(tmp_path: Path) -> None:
         video_sizes,
         videos_to_bag,
     )
-    from vmocap_core.rig_io import save_rig
+    from vmocap_core.cameras.rig_file import save_rig
 
     videos = video_paths(DEMO)
     rig = load_qualisys_rig(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))

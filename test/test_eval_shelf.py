@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from vmocap_core.apps.evaluation import shelf_data
+from vmocap_core.apps.evaluation.pcp import PARTS, ShelfScore, part_correct, to_shelf15
 from vmocap_core.errors import DetectionFileError
-from vmocap_core.evaluation import shelf_data
-from vmocap_core.evaluation.pcp import PARTS, ShelfScore, part_correct, to_shelf15
 from vmocap_core.keypoints import INDEX
 
 SHELF = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "shelf"
@@ -80,7 +80,7 @@ def test_ground_truth_ids_and_frames() -> None:
 
 
 def test_rendered_pcm_peaks_at_the_detection() -> None:
-    from vmocap_core.multiperson import PcmRenderer
+    from vmocap_core.method.multiperson import PcmRenderer
 
     kps = np.array([INDEX["left_wrist"], INDEX["nose"]])
     r = PcmRenderer([(1032, 776)] * 2, kps, stride=8, sigma_cells=2.0, radius=6)
@@ -128,7 +128,7 @@ def test_pcp_criterion_and_head_mapping() -> None:
 
 @needs_shelf
 def test_shelf_30_frames_ours_and_baseline() -> None:
-    from vmocap_core.evaluation.shelf import evaluate
+    from vmocap_core.apps.evaluation.shelf import evaluate
 
     data = shelf_data.load_shelf(SHELF, max_frames=30)
     res = evaluate(data, progress=False)
@@ -144,9 +144,9 @@ def test_shelf_30_frames_ours_and_baseline() -> None:
 
 @needs_shelf
 def test_person_who_leaves_ends_only_their_tracker() -> None:
-    from vmocap_core.evaluation.shelf import TRACKER_SETTINGS, make_renderer, people_per_view
-    from vmocap_core.multiperson import MultiPersonTracker
-    from vmocap_core.tracker import SpatiotemporalFilter, TrackerConfig
+    from vmocap_core.apps.evaluation.shelf import TRACKER_SETTINGS, make_renderer, people_per_view
+    from vmocap_core.method.multiperson import MultiPersonTracker
+    from vmocap_core.method.tracker import SpatiotemporalFilter, TrackerConfig
 
     data = shelf_data.load_shelf(SHELF, max_frames=40)
     rig = data.rig

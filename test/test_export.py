@@ -20,7 +20,7 @@ from vmocap_core.errors import VmocapError
 from vmocap_core.export.markers import Z_TO_Y_UP
 from vmocap_core.export.session import load_session
 from vmocap_core.keypoints import INDEX, KEYPOINTS
-from vmocap_core.skeleton import BONES
+from vmocap_core.method.skeleton import BONES
 
 FPS = 30.0
 GAP = range(70, 76)  # frame sets dropped from the recording

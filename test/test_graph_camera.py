@@ -41,13 +41,13 @@ def compressed_bag(path: Path, rig, frames: int, fmt: str = ".png", corrupt: tup
 
 
 def small_rig():
-    from vmocap_core.synthetic import benchmark_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
 
     return benchmark_rig(width=64, height=48)
 
 
 def test_bag_source_decodes_compressed_images_and_skips_corrupt_ones(tmp_path: Path) -> None:
-    from vmocap_core.sources.bag import BagFrameSource
+    from vmocap_core.cameras.bag import BagFrameSource
 
     rig = small_rig()
     bag = tmp_path / "c.mcap"
@@ -70,7 +70,7 @@ def test_bag_source_decodes_compressed_images_and_skips_corrupt_ones(tmp_path: P
 
 
 def test_bag_source_loops_a_compressed_bag(tmp_path: Path) -> None:
-    from vmocap_core.sources.bag import BagFrameSource
+    from vmocap_core.cameras.bag import BagFrameSource
 
     rig = small_rig()
     bag = tmp_path / "c.mcap"
@@ -103,7 +103,7 @@ def test_camera_node_plays_a_compressed_bag_restamped_in_a_loop(tmp_path: Path, 
     rig = small_rig()
     bag = tmp_path / "c.mcap"
     images = compressed_bag(bag, rig, 4)  # 4 frames = 0.13 s of bag, played at 1x for several loops
-    from vmocap_core.rig_io import save_rig
+    from vmocap_core.cameras.rig_file import save_rig
 
     rig_path = tmp_path / "rig.yaml"
     save_rig(rig, rig_path)

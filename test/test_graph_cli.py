@@ -137,9 +137,9 @@ def test_process_image_bag_runs_the_cnn(tmp_path: Path) -> None:
         model_path("pose_detection")
     except Exception as exc:  # noqa: BLE001 - models not built on this machine
         pytest.skip(f"PCM models not available ({exc})")
+    from vmocap_core.apps.process import process_bag
     from vmocap_core.bag.synth import write_synthetic_bag
-    from vmocap_core.process import process_bag
-    from vmocap_core.synthetic import benchmark_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
 
     rig = benchmark_rig(width=160, height=120)
     bag = tmp_path / "imgs.mcap"

@@ -61,7 +61,7 @@ def listener():
 @pytest.mark.parametrize("mode,tf_dds", [("processes", "auto"), ("single_process", "auto"), ("processes", "off")])
 def test_graph_equals_offline(tmp_path: Path, mode: str, tf_dds: str, listener) -> None:
     """tf_dds off: /tf does not travel over DDS (as without tf2_msgs), the recorder derives it."""
-    from vmocap_core.process import joint_trajectory, process_bag
+    from vmocap_core.apps.process import joint_trajectory, process_bag
 
     env, counter = listener
     env = dict(env, VMOCAP_TF_DDS=tf_dds)
@@ -165,7 +165,7 @@ def test_graph_with_cnn_equals_offline(tmp_path: Path, listener) -> None:
             raise FileNotFoundError("pose2sim demo not cached")
     except Exception as exc:  # noqa: BLE001 - models / demo videos not on this machine
         pytest.skip(f"CNN or Pose2Sim demo not available ({exc})")
-    from vmocap_core.process import joint_trajectory, process_bag
+    from vmocap_core.apps.process import joint_trajectory, process_bag
     from vmocap_ros.bench_graph import _pose2sim_bag
 
     env, counter = listener

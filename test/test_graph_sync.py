@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from vmocap_core.sync import ApproximateSync
+from vmocap_core.cameras.sync import ApproximateSync
 
 MS = 1_000_000
 CAMS = ["c0", "c1", "c2", "c3"]
@@ -125,7 +125,7 @@ def test_camera_back_from_silence_is_matched_again_even_if_its_first_frame_is_la
 def test_a_camera_whose_stamps_lag_is_reported_not_silently_ignored():
     """cam1's stamps trail the others by 1 s (a clock offset, or its source started early):
     every frame of it arrives after its set went out; `lagging` names it (the nodes WARN)."""
-    from vmocap_core.sync import lagging
+    from vmocap_core.cameras.sync import lagging
 
     sync = ApproximateSync(["cam0", "cam1", "cam2"], 8_000_000, min_cameras=2, silent_after_ns=300_000_000)
     period = 33_333_333

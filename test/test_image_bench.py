@@ -20,8 +20,8 @@ pytestmark = pytest.mark.skipif(
 
 @pytest.fixture(scope="module")
 def rig():
-    from vmocap_core.render.recording import scale_rig
-    from vmocap_core.rig_io import load_rig
+    from vmocap_core.apps.render.recording import scale_rig
+    from vmocap_core.cameras.rig_file import load_rig
 
     return scale_rig(load_rig(REPO / "config" / "benchmark_rig.yaml"), 0.5)
 
@@ -29,11 +29,11 @@ def rig():
 def test_truth_reprojects_onto_the_rendered_body(rig):
     """Every truth keypoint projects inside the body's silhouette (image with the body minus
     the same scene without it), in every camera, through the lens distortion."""
+    from vmocap_core.apps.render.body import load_body
+    from vmocap_core.apps.render.pose import clip_joints, segment_transforms, skin
+    from vmocap_core.apps.render.recording import ClipSpec, prepare_motion
+    from vmocap_core.apps.render.scene import Appearance, SceneRenderer
     from vmocap_core.keypoints import KEYPOINTS
-    from vmocap_core.render.body import load_body
-    from vmocap_core.render.pose import clip_joints, segment_transforms, skin
-    from vmocap_core.render.recording import ClipSpec, prepare_motion
-    from vmocap_core.render.scene import Appearance, SceneRenderer
 
     spec = ClipSpec(CLIP, 20, 60.0, 0)
     m = prepare_motion(spec)
@@ -57,8 +57,8 @@ def test_truth_reprojects_onto_the_rendered_body(rig):
 
 
 def test_same_seed_same_bytes(rig, tmp_path):
+    from vmocap_core.apps.render.recording import ClipSpec, render_recording
     from vmocap_core.bag import BagReader
-    from vmocap_core.render.recording import ClipSpec, render_recording
 
     spec = ClipSpec(CLIP, 3, 60.0, 7)
     a = render_recording(spec, rig, tmp_path / "a", progress=False)
@@ -87,8 +87,8 @@ def test_same_seed_same_bytes(rig, tmp_path):
 def test_short_clip_offline_and_through_the_node_graph(rig, tmp_path):
     """Render, write the MCAP, run the real CNN + tracker on it offline (`vmocap process`
     path) and through the ROS 2 node graph (camera node playing the MCAP), score both."""
-    from vmocap_core.bench import images
-    from vmocap_core.rig_io import save_rig
+    from vmocap_core.apps.bench import images
+    from vmocap_core.cameras.rig_file import save_rig
 
     args = argparse.Namespace(frames=45, seed=0, cache=tmp_path / "cache", out=tmp_path / "out", json=True,
                               configs=["rot-int8"], no_synthetic=True, graph="first", graph_rate=0.25,

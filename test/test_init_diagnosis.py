@@ -14,9 +14,9 @@ from graph_helpers import domain_env, stop, synthetic_bag, vmocap, wait_for, wri
 
 from vmocap_core.bag import BagReader
 from vmocap_core.bag import messages as M
-from vmocap_core.init_report import CORE, camera_mask, describe
+from vmocap_core.cameras.rig_file import load_rig, save_rig
 from vmocap_core.keypoints import INDEX, KEYPOINTS
-from vmocap_core.rig_io import load_rig, save_rig
+from vmocap_core.method.init_report import CORE, camera_mask, describe
 
 
 def test_description_names_disagreeing_views_unseen_keypoints_and_silent_cameras() -> None:
@@ -115,7 +115,7 @@ def test_stalled_initialization_turns_diagnostics_warn_with_the_reason(tmp_path:
 def test_a_turned_camera_is_named_while_tracking_goes_on(tmp_path: Path) -> None:
     """cam2 turned by 5 degrees after calibration: the other three outvote it, tracking goes on,
     and vmocap_markers' diagnostics name cam2 with its reprojection residual."""
-    from vmocap_core.synthetic import NoiseModel
+    from vmocap_core.pcm.synthetic import NoiseModel
 
     bag = tmp_path / "in.mcap"
     # clean maps (1.5 px, no false peaks or swaps): the only disagreement is the turned camera
@@ -137,7 +137,7 @@ def test_a_turned_camera_is_named_while_tracking_goes_on(tmp_path: Path) -> None
 def test_corrupted_heatmaps_are_counted_per_camera() -> None:
     """What the markers node WARNs about: non-finite or out-of-range values in valid channels;
     an entirely-NaN channel is the messages' "no information" and does not count."""
-    from vmocap_core.heatmaps import PcmViews
+    from vmocap_core.pcm.views import PcmViews
 
     maps = np.random.default_rng(1).random((2, 3, 8, 8)).astype(np.float32)
     maps[1, 2] = np.nan  # channel without information (invalid)

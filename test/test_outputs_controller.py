@@ -36,8 +36,8 @@ def _offline_velocities(path: Path, stale_ns: int) -> dict[int, np.ndarray]:
 
 
 def test_lost_subject_from_stale_stamps() -> None:
+    from vmocap_core.method.skeleton import BodyDimensions, Skeleton
     from vmocap_core.outputs.urdf import JOINT_NAMES, SubjectModel, base_pose, joint_positions
-    from vmocap_core.skeleton import BodyDimensions, Skeleton
 
     sk = Skeleton(BodyDimensions())
     ctl = WristVelocity(stale_ns=100_000_000)
@@ -61,7 +61,7 @@ def test_lost_subject_from_stale_stamps() -> None:
 
 
 def test_controller_example_on_the_graph_equals_offline(tmp_path: Path) -> None:
-    from vmocap_core.process import process_bag
+    from vmocap_core.apps.process import process_bag
 
     env = domain_env(7)
     bag = tmp_path / "in.mcap"

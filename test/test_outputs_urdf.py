@@ -16,15 +16,15 @@ from outputs_helpers import rosbags_messages as _rosbags_messages
 from outputs_helpers import tf_keypoint_errors
 
 from vmocap_core.keypoints import KEYPOINTS
+from vmocap_core.method.skeleton import LIMITS, BodyDimensions, Skeleton
 from vmocap_core.outputs import urdf as U
-from vmocap_core.skeleton import LIMITS, BodyDimensions, Skeleton
 
 NS = "/vmocap"
 
 
 @pytest.fixture(scope="module")
 def processed(tmp_path_factory) -> tuple[Path, object]:
-    from vmocap_core.process import process_bag
+    from vmocap_core.apps.process import process_bag
 
     d = tmp_path_factory.mktemp("urdf")
     rig, _, kps = synthetic_bag(d / "in.mcap", frames=40)
@@ -160,12 +160,12 @@ def test_camera_frames_reproject_the_keypoints_like_the_rig(processed) -> None:
 
 
 def test_reidentified_subject_gets_a_new_description_before_its_joint_state() -> None:
+    from vmocap_core.apps.process import result_messages
     from vmocap_core.bag import cdr
     from vmocap_core.graph_config import Topics
+    from vmocap_core.method.tracker import TrackResult
     from vmocap_core.outputs.streams import SubjectOutputs, TfFromStates
     from vmocap_core.outputs.tf import TF_TYPE, UrdfKinematics
-    from vmocap_core.process import result_messages
-    from vmocap_core.tracker import TrackResult
 
     topics = Topics(NS)
     subject = SubjectOutputs()

@@ -12,7 +12,6 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from vmocap_core.errors import ModelError
-from vmocap_core.heatmaps import stride_affine
 from vmocap_core.keypoints import INDEX, KEYPOINTS, MIRROR
 from vmocap_core.pcm import fetch
 from vmocap_core.pcm.blazepose import BlazePoseLandmark, rotated_crops
@@ -20,6 +19,7 @@ from vmocap_core.pcm.crops import Crops, compose_affine
 from vmocap_core.pcm.detector import PoseDetector
 from vmocap_core.pcm.model import InputViews, letterbox_affine
 from vmocap_core.pcm.openpose import COCO18, OpenPoseConfig, OpenPoseModel
+from vmocap_core.pcm.views import stride_affine
 
 MESSI = Path("/usr/share/doc/opencv-doc/examples/data/messi5.jpg")
 # Body parts in messi5.jpg (548 x 342), read off the photo by eye (pixels); he faces the camera,

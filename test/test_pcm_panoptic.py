@@ -10,17 +10,17 @@ import cv2
 import numpy as np
 import pytest
 
-from vmocap_core.camera import Camera, Rig
+from vmocap_core.cameras.projection import Camera, Rig
+from vmocap_core.cameras.rig_file import load_panoptic_cameras
 from vmocap_core.errors import ModelError
 from vmocap_core.keypoints import INDEX, KEYPOINTS, LOWER_BODY, MIRROR
+from vmocap_core.method.triangulation import triangulate
 from vmocap_core.pcm import fetch
 from vmocap_core.pcm.blazepose import BlazePoseLandmark, rotated_crops
 from vmocap_core.pcm.crops import Crops, crops_from_skeleton
 from vmocap_core.pcm.detector import PoseDetector
 from vmocap_core.pcm.peaks import camera_keypoints
 from vmocap_core.pcm.pipeline import BlazePosePcm
-from vmocap_core.rig_io import load_panoptic_cameras
-from vmocap_core.triangulation import triangulate
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "panoptic_demo"
 NAMES = ["00_03", "00_06", "00_12", "00_13", "00_23"]

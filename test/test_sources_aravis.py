@@ -8,9 +8,9 @@ import time
 import numpy as np
 import pytest
 
+from vmocap_core.cameras import aravis as arv
+from vmocap_core.cameras.rig_source import SourceRig
 from vmocap_core.errors import SourceError
-from vmocap_core.sources import aravis as arv
-from vmocap_core.sources.rig import SourceRig
 
 pytestmark = pytest.mark.skipif(not arv.available(), reason="Aravis 0.8 / PyGObject not installed")
 FAKE = ("Fake",)

@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
+from vmocap_core.cameras.clock import ClockMapper
+from vmocap_core.cameras.rig_source import SourceRig
+from vmocap_core.cameras.v4l2 import V4L2FrameSource
 from vmocap_core.errors import SourceError
-from vmocap_core.sources.clock import ClockMapper
-from vmocap_core.sources.rig import SourceRig
-from vmocap_core.sources.v4l2 import V4L2FrameSource
 
 
 class FakeUVC:
@@ -202,7 +202,7 @@ def test_real_v4l2_device():
 
 
 def test_playback_stamps_keep_going_forward_across_loops_and_pace_all_cameras_from_one_epoch():
-    from vmocap_core.sources.clock import LoopedStamps, PlaybackClock
+    from vmocap_core.cameras.clock import LoopedStamps, PlaybackClock
 
     stamps = LoopedStamps()
     recorded = [100, 110, 120, 100, 110, 120]  # a 3-frame recording played twice
@@ -217,7 +217,7 @@ def test_playback_stamps_keep_going_forward_across_loops_and_pace_all_cameras_fr
 
 
 def test_playback_replayed_as_live_skips_frames_two_periods_late():
-    from vmocap_core.sources.clock import PlaybackClock
+    from vmocap_core.cameras.clock import PlaybackClock
 
     live = PlaybackClock(rate=1.0, restamp=True)
     assert not live.superseded(due=10.0, period=0.033, now_mono=10.05)  # 1.5 periods late: sent

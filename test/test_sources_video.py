@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from vmocap_core.calibration.datasets import pose2sim_demo
-from vmocap_core.camera import Camera, Rig
+from vmocap_core.cameras.projection import Camera, Rig
+from vmocap_core.cameras.rig_source import SourceRig
+from vmocap_core.cameras.video import VideoFrameSource, open_videos
 from vmocap_core.errors import SourceError
-from vmocap_core.sources.rig import SourceRig
-from vmocap_core.sources.video import VideoFrameSource, open_videos
 
 FPS = 25.0
 
@@ -119,8 +119,8 @@ def test_loop_and_realtime_pacing(tmp_path):
 
 
 def test_make_source_from_uri(tmp_path):
-    from vmocap_core.sources import make_source
-    from vmocap_core.sources.v4l2 import V4L2FrameSource
+    from vmocap_core.cameras import make_source
+    from vmocap_core.cameras.v4l2 import V4L2FrameSource
 
     write_video(tmp_path / "cam0.avi", 5, first=0)
     write_video(tmp_path / "cam1.avi", 5, first=0)

@@ -48,7 +48,7 @@ class Param:
 
 
 COMMON = [
-    Param("rig", "", "rig YAML (vmocap_core.rig_io format)", path=True),
+    Param("rig", "", "rig YAML (vmocap_core.cameras.rig_file format)", path=True),
     Param("cameras", [""], "camera names (rig order subset); empty: all cameras of the rig"),
     Param("namespace", "/vmocap", "topic prefix of the graph"),
     Param("pcm_keypoints", [""], "KEYPOINTS names of the PCM channels, in channel order; empty: all 25"),
@@ -58,7 +58,7 @@ COMMON = [
 NODE_PARAMS: dict[str, list[Param]] = {
     "vmocap_camera": [
         Param("source", "bag", "frame source kind", choices=("bag", "video", "aravis", "v4l2")),
-        Param("uri", "", "source URI (vmocap_core.sources.factory): bag file, video file/folder/template, "
+        Param("uri", "", "source URI (vmocap_core.cameras.factory): bag file, video file/folder/template, "
               "/dev/videoN or Aravis ids, per camera as cam0=...,cam1=...; options after '?'", path="auto"),
         Param("rate", 1.0, "playback speed of recorded sources (0: as fast as possible)", 0.0, 100.0),
         Param("loop", False, "restart recorded sources at their end"),
@@ -116,9 +116,9 @@ LAUNCH_KEYS: dict[str, Any] = {"mode": "processes", "nodes": None, "groups": Non
 
 
 def tracker_params() -> list[Param]:
-    """tracker.* parameters from vmocap_core.tracker.TrackerConfig (the lead's dataclass)."""
+    """tracker.* parameters from vmocap_core.method.tracker.TrackerConfig (the lead's dataclass)."""
     try:
-        from .tracker import TrackerConfig
+        from .method.tracker import TrackerConfig
     except ImportError:
         return []
     out = []

@@ -137,7 +137,7 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
         statuses = [v.get("status") for _, _, _, v in o.diag.get("vmocap_skeleton", [])]
         seen_lost = "tracking" in statuses and any(s in ("lost", "initializing", "identifying")
                                                      for s in statuses[statuses.index("tracking"):])
-        from vmocap_core.tracker import TrackerConfig
+        from vmocap_core.method.tracker import TrackerConfig
 
         # the tracker declares "lost" after lost_frames frame sets of low marker weight: up to
         # that many outputs after leaving are the documented detection delay

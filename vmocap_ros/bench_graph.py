@@ -69,10 +69,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _bag(work: Path, args: argparse.Namespace):
     from vmocap_core.bag.synth import write_synthetic_bag
+    from vmocap_core.cameras.rig_file import save_rig
     from vmocap_core.keypoints import KEYPOINTS
     from vmocap_core.motion import load_motion, resample
-    from vmocap_core.rig_io import save_rig
-    from vmocap_core.synthetic import benchmark_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
 
     w, h = (int(x) for x in args.size.split("x"))
     rig = benchmark_rig(width=w, height=h)
@@ -92,13 +92,13 @@ def _pose2sim_bag(work: Path, args: argparse.Namespace):
     (intrinsics scaled to match), stamps at --fps."""
     import cv2
 
+    from vmocap_core.apps.demo import load_qualisys_rig, video_paths, video_sizes
     from vmocap_core.bag import BagWriter
     from vmocap_core.bag import messages as M
     from vmocap_core.calibration.datasets import pose2sim_demo
-    from vmocap_core.camera import Camera, Rig
-    from vmocap_core.demo import load_qualisys_rig, video_paths, video_sizes
+    from vmocap_core.cameras.projection import Camera, Rig
+    from vmocap_core.cameras.rig_file import save_rig
     from vmocap_core.graph_config import Topics
-    from vmocap_core.rig_io import save_rig
 
     demo = pose2sim_demo(fetch=True)
     videos = video_paths(demo)
@@ -419,7 +419,7 @@ def run(args: argparse.Namespace) -> int:
     # the same frames offline (no DDS): what the graph adds on top of the computation
     offline_ms = offline_steady = None
     if args.images == "synthetic":
-        from vmocap_core.process import BagPcmProvider, channel_keypoints, process_bag, time_pipeline
+        from vmocap_core.apps.process import BagPcmProvider, channel_keypoints, process_bag, time_pipeline
 
         off = process_bag(bag, work / "offline_out.mcap", rig, tracker={"fps": float(args.fps)}, keypoints=kps, progress=False)
         offline_ms = round(off["ms_per_frame"], 2)

@@ -29,10 +29,10 @@ def stamp_of(k: int) -> int:
 def synthetic_bag(path: Path, frames: int, images: bool, size: tuple[int, int] = (320, 240)):
     """A bag of `frames` frame sets (4 cameras, PCM topics, images optional) and its rig."""
     from vmocap_core.bag.synth import write_synthetic_bag
+    from vmocap_core.cameras.rig_file import save_rig
     from vmocap_core.keypoints import KEYPOINTS
     from vmocap_core.motion import load_motion, resample
-    from vmocap_core.rig_io import save_rig
-    from vmocap_core.synthetic import benchmark_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
 
     rig = benchmark_rig(width=size[0], height=size[1])
     m = resample(load_motion(MOTION), FPS)
@@ -72,7 +72,7 @@ def miscalibrated(rig_path: Path, out: Path, camera: str, how: str) -> Path:
     centre moved by 10 cm along world x (`moved`), the others as they were."""
     import dataclasses
 
-    from vmocap_core.rig_io import load_rig, save_rig
+    from vmocap_core.cameras.rig_file import load_rig, save_rig
 
     rig = load_rig(rig_path)
     cams = []

@@ -29,10 +29,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..camera import Camera, Rig
+from ..cameras.projection import Camera, Rig
 from ..errors import BagError, HeatmapError
-from ..heatmaps import PcmViews
 from ..keypoints import INDEX, KEYPOINTS
+from ..pcm.views import PcmViews
 
 WORLD_FRAME = "world"
 CLOUD_DTYPE = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("score", "<f8"), ("id", "<u4"), ("kind", "<u4")])

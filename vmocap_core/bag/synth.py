@@ -2,7 +2,7 @@
 
 Per frame and camera: CameraInfo (NS/CAM/camera_info), optionally a bgr8 Image
 (NS/CAM/image_raw), and the synthetic PCM of the view (NS/pcm/CAM/heatmaps + camera_info,
-vmocap_core.synthetic's noise model). Capture stamps start at `t0_ns`, one per 1/fps.
+vmocap_core.pcm.synthetic's noise model). Capture stamps start at `t0_ns`, one per 1/fps.
 """
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..camera import Rig
+from ..cameras.projection import Rig
 from ..graph_config import Topics
 from . import messages as M
 from .mcap_io import BagWriter
 
 if TYPE_CHECKING:
-    from ..synthetic import NoiseModel
+    from ..pcm.synthetic import NoiseModel
 
 
 def write_synthetic_bag(
@@ -38,7 +38,7 @@ def write_synthetic_bag(
     noise: NoiseModel | None = None,
 ) -> Path:
     """noise: the heatmaps' noise model (default: the benchmark's, at this stride)."""
-    from ..synthetic import NoiseModel, SyntheticPcmSource
+    from ..pcm.synthetic import NoiseModel, SyntheticPcmSource
 
     topics = Topics(namespace)
     src = SyntheticPcmSource(rig, positions, present, seed=seed, noise=noise or NoiseModel(stride=stride), fps=fps)

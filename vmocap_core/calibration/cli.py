@@ -155,7 +155,7 @@ def _print_result(res: CalibrationResult, log) -> None:
 
 
 def _write(res: CalibrationResult, args: argparse.Namespace, log) -> None:
-    from ..rig_io import camera_info_dict, save_rig
+    from ..cameras.rig_file import camera_info_dict, save_rig
 
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera, Rig, check_finite
+from ..cameras.projection import Camera, Rig, check_finite
 from ..errors import RigFileError
 from .geometry import rotation_angle_deg
 
@@ -78,7 +78,7 @@ def load_reference(path: str | Path) -> Rig:
         return load_caliscope(path)
     if ".qca" in p:
         return load_qualisys_intrinsics(path)
-    from ..rig_io import load_rig
+    from ..cameras.rig_file import load_rig
 
     return load_rig(path)
 

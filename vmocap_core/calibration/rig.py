@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..camera import Camera, Rig
+from ..cameras.projection import Camera, Rig
 from ..errors import CalibrationError
 from .boards import Board, Detection
 from .geometry import (
@@ -180,7 +180,7 @@ def _unify_numbering(usable, poses, cams, board: Board):
 def _place_with_scene(cams, poses, intr, views, scene: SceneObservations):
     """Move the board-calibrated rig into the scene frame (triangulated scene points aligned
     rigidly to their known coordinates) and place cameras that only see scene points by PnP."""
-    from ..triangulation import triangulate
+    from ..method.triangulation import triangulate
 
     names = [v.name for v in views]
     placed = [c for c in range(len(views)) if cams[c] is not None]

@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import VmocapError
 from ..keypoints import KEYPOINTS
-from ..skeleton import JOINTS, REVOLUTE, Skeleton
+from ..method.skeleton import JOINTS, REVOLUTE, Skeleton
 from .markers import Z_TO_Y_UP
 from .session import Session
 

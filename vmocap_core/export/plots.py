@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..keypoints import INDEX
-from ..skeleton import REVOLUTE
+from ..method.skeleton import REVOLUTE
 from .session import Session
 
 SPHERICAL = ("waist", "neck", "left_shoulder", "right_shoulder", "left_hip", "right_hip")

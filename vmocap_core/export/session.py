@@ -18,10 +18,10 @@ from ..bag import messages as M
 from ..errors import BagError
 from ..graph_config import Topics
 from ..keypoints import KEYPOINTS
+from ..method.skeleton import BodyDimensions, Skeleton
+from ..method.smoothing import runs
 from ..outputs.streams import pose_of
 from ..outputs.urdf import JOINT_NAMES, model_angles
-from ..skeleton import BodyDimensions, Skeleton
-from ..smoothing import runs
 
 SUBJECT_STATUS = "vmocap: subject"  # the /diagnostics status `vmocap process` writes
 

@@ -46,7 +46,7 @@ def _from_bag(path: str, topic: str, at: float | None) -> str:
 def _identified(path: str, topic: str):
     from ..bag import BagReader
     from ..bag import messages as M
-    from ..tracker import fit_skeleton
+    from ..method.tracker import fit_skeleton
 
     frames = []
     with BagReader(path) as r:
@@ -66,7 +66,7 @@ def _identified(path: str, topic: str):
 
 def run(args: argparse.Namespace) -> int:
     from ..graph_config import Topics
-    from ..skeleton import BodyDimensions
+    from ..method.skeleton import BodyDimensions
     from .tf import UrdfKinematics
     from .urdf import SubjectModel
 

@@ -14,9 +14,9 @@ from typing import Iterator
 import numpy as np
 
 from ..bag import messages as M
-from ..camera import Rig
+from ..cameras.projection import Rig
 from ..graph_config import Topics
-from ..skeleton import BodyDimensions
+from ..method.skeleton import BodyDimensions
 from .tf import TF_TYPE, Transforms, UrdfKinematics, base_transform, camera_transforms, tf_message
 from .urdf import JOINT_NAMES, SubjectModel
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..bag import cdr
 from ..bag.messages import WORLD_FRAME, header
-from ..camera import Rig
+from ..cameras.projection import Rig
 from ..errors import VmocapError
 from .urdf import BASE_LINK, matrix_to_quaternion
 

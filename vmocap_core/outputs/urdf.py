@@ -22,7 +22,7 @@ import numpy as np
 
 from ..calibration.geometry import rodrigues
 from ..keypoints import KEYPOINTS
-from ..skeleton import JOINTS, KEYPOINT_PARENTS, LIMITS, REVOLUTE, BodyDimensions, Skeleton
+from ..method.skeleton import JOINTS, KEYPOINT_PARENTS, LIMITS, REVOLUTE, BodyDimensions, Skeleton
 
 BASE_LINK = "pelvis"
 # The body segment each joint of skeleton.JOINTS moves (the URDF link after the joint).

@@ -18,11 +18,11 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ModelError
-from ..heatmaps import invert_affine
 from . import fetch
 from .crops import tilt_from_points
 from .model import DEFAULT_THREADS, check_image, letterbox_affine, read_model, with_uint8_input
 from .runner import DEFAULT_PARALLEL, Runner
+from .views import invert_affine
 
 INPUT = 224
 STRIDES = (8, 16, 32, 32, 32)

@@ -21,9 +21,9 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from ..errors import ModelError
-from ..heatmaps import PcmViews, stride_affine
 from .crops import Crops, compose_affine
 from .runner import DEFAULT_PARALLEL, Runner
+from .views import PcmViews, stride_affine
 
 DEFAULT_THREADS = 2
 MIN_IMAGE_PX = 16  # images smaller than this on either side cannot show a person: flagged

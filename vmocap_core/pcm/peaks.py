@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..heatmaps import PcmViews
 from ..keypoints import KEYPOINTS
+from .views import PcmViews
 
 
 def camera_keypoints(

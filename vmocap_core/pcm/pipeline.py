@@ -14,15 +14,15 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera import Rig
+from ..cameras.projection import Rig
 from ..errors import ModelError
-from ..heatmaps import PcmViews
 from ..keypoints import KEYPOINTS
 from .blazepose import DEFAULT_ROTATION, MIN_TILT, BlazePoseLandmark, rotated_crops
 from .crops import Crops, crops_from_skeleton
 from .detector import PoseDetector
 from .model import DEFAULT_THREADS
 from .runner import DEFAULT_PARALLEL
+from .views import PcmViews
 
 
 class BlazePosePcm:

@@ -14,11 +14,11 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from vmocap_core import graph_config
+from vmocap_core.apps.process import DIAG, IMAGE
 from vmocap_core.bag import cdr
 from vmocap_core.bag import messages as M
+from vmocap_core.cameras.sync import lagging
 from vmocap_core.errors import VmocapError
-from vmocap_core.process import DIAG, IMAGE
-from vmocap_core.sync import lagging
 
 from ..common import Topics, declare, msg_class, qos
 from ..transport import Output, Transport
@@ -69,7 +69,7 @@ class VmocapNode(Node):
         self.topics = Topics(self.p["namespace"])
         self.rig = None
         if self.p["rig"]:  # nodes that can run without one (skeleton, recorder) use it for names and frames
-            from vmocap_core.rig_io import load_rig
+            from vmocap_core.cameras.rig_file import load_rig
 
             rig = load_rig(self.p["rig"])
             self.rig = rig.subset(self.p["cameras"]) if self.p["cameras"] else rig
@@ -183,7 +183,7 @@ class InitWatch:
 
     def update(self, node: VmocapNode, status: str, markers: Any, problem: str | None = None,
                min_presence: float | None = None) -> None:
-        from vmocap_core.init_report import describe
+        from vmocap_core.method.init_report import describe
 
         if status not in ("initializing", "lost", "none"):
             self.since_ns = None

@@ -9,10 +9,10 @@ import time
 from typing import Any
 
 from vmocap_core import graph_config
+from vmocap_core.apps.process import IMAGE, INFO
 from vmocap_core.bag import messages as M
+from vmocap_core.cameras.clock import LoopedStamps, PlaybackClock
 from vmocap_core.errors import VmocapError
-from vmocap_core.process import IMAGE, INFO
-from vmocap_core.sources.clock import LoopedStamps, PlaybackClock
 
 from ..transport import Output, Transport
 from .base import VmocapNode
@@ -67,15 +67,15 @@ class CameraNode(VmocapNode):
     def _make_source(self, camera: str):
         kind, uri = self.p["source"], self.p["uri"]
         if kind == "bag":
-            from vmocap_core.sources.bag import BagFrameSource
+            from vmocap_core.cameras.bag import BagFrameSource
 
             return BagFrameSource(uri, camera, topic=self.topics.image(camera), start_offset_s=self.p["start_offset"], loop=self.p["loop"])
         import importlib
 
         try:
-            factory = importlib.import_module("vmocap_core.sources").make_source
+            factory = importlib.import_module("vmocap_core.cameras").make_source
         except (ImportError, AttributeError):
-            raise VmocapError(f"camera source {kind!r} is not available (vmocap_core.sources.make_source missing)") from None
+            raise VmocapError(f"camera source {kind!r} is not available (vmocap_core.cameras.make_source missing)") from None
         return factory(kind, uri, camera)
 
     def _run(self, src, cam, pub_img: Output, pub_info: Output) -> None:

@@ -9,10 +9,7 @@ from typing import Any
 import numpy as np
 
 from vmocap_core import graph_config
-from vmocap_core.bag import messages as M
-from vmocap_core.camera_check import OddCamera, camera_residuals
-from vmocap_core.errors import VmocapError
-from vmocap_core.process import (
+from vmocap_core.apps.process import (
     CLOUD,
     IMAGE,
     INFO,
@@ -21,6 +18,9 @@ from vmocap_core.process import (
     channel_keypoints,
     markers_message,
 )
+from vmocap_core.bag import messages as M
+from vmocap_core.errors import VmocapError
+from vmocap_core.method.camera_check import OddCamera, camera_residuals
 
 from ..transport import Transport
 from .base import InitWatch, VmocapNode

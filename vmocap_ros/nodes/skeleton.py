@@ -7,7 +7,7 @@ import time
 from typing import Any
 
 from vmocap_core import graph_config
-from vmocap_core.process import CLOUD, markers_from_message, result_messages
+from vmocap_core.apps.process import CLOUD, markers_from_message, result_messages
 
 from ..subject import skeleton_outputs
 from ..transport import Transport
@@ -21,7 +21,7 @@ class SkeletonNode(VmocapNode):
     def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
                  transport: Transport | None = None, name: str = "vmocap_skeleton") -> None:
         super().__init__(name, config, overrides, transport)
-        from vmocap_core.tracker import SkeletonStage, TrackerConfig
+        from vmocap_core.method.tracker import SkeletonStage, TrackerConfig
 
         self.stage = SkeletonStage(TrackerConfig.from_dict(config.tracker_dict(self.p)))
         self.pubs = {}

@@ -1,0 +1,267 @@
+"""`vmocap bench images`: the image-level benchmark with exact 3D truth.
+
+Each motion clip is rendered as a textured MakeHuman body in the benchmark rig's cameras
+(vmocap_core.apps.render), written to an MCAP recording (images, camera_info, truth), and run
+through the offline pipeline (`vmocap process`: the real CNN on the images, crops from the
+fed-back skeleton, lattice search, IK, filter) with image rotation on/off and the CNN in
+float and int8. Reported per clip and group (regular/inverted): MPJPE and PCK@50 against the
+clip, the constant per-joint offset (mean error vector) and the MPJPE left after removing
+it, the link-length error, and the synthetic benchmark's MPJPE for the same clip.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ... import paths
+from ...bag import BagReader
+from ...bag import messages as M
+from ...errors import VmocapError
+from ...graph_config import Topics
+from ...keypoints import INDEX, KEYPOINTS
+from ...method.skeleton import BONES
+from ..metrics import table_one
+from .accuracy import RATE_HZ, default_motions
+
+REPO = paths.REPO
+DEFAULT_CACHE = REPO / "out" / "render_cache"
+CONFIGS = {"rot-int8": ("all", "int8"), "rot-float": ("all", "float"),
+           "norot-int8": ("none", "int8"), "norot-float": ("none", "float")}
+
+
+class _Provider:
+    """The CNN (BlazePosePcm) with an explicit rotation mode and precision, fed like
+    process.ModelPcmProvider (detector until a skeleton is fed back)."""
+
+    def __init__(self, rig, rotation: str, precision: str, threads: int = 2) -> None:
+        from ...pcm.pipeline import BlazePosePcm
+
+        self.rig = rig
+        self.pcm = BlazePosePcm(rig, rotation=rotation, threads=threads, precision=precision)
+        self.name = f"blazepose-full {precision} (rotation {rotation})"
+
+    def infer(self, images, cameras, stamp_ns, feedback):
+        full: list = [None] * len(self.rig)
+        for c, img in zip(cameras, images):
+            full[int(c)] = img
+        usable = feedback is not None and np.isfinite(feedback[[0, 1]]).all()
+        return self.pcm.infer(full, keypoints=feedback if usable else None, stamp_ns=stamp_ns)
+
+
+def read_estimates(path: Path, stamps: np.ndarray) -> np.ndarray:
+    """(T, 25, 3) graph keypoints at the truth stamps (NaN where nothing or 'not tracking')."""
+    out = np.full((len(stamps), len(KEYPOINTS), 3), np.nan)
+    row = {int(s): i for i, s in enumerate(stamps)}
+    with BagReader(path) as r:
+        for m in r.messages([Topics().keypoints]):
+            d = m.decode()
+            P, _, _ = M.cloud_keypoints(d)
+            i = row.get(M.stamp_ns(d))
+            if P is not None and i is not None:
+                out[i] = P
+    return out
+
+
+def score(est: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
+    """Figures from the first tracked frame on (the synthetic benchmark's rule)."""
+    present = np.isfinite(truth).all(axis=(0, 2))
+    tracked = np.flatnonzero(np.isfinite(est[:, present]).all(axis=(1, 2)))
+    if tracked.size == 0:
+        return {"mpjpe_mm": None, "pck50": None, "tracked_pct": 0.0, "n": 0}
+    f = np.arange(tracked[0], len(est))
+    e, g = est[f], truth[f]
+    res = table_one(e, g, present)
+    offset = np.zeros((len(KEYPOINTS), 3))  # constant per-joint offset (definition mismatch)
+    offset[present] = np.nanmean(e[:, present] - g[:, present], axis=0)
+    res_off = table_one(e - offset[None], g, present)
+    bones = [(INDEX[a], INDEX[b]) for a, b in BONES.values() if present[INDEX[a]] and present[INDEX[b]]]
+    ia, ib = np.array(bones).T
+    L_est = np.nanmedian(np.linalg.norm(e[:, ia] - e[:, ib], axis=-1), axis=0)
+    L_true = np.nanmedian(np.linalg.norm(g[:, ia] - g[:, ib], axis=-1), axis=0)
+    return {
+        "mpjpe_mm": res["mpjpe_mm"], "pck50": res["pck50"], "pck100": res["pck100"], "n": res["n"],
+        "groups": res["groups"],
+        "tracked_pct": float(100 * np.isfinite(e[:, present]).all(axis=(1, 2)).mean()),
+        "init_frames": int(tracked[0]),
+        "offset_mm": {KEYPOINTS[j]: float(np.linalg.norm(offset[j]) * 1000) for j in np.flatnonzero(present)},
+        "mpjpe_without_offset_mm": res_off["mpjpe_mm"],
+        "link_length_error_mm": float(np.nanmean(np.abs(L_est - L_true)) * 1000),
+    }
+
+
+def synthetic_figure(path: Path, seed: int) -> float | None:
+    """The synthetic benchmark's method MPJPE (mm) for the same clip (its own 4 s extension)."""
+    from .accuracy import prepare, run_motion, score_run
+
+    r: Any = score_run(run_motion(prepare(path), seed))
+    return float(r["method"]["mpjpe_mm"])
+
+
+def overlay(rec: Path, rig, truth: np.ndarray, est: np.ndarray, frame: int, out: Path) -> None:
+    """One frame per camera with the projected truth (green) and estimate (red)."""
+    import cv2
+
+    topics = Topics()
+    want = {topics.image(c.name): i for i, c in enumerate(rig)}
+    imgs: dict[int, np.ndarray] = {}
+    with BagReader(rec) as r:
+        for k, m in enumerate(r.messages(list(want))):
+            if k // len(rig) == frame:
+                imgs[want[m.topic]] = M.image_array(m.decode()).copy()
+            elif k // len(rig) > frame:
+                break
+    for P, col in ((truth[frame], (0, 200, 0)), (est[frame], (0, 0, 255))):
+        ok = np.isfinite(P).all(axis=1)
+        if ok.any():
+            uv, _ = rig.project(P[ok])
+            for i, img in imgs.items():
+                for u, v in uv[i]:
+                    cv2.circle(img, (int(round(u)), int(round(v))), max(2, img.shape[1] // 200), col, -1)
+    tiles = [imgs[i] for i in sorted(imgs)]
+    if len(tiles) % 2:
+        tiles.append(np.zeros_like(tiles[0]))
+    grid = np.vstack([np.hstack(tiles[i:i + 2]) for i in range(0, len(tiles), 2)])
+    cv2.imwrite(str(out), grid)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--clips", nargs="+", type=Path, help="motion .npz files (default: the shared clips)")
+    parser.add_argument("--rig", type=Path, default=REPO / "config" / "benchmark_rig.yaml")
+    parser.add_argument("--frames", type=int, default=0,
+                        help="frames rendered per clip at 60 Hz (default 0: the whole clip, at least 90)")
+    parser.add_argument("--scale", type=float, default=1.0, help="image size factor (0.5: 512x384)")
+    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS),
+                        help="rotation (rot: all, norot: none) x CNN precision")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="rendered recordings (by content hash)")
+    parser.add_argument("--out", type=Path, default=REPO / "out" / "image_bench", help="report, overlays, graph outputs")
+    parser.add_argument("--graph", default="first", choices=("first", "all", "none"),
+                        help="replay through the ROS 2 node graph too: for the first config (default), all, or none")
+    parser.add_argument("--graph-rate", type=float, default=0.2,
+                        help="playback speed of the recording in the graph (0.2: 12 Hz, so the CNN keeps up)")
+    parser.add_argument("--no-synthetic", action="store_true", help="skip the synthetic benchmark's figure")
+    parser.add_argument("--json", action="store_true")
+
+
+def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
+    from ...motion import load_motion
+    from ..process import process_bag
+    from ..render.recording import ClipSpec, read_truth, render_recording
+
+    frames = args.frames
+    if frames <= 0:  # the whole clip at the rig rate, at least 1.5 s (0.5 s go to identification)
+        m = load_motion(path)
+        frames = max(int(round((m.n_frames - 1) / m.fps * RATE_HZ)) + 1, int(1.5 * RATE_HZ))
+    spec = ClipSpec(path, frames, RATE_HZ, args.seed)
+    rec = render_recording(spec, rig, args.cache, progress=not args.json)
+    stamps, truth = read_truth(rec)
+    row: dict[str, Any] = {"recording": str(rec), "shape": spec.shape(), "frames": len(stamps),
+                           "inverted": load_motion(path).is_inverted()}
+    curves: dict[str, np.ndarray] = {}
+    for name in args.configs:
+        rotation, precision = CONFIGS[name]
+        out = args.out / f"{path.stem}_{name}.mcap"
+        process_bag(rec, out, rig, tracker={"fps": RATE_HZ, **getattr(args, "tracker", {})}, progress=not args.json,
+                    provider=_Provider(rig, rotation, precision))
+        est = read_estimates(out, stamps)
+        row[name] = score(est, truth)
+        curves[name] = frame_mpjpe(est, truth)
+        if name == args.configs[0]:
+            overlay(rec, rig, truth, est, len(stamps) // 2, args.out / f"{path.stem}.png")
+        graph = getattr(args, "graph", "none")
+        if graph == "all" or (graph == "first" and name == args.configs[0]):
+            # vmocap_ros is imported by name (as cli.py does): vmocap_core itself never imports rclpy
+            g = importlib.import_module("vmocap_ros.bench_images_graph")
+            est_g, counts = g.run_graph(rec, args.rig_file, stamps, rotation, precision, RATE_HZ, args.graph_rate, args.out)
+            row[f"graph:{name}"] = {**score(est_g, truth), **counts}
+            curves[f"graph:{name}"] = frame_mpjpe(est_g, truth)
+    if not args.no_synthetic:
+        row["synthetic_mpjpe_mm"] = synthetic_figure(path, args.seed)
+    plot_curves(path.stem, row, curves, args.out / f"{path.stem}_mpjpe.png")
+    return row
+
+
+def frame_mpjpe(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(T,) mean error (mm) over the clip's keypoints per frame (NaN while not tracking)."""
+    present = np.isfinite(truth).all(axis=(0, 2))
+    return np.linalg.norm(est[:, present] - truth[:, present], axis=-1).mean(axis=1) * 1000
+
+
+def plot_curves(name: str, row: dict[str, Any], curves: dict[str, np.ndarray], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 3.2))
+    for k, v in curves.items():
+        ax.plot(np.arange(len(v)) / RATE_HZ, v, label=f"{k} ({row[k]['mpjpe_mm'] or float('nan'):.1f} mm)", lw=1)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("MPJPE (mm)")
+    ax.set_title(f"{name}{' (inverted)' if row['inverted'] else ''}: rendered images, {row['shape']} body")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _pool(rows: list[dict[str, Any]], name: str, key: str) -> float | None:
+    v = [(r[name][key], r[name]["n"]) for r in rows if r[name].get(key) is not None]
+    return float(sum(a * n for a, n in v) / sum(n for _, n in v)) if v else None
+
+
+def run(args: argparse.Namespace) -> int:
+    from ...cameras.rig_file import load_rig, save_rig
+    from ..render.recording import scale_rig
+
+    files = args.clips or default_motions()
+    if not files:
+        raise VmocapError("no motion clips (give --clips)")
+    rig = scale_rig(load_rig(args.rig), args.scale)
+    args.out.mkdir(parents=True, exist_ok=True)
+    args.rig_file = args.out / "rig.yaml"  # the (scaled) rig the graph loads
+    save_rig(rig, args.rig_file)
+    clips = {p.stem: run_clip(p, rig, args) for p in files}
+    summary = {}
+    for label, inv in (("regular", False), ("inverted", True)):
+        rows = [r for r in clips.values() if r["inverted"] == inv]
+        if rows:
+            runs = [c for c in list(args.configs) + [f"graph:{c}" for c in args.configs] if all(c in r for r in rows)]
+            summary[label] = {c: {k: _pool(rows, c, k) for k in ("mpjpe_mm", "pck50", "mpjpe_without_offset_mm",
+                                                                 "link_length_error_mm")} for c in runs}
+    result = {"clips": clips, "summary": summary, "frames": args.frames, "scale": args.scale, "seed": args.seed}
+    (args.out / "report.json").write_text(json.dumps(result, indent=1))
+    if args.json:
+        print(json.dumps(result, indent=1))
+    else:
+        print_table(result, args.configs)
+    bad = [n for n, r in clips.items() if all(r[c]["mpjpe_mm"] is None for c in args.configs)]
+    if bad:  # a figure of the benchmark (reported, pooled figures leave them out), loud
+        print(f"vmocap bench images: WARNING never tracked (left out of the pooled figures): {bad}", file=sys.stderr)
+    return 1 if len(bad) == len(clips) else 0
+
+
+def _f(v: float | None, fmt: str = "6.1f") -> str:
+    return "    - " if v is None else format(v, fmt)
+
+
+def print_table(result: dict[str, Any], configs: list[str]) -> None:
+    first = next(iter(result["clips"].values()))
+    runs = list(configs) + [f"graph:{c}" for c in configs if f"graph:{c}" in first]
+    print(f"{'clip':<14}{'inv':>4} {'shape':>8} | " + " | ".join(f"{c:>19}" for c in runs) + " | synthetic")
+    print(f"{'':<28} | " + " | ".join(f"{'MPJPE  PCK50  -off':>19}" for _ in runs) + " |")
+    for name, r in result["clips"].items():
+        cells = [f"{_f(r[c]['mpjpe_mm'])} {_f(r[c]['pck50'], '5.1f')} {_f(r[c].get('mpjpe_without_offset_mm'))}"
+                 if c in r else f"{'':>19}" for c in runs]
+        print(f"{name:<14}{'yes' if r['inverted'] else 'no':>4} {r['shape']:>8} | " + " | ".join(cells)
+              + f" | {_f(r.get('synthetic_mpjpe_mm'))}")
+    for label, s in result["summary"].items():
+        print(f"{label.upper()}: " + "; ".join(f"{c} {_f(v['mpjpe_mm'], '.1f')} mm (PCK50 {_f(v['pck50'], '.1f')} %, "
+                                               f"link {_f(v['link_length_error_mm'], '.1f')} mm)" for c, v in s.items()))

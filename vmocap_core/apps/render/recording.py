@@ -1,0 +1,130 @@
+"""A motion clip rendered into an MCAP recording: per frame and camera a bgr8 Image
+(NS/CAM/image_raw) and its CameraInfo (NS/CAM/camera_info), plus the clip's keypoints on
+TRUTH_TOPIC (PointCloud2 of the 25 KEYPOINTS, NaN where the clip has none). Recordings are
+cached by a content hash of everything that determines their bytes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ...bag import BagReader, BagWriter
+from ...bag import messages as M
+from ...cameras.projection import Camera, Rig
+from ...graph_config import Topics
+from ...keypoints import KEYPOINTS
+from ...motion import Motion, extend, load_motion, resample
+from .body import SHAPES, load_body
+from .pose import clip_joints, segment_transforms, skin
+from .scene import Appearance, SceneRenderer
+
+TRUTH_TOPIC = "/vmocap/truth/keypoints"
+RENDER_VERSION = 2  # bump when the rendered bytes change for the same inputs
+T0_NS = 1_000_000_000_000
+
+
+@dataclass
+class ClipSpec:
+    """What one rendering depends on."""
+
+    path: Path
+    frames: int
+    rate_hz: float
+    seed: int
+
+    def shape(self) -> str:
+        """Body shape of the clip: cycles through SHAPES by clip name (all shapes over the set)."""
+        names = sorted(SHAPES)
+        return names[(zlib.crc32(self.path.stem.encode()) + self.seed) % len(names)]
+
+    def rng_seed(self) -> int:
+        return zlib.crc32(f"{self.path.stem}:{self.seed}".encode())
+
+
+def scale_rig(rig: Rig, factor: float) -> Rig:
+    """The rig with images scaled by `factor` (intrinsics to match; OpenCV pixel centres)."""
+    if factor == 1.0:
+        return rig
+    cams = []
+    for c in rig:
+        w, h = int(round(c.width * factor)), int(round(c.height * factor))
+        sx, sy = w / c.width, h / c.height
+        S = np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]])
+        cams.append(Camera(c.name, S @ c.K, c.dist, c.R, c.t, w, h))
+    return Rig(cams)
+
+
+def prepare_motion(spec: ClipSpec) -> Motion:
+    """The clip at the rig rate, played forward/backward to `frames`, its mean pelvis moved
+    onto the rig's centre (as the synthetic benchmark centres its rig on the clip)."""
+    m = resample(load_motion(spec.path), spec.rate_hz)
+    m = extend(m, spec.frames / spec.rate_hz)
+    pos = m.positions[: spec.frames].copy()
+    pos[..., :2] -= np.nanmean(pos[:, KEYPOINTS.index("pelvis"), :2], axis=0)
+    return Motion(m.name, pos, m.present, m.fps)
+
+
+def cache_key(spec: ClipSpec, rig: Rig) -> str:
+    h = hashlib.sha256()
+    h.update(Path(spec.path).read_bytes())
+    h.update(json.dumps({"frames": spec.frames, "rate": spec.rate_hz, "seed": spec.seed, "v": RENDER_VERSION}).encode())
+    for c in rig:
+        h.update(c.name.encode())
+        for a in (c.K, c.dist, c.R, c.t, np.array([c.width, c.height], float)):
+            h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
+    return h.hexdigest()[:16]
+
+
+def render_recording(spec: ClipSpec, rig: Rig, cache_dir: Path, progress: bool = True) -> Path:
+    """Render (or find in the cache) the recording of one clip; returns its path."""
+    from tqdm import tqdm
+
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    out = cache_dir / f"{spec.path.stem}_{cache_key(spec, rig)}.mcap"
+    if out.exists():
+        return out
+    motion = prepare_motion(spec)
+    J = clip_joints(motion.positions, KEYPOINTS)
+    body = load_body(spec.shape())
+    A, b = segment_transforms(body, J)
+    verts = [skin(body, A[t], b[t]) for t in range(len(A))]
+    lowest = np.array([v[:, 2].min() for v in verts])
+    # the floor under the soles: at z = 0 unless the body lies lower (then it sinks into it less)
+    floor_z = float(min(0.0, np.percentile(lowest, 5)))
+    rng = np.random.default_rng(spec.rng_seed())
+    scene = SceneRenderer(rig, body, Appearance.draw(rng), spec.rng_seed(), floor_z)
+    scene.fit_box(verts)
+    topics = Topics()
+    tmp = out.with_suffix(".part")
+    try:
+        with BagWriter(tmp, compression="zstd") as w:
+            for k in tqdm(range(len(verts)), desc=f"render {spec.path.stem}", unit="frame", disable=not progress,
+                          file=sys.stderr, leave=False):
+                t = T0_NS + int(round(k * 1e9 / spec.rate_hz))
+                for cam, img in zip(rig, scene.render(verts[k])):
+                    w.write(topics.camera_info(cam.name), "sensor_msgs/msg/CameraInfo", M.camera_info_msg(cam, t), t)
+                    w.write(topics.image(cam.name), "sensor_msgs/msg/Image", M.image_msg(img, t, cam.name), t)
+                w.write(TRUTH_TOPIC, "sensor_msgs/msg/PointCloud2", M.keypoint_cloud(t, motion.positions[k]), t)
+    finally:
+        scene.close()
+    tmp.rename(out)
+    return out
+
+
+def read_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps (T,), keypoints (T, 25, 3)) of a recording's truth topic."""
+    stamps, pts = [], []
+    with BagReader(path) as r:
+        for m in r.messages([TRUTH_TOPIC]):
+            d = m.decode()
+            P, _, _ = M.cloud_keypoints(d)
+            stamps.append(M.stamp_ns(d))
+            pts.append(P if P is not None else np.full((len(KEYPOINTS), 3), np.nan))
+    return np.asarray(stamps, dtype=np.int64), np.asarray(pts)

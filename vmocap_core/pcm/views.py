@@ -1,0 +1,167 @@
+"""Part Confidence Maps of one synchronized frame set, with their exact mapping to pixels.
+
+A *view* is one heatmap stack computed from one camera's image (possibly a rotated crop of
+it). A camera can give several views, e.g. the paper's variant of input rotation (III-B) uses
+the upright image for the upper body and the rotated one for the lower body: two views of the
+same camera with complementary `valid` masks.
+
+Map coordinate convention: the centre of heatmap cell (column x, row y) is at map coordinates
+(x, y). An image pixel (u, v) (OpenCV convention, pixel centres at integers) maps to map
+coordinates by the affine `image_to_map`: (x, y) = A @ (u, v, 1). For a whole image at stride s
+with no crop, A = [[1/s, 0, 0.5/s - 0.5], [0, 1/s, 0.5/s - 0.5]], because cell x covers image
+pixels [x*s - 0.5, (x+1)*s - 0.5).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import HeatmapError
+
+
+def stride_affine(stride: float) -> np.ndarray:
+    """image->map affine of a whole image downsampled by `stride` (no crop)."""
+    s = float(stride)
+    off = 0.5 / s - 0.5
+    return np.array([[1.0 / s, 0.0, off], [0.0, 1.0 / s, off]])
+
+
+def invert_affine(A: np.ndarray) -> np.ndarray:
+    """Inverse of a (..., 2, 3) affine."""
+    M = A[..., :2, :2]
+    Minv = np.linalg.inv(M)
+    b = -np.einsum("...ij,...j->...i", Minv, A[..., :2, 2])
+    return np.concatenate([Minv, b[..., None]], axis=-1)
+
+
+def apply_affine(A: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply a (2, 3) affine to points (..., 2)."""
+    return pts @ A[:, :2].T + A[:, 2]
+
+
+@dataclass
+class PcmViews:
+    """Heatmaps of one frame set: V views, each J keypoint channels of H x W cells."""
+
+    maps: np.ndarray  # (V, J, H, W) float32, values in [0, 1]
+    image_to_map: np.ndarray  # (V, 2, 3) float64, image pixel -> map coordinates
+    camera: np.ndarray  # (V,) int, index of the view's camera in the rig
+    keypoints: np.ndarray  # (J,) int, index of each channel in keypoints.KEYPOINTS
+    valid: np.ndarray  # (V, J) bool, False where the view says nothing about a keypoint
+    presence: np.ndarray  # (V,) float in [0, 1], the model's confidence a person is there
+    stamp_ns: int = 0
+
+    def __post_init__(self) -> None:
+        self.maps = np.asarray(self.maps, dtype=np.float32)
+        if self.maps.ndim != 4:
+            raise HeatmapError(f"maps must be (V, J, H, W), got shape {self.maps.shape}")
+        V, J = self.maps.shape[:2]
+        self.image_to_map = np.asarray(self.image_to_map, dtype=np.float64).reshape(V, 2, 3)
+        self.camera = np.asarray(self.camera, dtype=np.intp).reshape(V)
+        self.keypoints = np.asarray(self.keypoints, dtype=np.intp).reshape(J)
+        self.valid = np.asarray(self.valid, dtype=bool).reshape(V, J)
+        self.presence = np.asarray(self.presence, dtype=np.float64).reshape(V)
+
+    @property
+    def n_views(self) -> int:
+        return self.maps.shape[0]
+
+    @property
+    def map_size(self) -> tuple[int, int]:
+        """(W, H) of the maps."""
+        return self.maps.shape[3], self.maps.shape[2]
+
+    def sanitized(self) -> "PcmViews":
+        """Replace NaN/inf by 0 and clip to [0, 1]; views that had non-finite values are
+        marked invalid for the affected keypoints (a broken CNN output must not steer)."""
+        # min/max propagate NaN, so two reductions tell whether anything needs fixing.
+        if self.maps.size == 0 or (self.maps.min() >= 0.0 and self.maps.max() <= 1.0):
+            return self
+        finite = np.isfinite(self.maps)
+        bad = ~finite.all(axis=(2, 3))  # (V, J)
+        maps = np.clip(np.where(finite, self.maps, 0.0), 0.0, 1.0).astype(np.float32)
+        return PcmViews(
+            maps=maps,
+            image_to_map=self.image_to_map,
+            camera=self.camera,
+            keypoints=self.keypoints,
+            valid=self.valid & ~bad,
+            presence=self.presence,
+            stamp_ns=self.stamp_ns,
+        )
+
+    def corrupted(self) -> dict[int, int]:
+        """Per camera index, how many values of its valid channels are not finite or outside
+        [0, 1] (what `sanitized` cleans up silently); {} for clean maps. An entirely-NaN channel
+        is the documented "no information" and does not count."""
+        valid = np.asarray(self.valid, dtype=bool)
+        if self.maps.size == 0 or not valid.any():
+            return {}
+        m = self.maps[valid]  # (n, h, w)
+        if np.isfinite(m).all() and m.min() >= 0.0 and m.max() <= 1.0:
+            return {}
+        bad = (~np.isfinite(m) | (np.nan_to_num(m, nan=0.0) < 0.0) | (np.nan_to_num(m, nan=0.0) > 1.0)).sum(axis=(1, 2))
+        views = np.nonzero(valid)[0]
+        out: dict[int, int] = {}
+        for v, n in zip(views, bad):
+            if n:
+                c = int(self.camera[v])
+                out[c] = out.get(c, 0) + int(n)
+        return out
+
+    def peaks(self, channels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Per view and channel (all, or the given channel indices), the image pixel of the
+        heatmap maximum (V, J', 2) and its value (V, J'); NaN cells are ignored."""
+        chans = np.arange(self.maps.shape[1]) if channels is None else np.asarray(channels)
+        valid = self.valid[:, chans]
+        V, _, H, W = self.maps.shape
+        flat: Any  # (V, C, H*W) array, or a list of (V, H*W) views
+        if channels is None:
+            flat = self.maps.reshape(V, chans.size, H * W)
+        else:  # a few channels: (V, H*W) views of each, no copy of the stack
+            flat = [self.maps[:, c].reshape(V, H * W) for c in chans]
+        arg = np.stack([f.argmax(axis=1) for f in flat], axis=1) if channels is not None else flat.argmax(axis=2)
+        val = np.stack([flat[i][np.arange(V), arg[:, i]] for i in range(chans.size)], axis=1) \
+            if channels is not None else np.take_along_axis(flat, arg[..., None], axis=2)[..., 0]
+        broken = np.isnan(val)  # argmax stops at a NaN: redo only those channels without them
+        for v, i in zip(*np.nonzero(broken)):
+            fixed = np.nan_to_num(self.maps[v, chans[i]].reshape(-1), nan=0.0)
+            arg[v, i] = fixed.argmax()
+            val[v, i] = fixed[arg[v, i]]
+        xy = np.stack([arg % W, arg // W], axis=-1).astype(np.float64)
+        inv = invert_affine(self.image_to_map)  # (V, 2, 3)
+        uv = np.einsum("vij,vkj->vki", inv[:, :, :2], xy) + inv[:, None, :, 2]
+        return uv, np.clip(np.where(valid, val, 0.0), 0.0, 1.0)
+
+    def centroids(self, threshold: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+        """Per view and channel, the image pixel of the PCM centroid around the peak (V, J, 2)
+        and the peak value (V, J) (II-C uses centroids of the maps for initialization).
+
+        The centroid is taken over cells within 3 cells of the peak whose value is at least
+        half the peak, so a second person or a false peak elsewhere does not drag it.
+        """
+        V, J, H, W = self.maps.shape
+        flat = self.maps.reshape(V, J, H * W)
+        arg = flat.argmax(axis=2)
+        val = np.take_along_axis(flat, arg[..., None], axis=2)[..., 0]
+        px, py = arg % W, arg // W
+        r = 3
+        off = np.arange(-r, r + 1)
+        xs = np.clip(px[..., None, None] + off[None, None, None, :], 0, W - 1)  # (V,J,1,K)
+        ys = np.clip(py[..., None, None] + off[None, None, :, None], 0, H - 1)  # (V,J,K,1)
+        vi = np.arange(V)[:, None, None, None]
+        ji = np.arange(J)[None, :, None, None]
+        win = self.maps[vi, ji, ys, xs].astype(np.float64)  # (V, J, K, K)
+        w = np.where(win >= 0.5 * val[..., None, None], win, 0.0)
+        wsum = w.sum(axis=(2, 3))
+        wsum = np.where(wsum > 0, wsum, 1.0)
+        cx = (w * xs).sum(axis=(2, 3)) / wsum
+        cy = (w * ys).sum(axis=(2, 3)) / wsum
+        xy = np.stack([cx, cy], axis=-1)
+        inv = invert_affine(self.image_to_map)
+        uv = np.einsum("vij,vkj->vki", inv[:, :, :2], xy) + inv[:, None, :, 2]
+        ok = self.valid & (val >= threshold)
+        return uv, np.where(ok, val, 0.0)
