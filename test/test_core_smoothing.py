@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from vmocap_core.apps.bench.accuracy import BUNDLED, RATE_HZ, prepare, run_motion, score_run
+from vmocap_core.method.config import PipelineConfig
 from vmocap_core.method.smoothing import FixedLagSmoother, MotionModel, gaussian_smooth, rts_smooth, runs
-from vmocap_core.method.tracker import TrackerConfig
 
 MODEL = MotionModel("ca", 2000.0, 0.02, 60.0)
 
@@ -49,7 +49,7 @@ def test_nan_frames_are_not_measurements_and_runs_split_gaps() -> None:
     with pytest.raises(ValueError):
         MotionModel("jerk", 1.0, 0.1, 60.0)
     with pytest.raises(ValueError):
-        TrackerConfig.from_dict({"smoothing_lag_frames": -1})
+        PipelineConfig.from_dict({"smoothing_lag_frames": -1})
 
 
 @pytest.fixture(scope="module")
@@ -62,10 +62,10 @@ def walk():
 def test_lag_and_offline_modes_on_a_clip(walk) -> None:
     """Fixed lag: outputs the frame `lag` back (same stamps as the live frames); offline: more
     accurate than live on the same PCMs, constant bone lengths."""
-    live = score_run(run_motion(walk, 0, TrackerConfig(fps=RATE_HZ)))["method"]
-    lag_run = run_motion(walk, 0, TrackerConfig(fps=RATE_HZ, smoothing_lag_frames=3))
+    live = score_run(run_motion(walk, 0, PipelineConfig.of(fps=RATE_HZ)))["method"]
+    lag_run = run_motion(walk, 0, PipelineConfig.of(fps=RATE_HZ, smoothing_lag_frames=3))
     lag = score_run(lag_run)["method"]
-    off = score_run(run_motion(walk, 0, TrackerConfig(fps=RATE_HZ, offline=True)))["method"]
+    off = score_run(run_motion(walk, 0, PipelineConfig.of(fps=RATE_HZ, offline=True)))["method"]
     assert "tracking" not in lag_run.status[-3:]  # the last 3 frames still wait for their lag
     assert lag_run.status[-4] == "tracking"
     assert off["mpjpe_mm"] < lag["mpjpe_mm"] < live["mpjpe_mm"], (off, lag, live)
@@ -75,9 +75,8 @@ def test_lag_and_offline_modes_on_a_clip(walk) -> None:
 def test_offline_on_a_recording_never_tracked_is_a_clear_error() -> None:
     from vmocap_core.errors import VmocapError
     from vmocap_core.method.offline import reconstruct
-    from vmocap_core.method.tracker import TrackResult
-
+    from vmocap_core.method.results import TrackResult
     nan = np.full((25, 3), np.nan)
     results = [TrackResult(k, "initializing", np.full(40, np.nan), [], nan, nan, np.zeros(25), nan) for k in range(5)]
     with pytest.raises(VmocapError, match="no tracked frame"):
-        reconstruct(results, TrackerConfig(offline=True))
+        reconstruct(results, PipelineConfig.of(offline=True))

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from vmocap_core.apps.bench.accuracy import default_motions, prepare, run_motion, score_run
-from vmocap_core.method.tracker import SpatiotemporalFilter, TrackerConfig, trunk_tilt
+from vmocap_core.method.config import PipelineConfig
+from vmocap_core.method.pipeline import Pipeline
+from vmocap_core.method.rotation import trunk_tilt
 from vmocap_core.pcm.synthetic import SyntheticPcmSource, benchmark_rig
 from vmocap_core.pcm.views import PcmViews
 
@@ -30,7 +32,7 @@ def test_lost_person_triggers_reinitialization_without_exceptions():
     m = punch()
     rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
     src = SyntheticPcmSource(rig, m.positions, m.present, seed=0)
-    tracker = SpatiotemporalFilter(rig, TrackerConfig(fps=60.0, lost_frames=5))
+    tracker = Pipeline(rig, PipelineConfig.of(fps=60.0, lost_frames=5))
     statuses = []
     for t in range(150):
         pcm = src.render(t)
@@ -53,7 +55,7 @@ def test_identification_phase_improves_link_lengths():
     m.positions = m.positions[:120]
     err = {}
     for seconds in (0.0, 0.5):
-        run = run_motion(m, seed=3, config=TrackerConfig(fps=60.0, identify_seconds=seconds))
+        run = run_motion(m, seed=3, config=PipelineConfig.of(fps=60.0, identify_seconds=seconds))
         if seconds:
             first_id = run.status.index("identifying")
             assert set(run.status[first_id:run.first_tracked]) == {"identifying"}
@@ -72,12 +74,12 @@ def test_keypoint_seen_by_one_camera_gets_weight_zero():
     m = punch()
     rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
     src = SyntheticPcmSource(rig, m.positions, m.present, seed=0)
-    tracker = SpatiotemporalFilter(rig, TrackerConfig(fps=60.0))
+    tracker = Pipeline(rig, PipelineConfig.of(fps=60.0))
     for t in range(40):
         pcm = src.render(t)
         if t >= 20:
             pcm.valid[1:, 2] = False  # channel 2 visible in camera 0 only
-        r = tracker.step(pcm)
+        r = tracker.step(pcm).skeleton
     assert r.status == "tracking"
     assert r.scores[pcm.keypoints[2]] == 0.0 and np.isfinite(r.keypoints).all()
 
@@ -94,4 +96,4 @@ def test_trunk_tilt_upright_and_inverted():
 
 def test_config_rejects_unknown_keys():
     with pytest.raises(ValueError, match="unknown"):
-        TrackerConfig.from_dict({"lattice_kk": 3})
+        PipelineConfig.from_dict({"lattice_kk": 3})

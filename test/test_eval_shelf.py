@@ -145,13 +145,13 @@ def test_shelf_30_frames_ours_and_baseline() -> None:
 @needs_shelf
 def test_person_who_leaves_ends_only_their_tracker() -> None:
     from vmocap_core.apps.evaluation.shelf import TRACKER_SETTINGS, make_renderer, people_per_view
+    from vmocap_core.method.config import PipelineConfig
     from vmocap_core.method.multiperson import MultiPersonTracker
-    from vmocap_core.method.tracker import SpatiotemporalFilter, TrackerConfig
-
+    from vmocap_core.method.pipeline import Pipeline
     data = shelf_data.load_shelf(SHELF, max_frames=40)
     rig = data.rig
-    cfg = TrackerConfig.from_dict(TRACKER_SETTINGS)
-    mpt = MultiPersonTracker(rig, make_renderer(data), lambda: SpatiotemporalFilter(rig, cfg))
+    cfg = PipelineConfig.from_dict(TRACKER_SETTINGS)
+    mpt = MultiPersonTracker(rig, make_renderer(data), lambda: Pipeline(rig, cfg))
     for f in range(20):
         tracks = mpt.step(people_per_view(data, f))
     assert len(tracks) == 2 and all(t.source == "tracker" for t in tracks)

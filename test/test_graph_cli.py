@@ -144,7 +144,7 @@ def test_process_image_bag_runs_the_cnn(tmp_path: Path) -> None:
     rig = benchmark_rig(width=160, height=120)
     bag = tmp_path / "imgs.mcap"
     write_synthetic_bag(bag, rig, np.zeros((5, 25, 3)), np.ones(25, bool), 5, images=True, pcm=False)
-    stats = process_bag(bag, tmp_path / "o.mcap", rig, tracker={"fps": 30.0}, progress=False)
+    stats = process_bag(bag, tmp_path / "o.mcap", rig, config={"fps": 30.0}, progress=False)
     assert stats["frames"] == 5 and stats["pcm"].startswith("blazepose") and stats["sync"]["complete"] == 5
     with BagReader(tmp_path / "o.mcap") as r:
         assert r.message_counts["/vmocap/keypoints"] == 5

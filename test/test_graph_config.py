@@ -24,7 +24,7 @@ def test_shipped_config_is_valid_and_complete():
     cfg = graph_config.load(REPO / "config" / "graph.yaml")
     p = cfg.node_params("vmocap_markers")
     assert Path(p["rig"]).is_file() and p["cameras"] == [] and len(p["pcm_keypoints"]) == 14
-    assert p["tracker.fps"] == 30.0 and "tracker.lattice_k" in p
+    assert p["fps"] == 30.0 and p["lattice_k"] == 5 and "filter_kind" not in p
     for node in graph_config.NODE_PARAMS:
         cfg.node_params(node)
         for prm in graph_config.params_of(node):
@@ -36,8 +36,32 @@ def test_unknown_parameter_is_rejected(tmp_path):
         graph_config.load(_cfg(tmp_path, {"vmocap_markers": {"lattice_kk": 3}}))
     with pytest.raises(GraphConfigError, match="unknown section"):
         graph_config.load(_cfg(tmp_path, {"vmocap_nonsense": {"x": 1}}))
-    with pytest.raises(GraphConfigError, match="unknown tracker|tracker.nope"):
-        graph_config.load(_cfg(tmp_path, {"vmocap_skeleton": {"tracker": {"nope": 1}}}))
+    with pytest.raises(GraphConfigError, match=r"vmocap_skeleton\.nope.*unknown"):
+        graph_config.load(_cfg(tmp_path, {"vmocap_skeleton": {"nope": 1}}))
+    # one stage per section: a marker-stage key in the skeleton's section is an error, named
+    with pytest.raises(GraphConfigError, match=r"vmocap_skeleton\.lattice_k.*unknown"):
+        graph_config.load(_cfg(tmp_path, {"vmocap_skeleton": {"lattice_k": 3}}))
+    # the old nested `tracker:` block is not silently ignored
+    with pytest.raises(GraphConfigError, match=r"tracker\.fps.*unknown"):
+        graph_config.load(_cfg(tmp_path, {"vmocap_markers": {"tracker": {"fps": 30.0}}}))
+
+
+def test_each_stage_reads_its_own_section(tmp_path):
+    from vmocap_core.method.config import PipelineConfig
+
+    cfg = graph_config.load(_cfg(tmp_path, {"/**": {"fps": 50.0}, "vmocap_markers": {"lattice_k": 3},
+                                            "vmocap_skeleton": {"filter_kind": "butterworth", "ik_iterations": 5}}))
+    pc = cfg.pipeline_config()
+    assert isinstance(pc, PipelineConfig)
+    assert (pc.markers.lattice_k, pc.skeleton.fps, pc.skeleton.filter_kind, pc.skeleton.ik_iterations) == (3, 50.0, "butterworth", 5)
+    # a value the stage's own checks reject names the file and the section
+    bad = _cfg(tmp_path, {"vmocap_skeleton": {"filter_cutoff_hz": 40.0}})
+    with pytest.raises(GraphConfigError, match="vmocap_skeleton.*half the frame rate") as exc:
+        graph_config.load(bad)
+    assert str(bad) in str(exc.value)
+    # what a config writer uses: flat tunables to their sections
+    sections = graph_config.stage_sections({"fps": 60.0, "lattice_k": 4, "identify_seconds": 0.0})
+    assert sections == {"/**": {"fps": 60.0}, "vmocap_markers": {"lattice_k": 4}, "vmocap_skeleton": {"identify_seconds": 0.0}}
 
 
 def test_types_and_ranges_are_checked(tmp_path):

@@ -62,14 +62,13 @@ def listener():
 def test_graph_equals_offline(tmp_path: Path, mode: str, tf_dds: str, listener) -> None:
     """tf_dds off: /tf does not travel over DDS (as without tf2_msgs), the recorder derives it."""
     from vmocap_core.apps.process import joint_trajectory, process_bag
-
     env, counter = listener
     env = dict(env, VMOCAP_TF_DDS=tf_dds)
     counter.reset()
     bag = tmp_path / "in.mcap"
     rig, rig_path, kps = synthetic_bag(bag, N)
     offline = tmp_path / "offline.mcap"
-    stats = process_bag(bag, offline, rig, tracker={"fps": 30.0}, keypoints=kps, progress=False)
+    stats = process_bag(bag, offline, rig, config={"fps": 30.0}, keypoints=kps, progress=False)
     # 30 fps: ~3 frames to initialize, 15 identifying (no output, feedback on), then tracking
     assert stats["frames"] == N and stats["tracking"] >= 10, stats
 
@@ -150,9 +149,28 @@ def _tf(path: Path) -> dict:
     return out
 
 
-def test_graph_with_cnn_equals_offline(tmp_path: Path, listener) -> None:
-    """Real images of a person (Pose2Sim demo) through the CNN: with feedback_wait_ms the PCM
-    node crops frame t around the skeleton of frame t-1, exactly as `vmocap process` does."""
+def _keypoints(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps, (N, 25, 3)) of the tracked frames' /vmocap/keypoints in a bag."""
+    from vmocap_core.bag import BagReader
+    from vmocap_core.bag import messages as M
+
+    stamps, pts = [], []
+    with BagReader(path) as r:
+        for m in r.messages(["/vmocap/keypoints"]):
+            d = m.decode()
+            P = M.cloud_keypoints(d)[0]
+            if P is not None:
+                stamps.append(M.stamp_ns(d))
+                pts.append(P)
+    order = np.argsort(stamps, kind="stable")
+    return np.asarray(stamps)[order], np.asarray(pts)[order]
+
+
+def test_graph_with_cnn_equals_offline_and_demo(tmp_path: Path, listener) -> None:
+    """Every entry point runs the same loop. Real images of a person (Pose2Sim demo) through
+    the CNN: `vmocap process` (Pipeline.step), the demo's path (demo.run_pipeline) and the node
+    graph (with feedback_wait_ms the PCM node crops frame t around the skeleton of frame t-1)
+    give the same keypoints and joint angles."""
     import argparse
 
     try:
@@ -175,15 +193,21 @@ def test_graph_with_cnn_equals_offline(tmp_path: Path, listener) -> None:
     offline = tmp_path / "offline.mcap"
     # 10 frames: output from the provisional fit (no identification phase)
     tracker = {"fps": 30.0, "identify_seconds": 0.0}
-    stats = process_bag(bag, offline, rig, tracker=tracker, progress=False)
+    stats = process_bag(bag, offline, rig, config=tracker, progress=False)
     assert stats["frames"] == n and stats["tracking"] >= 3, stats
+    from vmocap_core.apps.demo import run_pipeline
+
+    demo_bag = tmp_path / "demo.mcap"
+    rec = run_pipeline(bag, rig, demo_bag, n, settings=tracker)
+    assert len(rec["stamp"]) == n and sum(s == "tracking" for s in rec["status"]) == stats["tracking"]
 
     out = tmp_path / "graph.mcap"
     cfg = write_config(tmp_path / "graph.yaml", rig_path, [""], ["vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"],
                        mode="processes", output=out,
-                       extra={"vmocap_pcm": {"source": "model", "model": "blazepose", "feedback_wait_ms": 20000.0, "queue_depth": 100},
-                              "vmocap_markers": {"feedback_timeout_ms": 20000.0, "queue_depth": 100, "tracker": tracker},
-                              "vmocap_skeleton": {"queue_depth": 100, "tracker": tracker}})
+                       extra={"/**": {"fps": 30.0},
+                              "vmocap_pcm": {"source": "model", "model": "blazepose", "feedback_wait_ms": 20000.0, "queue_depth": 100},
+                              "vmocap_markers": {"feedback_timeout_ms": 20000.0, "queue_depth": 100},
+                              "vmocap_skeleton": {"queue_depth": 100, "identify_seconds": 0.0}})
     launch = vmocap(["launch", str(cfg)], env)
     try:
         # every node must be up and matched before the first frame: a PCM frame set lost at
@@ -200,6 +224,10 @@ def test_graph_with_cnn_equals_offline(tmp_path: Path, listener) -> None:
         log = stop(launch)
     assert launch.returncode == 0, log
     t_off, q_off, _ = joint_trajectory(offline)
-    t_g, q_g, _ = joint_trajectory(out)
-    assert np.array_equal(t_g, t_off), (t_g, t_off)
-    assert np.max(np.abs(q_g - q_off)) <= 1e-6
+    for other in (out, demo_bag):
+        t_o, q_o, _ = joint_trajectory(other)
+        assert np.array_equal(t_o, t_off), (other, t_o, t_off)
+        assert np.max(np.abs(q_o - q_off)) <= 1e-6, other
+        s_o, k_o = _keypoints(other)
+        s_off, k_off = _keypoints(offline)
+        assert np.array_equal(s_o, s_off) and np.max(np.abs(k_o - k_off)) <= 1e-6, other

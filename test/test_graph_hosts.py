@@ -76,9 +76,9 @@ def test_pcm_workers_on_another_host_and_a_worker_that_dies_and_returns(tmp_path
     workers = [f"vmocap_pcm_{c}" for c in rig.names]
     # the synthetic heatmaps' noise (6 px, false peaks, swaps) is harsher than the CNN's: a wider
     # skeleton-fit bound lets three views re-initialize too (this test is about the layout)
-    fit = {"tracker": {"init_max_fit_error_m": 0.08}}
-    extra = {"vmocap_camera": {"uri": str(bag), "loop": True, "restamp": True}, "vmocap_skeleton": fit,
-             "vmocap_markers": {"sync_tolerance_ms": 8.0, "silent_after_ms": 300.0, "feedback_timeout_ms": 1000.0, **fit},
+    extra = {"vmocap_camera": {"uri": str(bag), "loop": True, "restamp": True},
+             "vmocap_skeleton": {"init_max_fit_error_m": 0.08},
+             "vmocap_markers": {"sync_tolerance_ms": 8.0, "silent_after_ms": 300.0, "feedback_timeout_ms": 1000.0},
              **{w: {"cameras": [c], "threads": 1} for w, c in zip(workers, rig.names)}}
     cfg = write_config(tmp_path / "g.yaml", rig_path, kps, ["vmocap_camera", *workers, "vmocap_markers", "vmocap_skeleton",
                                                              "vmocap_recorder"], output=out, extra=extra)

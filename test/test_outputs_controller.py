@@ -62,12 +62,11 @@ def test_lost_subject_from_stale_stamps() -> None:
 
 def test_controller_example_on_the_graph_equals_offline(tmp_path: Path) -> None:
     from vmocap_core.apps.process import process_bag
-
     env = domain_env(7)
     bag = tmp_path / "in.mcap"
     rig, rig_path, kps = synthetic_bag(bag, N)
     offline = tmp_path / "offline.mcap"
-    stats = process_bag(bag, offline, rig, tracker={"fps": 30.0}, keypoints=kps, progress=False)
+    stats = process_bag(bag, offline, rig, config={"fps": 30.0}, keypoints=kps, progress=False)
     assert stats["tracking"] >= 10, stats
     expected = _offline_velocities(offline, 200_000_000)
 

@@ -25,7 +25,6 @@ NS = "/vmocap"
 @pytest.fixture(scope="module")
 def processed(tmp_path_factory) -> tuple[Path, object]:
     from vmocap_core.apps.process import process_bag
-
     d = tmp_path_factory.mktemp("urdf")
     rig, _, kps = synthetic_bag(d / "in.mcap", frames=40)
     stats = process_bag(d / "in.mcap", d / "out.mcap", rig, keypoints=kps, progress=False)
@@ -160,10 +159,10 @@ def test_camera_frames_reproject_the_keypoints_like_the_rig(processed) -> None:
 
 
 def test_reidentified_subject_gets_a_new_description_before_its_joint_state() -> None:
-    from vmocap_core.apps.process import result_messages
     from vmocap_core.bag import cdr
     from vmocap_core.graph_config import Topics
-    from vmocap_core.method.tracker import TrackResult
+    from vmocap_core.method.results import TrackResult
+    from vmocap_core.outputs.messages import result_messages
     from vmocap_core.outputs.streams import SubjectOutputs, TfFromStates
     from vmocap_core.outputs.tf import TF_TYPE, UrdfKinematics
 

@@ -9,7 +9,7 @@ import pytest
 from vmocap_core.cameras.projection import Camera, Rig, look_at
 from vmocap_core.errors import ModelError
 from vmocap_core.keypoints import INDEX, KEYPOINTS, LOWER_BODY
-from vmocap_core.method.tracker import trunk_tilt
+from vmocap_core.method.rotation import trunk_tilt
 from vmocap_core.pcm.blazepose import CROP_TO_MAP, rotated_crops
 from vmocap_core.pcm.crops import Crops, compose_affine, crop_affine, crops_from_skeleton, tilt_from_points
 from vmocap_core.pcm.model import letterbox_affine

@@ -53,6 +53,7 @@ COMMON = [
     Param("namespace", "/vmocap", "topic prefix of the graph"),
     Param("pcm_keypoints", [""], "KEYPOINTS names of the PCM channels, in channel order; empty: all 25"),
     Param("use_sim_time", False, "take time from /clock (set when playing a bag)"),
+    Param("fps", 30.0, "the cameras' frame rate (Hz): the filter's and the motion prior's time step", 1.0, 1000.0),
 ]
 
 NODE_PARAMS: dict[str, list[Param]] = {
@@ -109,31 +110,38 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "(the graph's outputs fill 256 KiB in about a second; images much faster)", 16, 65536),
     ],
 }
-TRACKER_NODES = ("vmocap_markers", "vmocap_skeleton")  # these also take tracker.* parameters
 # groups: nodes that share a process in `processes` mode (their messages stay in-process, e.g. a
 # camera's images and the PCM inference); nodes in no group get a process each
 LAUNCH_KEYS: dict[str, Any] = {"mode": "processes", "nodes": None, "groups": None, "env": {}, "fastdds_profile": "fastdds_shm.xml"}
 
 
-def tracker_params() -> list[Param]:
-    """tracker.* parameters from vmocap_core.method.tracker.TrackerConfig (the lead's dataclass)."""
-    try:
-        from .method.tracker import TrackerConfig
-    except ImportError:
+def stage_params(node_type_name: str) -> list[Param]:
+    """The method's tunables of a node (vmocap_core.method.config): the dataclass fields of its
+    stage, flat in the node's section; `fps` is shared ('/**')."""
+    from .method.config import MarkersConfig, SkeletonConfig
+
+    cls = {"vmocap_markers": MarkersConfig, "vmocap_skeleton": SkeletonConfig}.get(node_type_name)
+    if cls is None:
         return []
     out = []
-    for f in dataclasses.fields(TrackerConfig):
-        if f.default is not dataclasses.MISSING:
-            default = f.default
-        elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
-            default = f.default_factory()  # type: ignore[misc]
-        else:
+    for f in dataclasses.fields(cls):
+        if f.name == "fps":
             continue
-        if isinstance(default, tuple):
-            default = list(default)
-        if not isinstance(default, (bool, int, float, str, list)):
-            continue
-        out.append(Param("tracker." + f.name, default, f.metadata.get("help", f"TrackerConfig.{f.name}")))
+        out.append(Param(f.name, f.default, f"{cls.__name__}.{f.name} (vmocap_core/method/config.py)"))
+    return out
+
+
+def stage_sections(flat: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Flat method tunables (as PipelineConfig.from_dict takes them) split into the config
+    sections that declare them: `fps` to '/**', the rest to vmocap_markers / vmocap_skeleton.
+    For code that writes a graph config."""
+    from .method.config import MarkersConfig, PipelineConfig
+
+    PipelineConfig.from_dict(flat)  # unknown keys fail here, named
+    out: dict[str, dict[str, Any]] = {"/**": {}, "vmocap_markers": {}, "vmocap_skeleton": {}}
+    for k, v in flat.items():
+        section = "/**" if k == "fps" else "vmocap_markers" if k in MarkersConfig.names() else "vmocap_skeleton"
+        out[section][k] = v
     return out
 
 
@@ -151,8 +159,7 @@ def node_type(name: str) -> str:
 
 def params_of(node: str) -> list[Param]:
     t = node_type(node)
-    extra = tracker_params() if t in TRACKER_NODES else []
-    return COMMON + NODE_PARAMS[t] + extra
+    return COMMON + NODE_PARAMS[t] + stage_params(t)
 
 
 def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
@@ -290,8 +297,6 @@ class GraphConfig:
         given.update(overrides or {})
         for key, value in given.items():
             if key not in spec:
-                if node_type(node) not in TRACKER_NODES and section_is_common(key):
-                    continue
                 raise GraphConfigError(self.path, f"{node}.{key}", f"unknown parameter (known: {sorted(spec)})")
             try:
                 values[key] = _check(self.path, spec[key], value)
@@ -303,13 +308,34 @@ class GraphConfig:
                 values[n] = []
         return values
 
-    def tracker_dict(self, params: dict[str, Any]) -> dict[str, Any]:
-        return {k[len("tracker."):]: v for k, v in params.items() if k.startswith("tracker.")}
+    def stage_config(self, node: str, params: dict[str, Any] | None = None) -> Any:
+        """The method's config of a marker or skeleton node (MarkersConfig / SkeletonConfig),
+        from its resolved `params` (default: node_params(node))."""
+        from .method.config import MarkersConfig, SkeletonConfig
 
+        p = self.node_params(node) if params is None else params
+        cls = MarkersConfig if node_type(node) == "vmocap_markers" else SkeletonConfig
+        try:
+            return cls.from_dict({k: p[k] for k in cls.names()})
+        except ValueError as exc:
+            raise GraphConfigError(self.path, node, str(exc)) from None
 
-def section_is_common(key: str) -> bool:
-    """Keys under '/**' meant for tracker nodes only may appear for every node."""
-    return key.startswith("tracker.")
+    def pipeline_config(self) -> Any:
+        """Both stages' configs (method.config.PipelineConfig): what `vmocap process`, the
+        demo and the nodes build their stages from."""
+        from .method.config import PipelineConfig
+
+        return PipelineConfig(self.stage_config("vmocap_markers"), self.stage_config("vmocap_skeleton"))
+
+    def load_rig(self) -> Any:
+        """The rig the config names (restricted to its `cameras`)."""
+        from .cameras.rig_file import load_rig
+
+        p = self.node_params("vmocap_markers")
+        if not p["rig"]:
+            raise GraphConfigError(self.path, "rig", "no rig given")
+        rig = load_rig(p["rig"])
+        return rig.subset(p["cameras"]) if p["cameras"] else rig
 
 
 def load(path: str | Path) -> GraphConfig:
@@ -353,4 +379,6 @@ def load(path: str | Path) -> GraphConfig:
             raise GraphConfigError(path, "vmocap_launch.groups", str(exc.args[0])) from None
     for node in set(cfg.node_names()) | {s for s in raw if s not in ("/**", "vmocap_launch")}:
         cfg.node_params(node)  # validate early: a bad file fails before anything starts
+        if node_type(node) in ("vmocap_markers", "vmocap_skeleton"):
+            cfg.stage_config(node)
     return cfg

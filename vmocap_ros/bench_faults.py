@@ -137,12 +137,11 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
         statuses = [v.get("status") for _, _, _, v in o.diag.get("vmocap_skeleton", [])]
         seen_lost = "tracking" in statuses and any(s in ("lost", "initializing", "identifying")
                                                      for s in statuses[statuses.index("tracking"):])
-        from vmocap_core.method.tracker import TrackerConfig
-
+        from vmocap_core.method.config import MarkersConfig
         # the tracker declares "lost" after lost_frames frame sets of low marker weight: up to
         # that many outputs after leaving are the documented detection delay
         coast = sum(k in got for k in window)
-        r.update(survived=rc == 0 and bool(after) and coast < TrackerConfig().lost_frames, diagnosed=seen_lost,
+        r.update(survived=rc == 0 and bool(after) and coast < MarkersConfig().lost_frames, diagnosed=seen_lost,
                  output_while_absent=sum(k in got for k in window), tracked_after_return=len(after))
     elif name == "camera_pause":
         silent = [(t, ast.literal_eval(v.get("silent", "[]"))) for t, _, _, v in o.diag.get("vmocap_markers", [])]

@@ -150,8 +150,7 @@ def _config(work: Path, mode: str, rig_path: Path, kps: list[str], args: argpars
     else:
         pcm.update(source="model", model=args.model or "blazepose")
         common["pcm_keypoints"] = [""]  # the CNN's channels are all 25 KEYPOINTS
-    for n in ("vmocap_markers", "vmocap_skeleton"):
-        cfg[n]["ros__parameters"].setdefault("tracker", {})["fps"] = float(args.fps)
+    common["fps"] = float(args.fps)
     nodes = list(NODES)
     if args.feed == "camera":
         nodes.insert(0, "vmocap_camera")
@@ -419,14 +418,17 @@ def run(args: argparse.Namespace) -> int:
     # the same frames offline (no DDS): what the graph adds on top of the computation
     offline_ms = offline_steady = None
     if args.images == "synthetic":
-        from vmocap_core.apps.process import BagPcmProvider, channel_keypoints, process_bag, time_pipeline
-
-        off = process_bag(bag, work / "offline_out.mcap", rig, tracker={"fps": float(args.fps)}, keypoints=kps, progress=False)
+        from vmocap_core.apps.bench.speed import time_pipeline
+        from vmocap_core.apps.process import process_bag
+        from vmocap_core.method.config import PipelineConfig
+        from vmocap_core.pcm.assembly import channel_keypoints
+        from vmocap_core.pcm.providers import BagPcmProvider
+        off = process_bag(bag, work / "offline_out.mcap", rig, config={"fps": float(args.fps)}, keypoints=kps, progress=False)
         offline_ms = round(off["ms_per_frame"], 2)
         # steady state, as the graph sees it: the bag's frame sets looped for as many frame sets
         # as one measured window holds (the mean above is over the bag once, initialization included)
         frames = BagPcmProvider(bag, rig, channel_keypoints(kps)).frames
-        steady = time_pipeline(frames, rig, {"fps": float(args.fps)}, int(args.fps * (args.seconds + args.warmup)),
+        steady = time_pipeline(frames, rig, PipelineConfig.of(fps=float(args.fps)), int(args.fps * (args.seconds + args.warmup)),
                                int(1e9 / args.fps))
         offline_steady = {k: round(v, 2) for k, v in steady.items()}
     for r in results.values():

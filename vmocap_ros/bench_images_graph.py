@@ -32,8 +32,7 @@ def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, fps: floa
     cfg["vmocap_camera"]["ros__parameters"].update(source="bag", uri=str(rec), rate=float(rate), loop=False,
                                                     restamp=False, wait_subscribers=120.0)
     cfg["vmocap_pcm"]["ros__parameters"].update(source="model", model="blazepose", rotation=rotation)
-    for n in ("vmocap_markers", "vmocap_skeleton"):
-        cfg[n]["ros__parameters"].setdefault("tracker", {})["fps"] = float(fps)
+    cfg["/**"]["ros__parameters"]["fps"] = float(fps)
     cfg["vmocap_launch"] = {"mode": "single_process", "nodes": NODES,
                             "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
     path = work / f"graph_{rec.stem}_{rotation}.yaml"

@@ -112,8 +112,7 @@ def write_config(path: Path, rig_path: Path, kps: list[str], nodes: list[str], m
                             "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
     # the synthetic heatmaps' noise (6 px, false peaks, swaps) is harsher than the CNN's: a wider
     # skeleton-fit bound lets the subject initialize on these bags (as test/test_graph_hosts.py)
-    for n in ("vmocap_markers", "vmocap_skeleton"):
-        cfg[n]["ros__parameters"].setdefault("tracker", {})["init_max_fit_error_m"] = 0.08
+    cfg["vmocap_skeleton"]["ros__parameters"]["init_max_fit_error_m"] = 0.08
     for section, params in (extra or {}).items():
         cfg.setdefault(section, {"ros__parameters": {}})["ros__parameters"].update(params)
     path.write_text(yaml.safe_dump(cfg))

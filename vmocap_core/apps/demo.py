@@ -171,7 +171,8 @@ def videos_to_bag(videos: dict[str, Path], rig: Rig, bag: Path, max_frames: int 
 
 
 def bag_frame_sets(bag: Path, rig: Rig):
-    """(stamp_ns, images in rig order) of the bag's compressed camera images, by stamp."""
+    """(stamp_ns, images in rig order) of the bag's camera images (JPEG CompressedImage, or raw
+    Image), by stamp."""
     import cv2
 
     from ..bag import BagReader
@@ -179,18 +180,24 @@ def bag_frame_sets(bag: Path, rig: Rig):
     from ..graph_config import Topics
 
     topics = Topics()
-    want = {topics.image(c.name) + "/compressed": i for i, c in enumerate(rig)}
     pending: dict[int, dict[int, np.ndarray]] = {}
     with BagReader(bag) as reader:
+        want = {}
+        for i, c in enumerate(rig):
+            raw = topics.image(c.name)
+            want[raw + "/compressed" if raw + "/compressed" in reader.topics else raw] = i
         missing = [t for t in want if t not in reader.topics]
         if missing:
             raise VmocapError(f"{bag}: no topics {missing}")
         for m in reader.messages(list(want)):
             msg = m.decode()
             ns = M.stamp_ns(msg)
-            img = cv2.imdecode(np.frombuffer(bytes(msg["data"]), np.uint8), cv2.IMREAD_COLOR)
-            if img is None:
-                raise VmocapError(f"{bag}: undecodable image on {m.topic} at {ns} ns")
+            if m.topic.endswith("/compressed"):
+                img = cv2.imdecode(np.frombuffer(bytes(msg["data"]), np.uint8), cv2.IMREAD_COLOR)
+                if img is None:
+                    raise VmocapError(f"{bag}: undecodable image on {m.topic} at {ns} ns")
+            else:
+                img = M.image_array(msg)
             pending.setdefault(ns, {})[want[m.topic]] = img
             if len(pending[ns]) == len(rig):
                 imgs = pending.pop(ns)
@@ -222,25 +229,28 @@ def _video_frames(videos: dict[str, Path]) -> int:
 
 
 # ------------------------------------------------------------------------------ pipeline
-def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int = 2) -> dict:
-    """The pipeline on the bag's images with the real CNN; records everything the report needs."""
+def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int = 2,
+                 settings: dict[str, Any] | None = None) -> dict:
+    """The pipeline on the bag's images with the real CNN; records everything the report needs.
+    `settings`: the method's tunables (default TRACKER_SETTINGS)."""
     from tqdm import tqdm
 
     from ..bag import BagWriter
     from ..graph_config import Topics
-    from ..method.tracker import TrackResult, trunk_tilt
+    from ..method.config import PipelineConfig
+    from ..method.pipeline import ImageSet, Pipeline
+    from ..outputs.messages import CLOUD, markers_message, write_results
     from ..outputs.streams import SubjectOutputs
     from ..pcm.peaks import camera_keypoints
-    from ..pcm.pipeline import BlazePosePcm
-    from .process import TrackerPipeline, feedback_of, markers_message, write_results
+    from ..pcm.providers import ModelPcmProvider
 
     topics = Topics()
-    model = BlazePosePcm(rig, threads=threads)
-    pipe = TrackerPipeline(rig, dict(TRACKER_SETTINGS))
+    pipe = Pipeline(rig, PipelineConfig.from_dict(TRACKER_SETTINGS if settings is None else settings),
+                    ModelPcmProvider(rig, threads=threads))
     subject = SubjectOutputs(rig)
     rec: dict[str, list] = {k: [] for k in ("stamp", "status", "keypoints", "raw", "markers", "uv", "w", "score", "weights",
                                              "t_decode", "t_pcm", "t_markers", "t_skeleton", "n_views", "links")}
-    last: TrackResult | None = None
+    cameras = np.arange(len(rig))
     it = bag_frame_sets(bag, rig)
     with BagWriter(out_bag, compression="zstd") as writer:
         bar = tqdm(total=n_frames, desc="pipeline", unit="frame", file=sys.stderr)
@@ -251,26 +261,17 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
             except StopIteration:
                 break
             t1 = time.perf_counter()
-            tracking = last is not None and last.status == "tracking"
-            fb = last.keypoints if last is not None and tracking else None
-            tilt = trunk_tilt(rig, last.keypoints) if last is not None and tracking else None
-            pcm = model.infer(images, keypoints=fb, tilt=tilt, stamp_ns=ns)
-            t2 = time.perf_counter()
-            markers = pipe.markers.step(pcm)
-            t3 = time.perf_counter()
-            result = pipe.skeleton.step(markers)
-            pipe.markers.feedback(feedback_of(result))
-            t4 = time.perf_counter()
-            writer.write(topics.markers, "sensor_msgs/msg/PointCloud2", markers_message(markers), ns)
+            res = pipe.step(ImageSet(ns, images, cameras))
+            result, markers, pcm = res.skeleton, res.markers, res.pcm
+            writer.write(topics.markers, CLOUD, markers_message(markers), ns)
             write_results(writer, topics, result, ns, subject)
             uv, w = camera_keypoints(pcm, len(rig))
             for k, v in (("stamp", ns), ("status", result.status), ("keypoints", result.keypoints),
                          ("raw", result.raw_keypoints), ("markers", markers.positions), ("uv", uv),
                          ("w", w), ("score", markers.score), ("weights", markers.weights), ("t_decode", t1 - t0),
-                         ("t_pcm", t2 - t1), ("t_markers", t3 - t2), ("t_skeleton", t4 - t3),
-                         ("n_views", pcm.n_views), ("links", result.link_lengths)):
+                         ("t_pcm", pipe.timings["pcm"]), ("t_markers", pipe.timings["markers"]),
+                         ("t_skeleton", pipe.timings["skeleton"]), ("n_views", pcm.n_views), ("links", result.link_lengths)):
                 rec[k].append(v)
-            last = result
             bar.update(1)
         bar.close()
     out = {k: (np.array(v) if k not in ("status", "links") else v) for k, v in rec.items()}
@@ -292,23 +293,24 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
     import yaml
     from tqdm import tqdm
 
-    from ..graph_config import Topics
+    from ..graph_config import Topics, stage_sections
 
     topics = Topics()
     record = [topics.keypoints, topics.joint_states, topics.markers, topics.skeleton, Topics.diagnostics]
     record += [topics.pcm(c.name) for c in rig] + [topics.pcm_info(c.name) for c in rig]
     output = out_dir / "graph_outputs.mcap"
-    tracker = dict(TRACKER_SETTINGS)
+    stages = stage_sections(TRACKER_SETTINGS)
     cfg = {
         "/**": {"ros__parameters": {"rig": str(rig_yaml), "cameras": [""], "namespace": topics.ns,
-                                    "pcm_keypoints": [""], "use_sim_time": False}},
+                                    "pcm_keypoints": [""], "use_sim_time": False, **stages["/**"]}},
         "vmocap_camera": {"ros__parameters": {"source": "bag", "uri": str(bag), "rate": rate, "loop": False,
                                               "start_offset": 0.0}},
         "vmocap_pcm": {"ros__parameters": {"source": "model", "model": "blazepose", "min_cameras": 2,
                                            "silent_after_ms": 5000.0, "use_feedback": True, "queue_depth": 50}},
         "vmocap_markers": {"ros__parameters": {"min_cameras": 2, "silent_after_ms": 5000.0,
-                                               "feedback_timeout_ms": 2000.0, "views": [""], "tracker": tracker}},
-        "vmocap_skeleton": {"ros__parameters": {"tracker": tracker}},
+                                               "feedback_timeout_ms": 2000.0, "views": [""],
+                                               **stages["vmocap_markers"]}},
+        "vmocap_skeleton": {"ros__parameters": stages["vmocap_skeleton"]},
         "vmocap_recorder": {"ros__parameters": {"output": str(output), "topics": record, "compression": "zstd"}},
         "vmocap_launch": {"mode": "processes", "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml"),
                           "nodes": ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]},
@@ -361,9 +363,8 @@ def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
     from ..bag import BagReader
     from ..bag import messages as M
     from ..graph_config import Topics
+    from ..pcm.assembly import PcmAssembler, channel_keypoints
     from ..pcm.peaks import camera_keypoints
-    from .process import PcmAssembler, channel_keypoints
-
     topics = Topics()
     stamps = np.array([int(round(f * 1e9 / FPS)) for f in range(n_frames)], dtype=np.int64)
     index = {int(s): f for f, s in enumerate(stamps)}

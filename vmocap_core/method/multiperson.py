@@ -299,7 +299,7 @@ class MultiPersonConfig:
 @dataclass
 class Track:
     track_id: int
-    filter: Any  # anything with .step(PcmViews) -> TrackResult (e.g. SpatiotemporalFilter)
+    filter: Any  # a method.pipeline.Pipeline (anything with .step(PcmViews).skeleton -> TrackResult)
     keypoints: np.ndarray  # (25, 3) last feedback keypoints (NaN before the first result)
     born: int
     unseen: int = 0
@@ -325,7 +325,7 @@ def _projected_cost(uv_track: np.ndarray, ok_track: np.ndarray, people: np.ndarr
 class MultiPersonTracker:
     """One lattice filter per person, fed with PCMs of that person's own detections.
 
-    `make_filter()` returns a fresh single-person filter (e.g. tracker.SpatiotemporalFilter).
+    `make_filter()` returns a fresh single-person pipeline (method.pipeline.Pipeline).
     `step(people, stamp_ns)` takes the 2D people of each view ((P_c, 25, 3): u, v, score) and
     returns the active tracks after this frame.
     """
@@ -451,7 +451,7 @@ class MultiPersonTracker:
                 continue
             t.unseen = 0
             pcm = self.renderer.render(uv, w, w.max(axis=1) > 0, stamp_ns)
-            res = t.filter.step(pcm)
+            res = t.filter.step(pcm).skeleton
             t.result = res
             out = np.asarray(getattr(res, "keypoints", np.full((N_KP, 3), np.nan)), dtype=np.float64)
             raw = np.asarray(getattr(res, "raw_keypoints", out), dtype=np.float64)

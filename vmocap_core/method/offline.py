@@ -23,18 +23,13 @@ from tqdm import tqdm
 
 from ..errors import VmocapError
 from ..keypoints import KEYPOINTS
+from .config import SkeletonConfig
+from .filter import smoother_model
 from .ik import solve_ik
+from .init import identify_dimensions, initial_pose, refine_offsets
+from .results import FEEDBACK_STATUSES, TrackResult
 from .skeleton import Skeleton
 from .smoothing import gaussian_smooth, rts_smooth, runs
-from .tracker import (
-    FEEDBACK_STATUSES,
-    TrackerConfig,
-    TrackResult,
-    identify_dimensions,
-    initial_pose,
-    refine_offsets,
-    smoother_model,
-)
 
 N_KP = len(KEYPOINTS)
 WAIST_RATIOS = (0.2, 0.35, 0.5, 0.65)
@@ -44,7 +39,7 @@ class OfflineError(VmocapError):
     """A recording that the offline pass cannot reconstruct (e.g. never tracked)."""
 
 
-def smooth_keypoints(x: np.ndarray, config: TrackerConfig) -> np.ndarray:
+def smooth_keypoints(x: np.ndarray, config: SkeletonConfig) -> np.ndarray:
     """The offline smoother of one segment's keypoints (T, 25, 3)."""
     if config.offline_smoother == "gaussian":
         return gaussian_smooth(x, config.offline_gaussian_sigma_frames)
@@ -86,7 +81,7 @@ def identify_subject(frames: np.ndarray, max_fit_error_m: float, n_fit: int = 16
     return refine_offsets(sk, sub, q0)
 
 
-def _first_ik(sk: Skeleton, markers: np.ndarray, weights: np.ndarray, config: TrackerConfig,
+def _first_ik(sk: Skeleton, markers: np.ndarray, weights: np.ndarray, config: SkeletonConfig,
               bar: tqdm) -> tuple[np.ndarray, np.ndarray]:
     """Forward first IK over one segment: (q (T, nq), keypoints (T, 25, 3))."""
     T = len(markers)
@@ -104,7 +99,7 @@ def _first_ik(sk: Skeleton, markers: np.ndarray, weights: np.ndarray, config: Tr
     return qs, kps
 
 
-def _second_ik(sk: Skeleton, targets: np.ndarray, q_first: np.ndarray, config: TrackerConfig,
+def _second_ik(sk: Skeleton, targets: np.ndarray, q_first: np.ndarray, config: SkeletonConfig,
                bar: tqdm) -> tuple[np.ndarray, np.ndarray]:
     """Second IK to the smoothed keypoints (warm start; restart from the first IK's pose when
     the fit stays poor, as the live stage does)."""
@@ -140,14 +135,14 @@ def segments(stamps_ns: np.ndarray, tracked: np.ndarray) -> list[slice]:
     return out
 
 
-def reconstruct(results: Sequence[TrackResult], config: TrackerConfig, progress: bool = False) -> list[TrackResult]:
+def reconstruct(results: Sequence[TrackResult], config: SkeletonConfig, progress: bool = False) -> list[TrackResult]:
     """The offline pass over the live tracker's results of a whole recording (one person):
     new results, one per input, "tracking" on every frame of a tracked segment (the
     identification phase included), the input's status elsewhere."""
     return identify_and_reconstruct(results, config, progress)[0]
 
 
-def identify_and_reconstruct(results: Sequence[TrackResult], config: TrackerConfig,
+def identify_and_reconstruct(results: Sequence[TrackResult], config: SkeletonConfig,
                              progress: bool = False) -> tuple[list[TrackResult], Skeleton]:
     """`reconstruct`, also returning the identified skeleton."""
     tracked = np.array([r.status in FEEDBACK_STATUSES for r in results], dtype=bool)

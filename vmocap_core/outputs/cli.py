@@ -46,8 +46,7 @@ def _from_bag(path: str, topic: str, at: float | None) -> str:
 def _identified(path: str, topic: str):
     from ..bag import BagReader
     from ..bag import messages as M
-    from ..method.tracker import fit_skeleton
-
+    from ..method.init import fit_skeleton
     frames = []
     with BagReader(path) as r:
         if topic not in r.topics:

@@ -2,7 +2,7 @@
 
 A crop is (centre (2,) image px, side (image px), rotation (rad)) and is sampled into an N x N
 network input. Rotation convention (the same as MediaPipe's rect rotation and as
-`vmocap_core.method.tracker.trunk_tilt`): the crop's "up" direction points along the image vector
+`vmocap_core.method.rotation.trunk_tilt`): the crop's "up" direction points along the image vector
 (sin r, -cos r), i.e. r = 0 is an upright crop and r > 0 means the person leans towards image
 +u (clockwise on screen); the crop undoes it so the person reaches the CNN upright.
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..cameras.projection import Camera, Rig, look_at
 from ..keypoints import KEYPOINTS, LOWER_BODY, MIRROR, indices
-from ..method.tracker import trunk_tilt
+from ..method.rotation import trunk_tilt
 from .views import PcmViews, stride_affine
 
 ORIGIN = np.zeros(3)  # default rig centre

@@ -14,11 +14,11 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from vmocap_core import graph_config
-from vmocap_core.apps.process import DIAG, IMAGE
 from vmocap_core.bag import cdr
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.sync import lagging
 from vmocap_core.errors import VmocapError
+from vmocap_core.outputs.messages import DIAG, IMAGE
 
 from ..common import Topics, declare, msg_class, qos
 from ..transport import Output, Transport

@@ -9,10 +9,10 @@ import time
 from typing import Any
 
 from vmocap_core import graph_config
-from vmocap_core.apps.process import IMAGE, INFO
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.clock import LoopedStamps, PlaybackClock
 from vmocap_core.errors import VmocapError
+from vmocap_core.outputs.messages import IMAGE, INFO
 
 from ..transport import Output, Transport
 from .base import VmocapNode

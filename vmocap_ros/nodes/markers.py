@@ -9,18 +9,12 @@ from typing import Any
 import numpy as np
 
 from vmocap_core import graph_config
-from vmocap_core.apps.process import (
-    CLOUD,
-    IMAGE,
-    INFO,
-    PcmAssembler,
-    TrackerPipeline,
-    channel_keypoints,
-    markers_message,
-)
 from vmocap_core.bag import messages as M
 from vmocap_core.errors import VmocapError
 from vmocap_core.method.camera_check import OddCamera, camera_residuals
+from vmocap_core.method.markers import MarkerStage
+from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO, markers_message
+from vmocap_core.pcm.assembly import PcmAssembler, channel_keypoints
 
 from ..transport import Transport
 from .base import InitWatch, VmocapNode
@@ -42,8 +36,7 @@ class MarkersNode(VmocapNode):
         views = p["views"] or self.rig.names
         self.asm = PcmAssembler(self.rig, views, channel_keypoints(p["pcm_keypoints"]),
                                 int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
-        self.pipe = TrackerPipeline(self.rig, config.tracker_dict(p))
-        self.stage = self.pipe.markers
+        self.stage = MarkerStage(self.rig, config.stage_config(name, p))
         self.queue: deque = deque()
         self.awaiting: int | None = None
         self.awaiting_since = 0.0

@@ -10,10 +10,11 @@ from typing import Any
 import numpy as np
 
 from vmocap_core import graph_config
-from vmocap_core.apps.process import CLOUD, IMAGE, INFO, channel_keypoints
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.sync import ApproximateSync
 from vmocap_core.errors import VmocapError
+from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO
+from vmocap_core.pcm.assembly import channel_keypoints
 
 from ..transport import Output, Transport
 from .base import VmocapNode
@@ -54,15 +55,14 @@ class PcmNode(VmocapNode):
             self.create_timer(min(0.02, self.wait / 2), self._check_timeout)
 
     def _make_provider(self):
-        from vmocap_core.apps.process import BagPcmProvider, SyntheticPcmProvider
+        from vmocap_core.pcm.providers import BagPcmProvider, SyntheticPcmProvider
 
         kind, model = self.p["source"], self.p["model"]
         if kind == "synthetic":
-            fps = self.config.tracker_dict(self.config.node_params("vmocap_skeleton")).get("fps", 30.0)
-            return SyntheticPcmProvider(self.rig, model, fps)
+            return SyntheticPcmProvider(self.rig, model, self.p["fps"])
         if model.endswith(".mcap"):
             return BagPcmProvider(model, self.rig, channel_keypoints(self.p["pcm_keypoints"]), self.p["namespace"])
-        from vmocap_core.apps.process import make_model_provider  # the CNN (vmocap_core.pcm)
+        from vmocap_core.pcm.providers import make_model_provider  # the CNN
 
         provider = make_model_provider(model, self.rig, self.p["rotation"], self.p["threads"])
         from vmocap_core.pcm import selfcheck

@@ -7,7 +7,7 @@ import time
 from typing import Any
 
 from vmocap_core import graph_config
-from vmocap_core.apps.process import CLOUD, markers_from_message, result_messages
+from vmocap_core.outputs.messages import CLOUD, markers_from_message, result_messages
 
 from ..subject import skeleton_outputs
 from ..transport import Transport
@@ -21,9 +21,9 @@ class SkeletonNode(VmocapNode):
     def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
                  transport: Transport | None = None, name: str = "vmocap_skeleton") -> None:
         super().__init__(name, config, overrides, transport)
-        from vmocap_core.method.tracker import SkeletonStage, TrackerConfig
+        from vmocap_core.method.skeleton_stage import SkeletonStage
 
-        self.stage = SkeletonStage(TrackerConfig.from_dict(config.tracker_dict(self.p)))
+        self.stage = SkeletonStage(config.stage_config(name, self.p))
         self.pubs = {}
         for topic, ty in ((self.topics.feedback, CLOUD), (self.topics.joint_states, "sensor_msgs/msg/JointState"),
                           (self.topics.keypoints, CLOUD), (self.topics.skeleton, "visualization_msgs/msg/MarkerArray")):
@@ -34,7 +34,7 @@ class SkeletonNode(VmocapNode):
         self.subscribe(CLOUD, self.topics.markers, self._on_markers, depth=self.p["queue_depth"], latched=True)
         self.counts = {"frames": 0, "tracking": 0}
         self.last_status = "initializing"
-        self.init_watch = InitWatch(self.p["init_warn_s"], config.tracker_dict(self.p).get("init_max_reprojection_px", 12.0),
+        self.init_watch = InitWatch(self.p["init_warn_s"], config.stage_config("vmocap_markers").init_max_reprojection_px,
                                     self.rig.names if self.rig is not None else None)
 
     def _on_markers(self, msg: dict) -> None:

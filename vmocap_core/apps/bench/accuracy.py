@@ -15,16 +15,18 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
+from ...method.config import PipelineConfig
+from ...method.filter import make_filter
 from ...method.offline import reconstruct
+from ...method.pipeline import Pipeline
 from ...method.skeleton import BONES
-from ...method.tracker import SpatiotemporalFilter, TrackerConfig, make_filter
 from ...method.triangulation import triangulate_robust
 from ...motion import Motion, extend, load_motion, resample
 from ...paths import DATA, SHARED_DATA
@@ -59,17 +61,17 @@ def prepare(path: Path) -> Motion:
     return extend(resample(load_motion(path), RATE_HZ), MIN_SECONDS)
 
 
-def run_motion(motion: Motion, seed: int = 0, config: TrackerConfig | None = None, rotation: bool = True,
+def run_motion(motion: Motion, seed: int = 0, config: PipelineConfig | None = None, rotation: bool = True,
                progress: bool = False) -> MotionRun:
     """Run method and baseline on one motion's synthetic PCMs."""
-    config = config or TrackerConfig(fps=RATE_HZ)
+    config = config or PipelineConfig.of(fps=RATE_HZ)
     centre = np.nanmean(motion.positions[:, 0], axis=0)
     rig = benchmark_rig(centre)
     source = SyntheticPcmSource(rig, motion.positions, motion.present, seed=seed, fps=RATE_HZ)
     # Offline: the live pass without lag, the whole-clip pass afterwards.
-    tracker = SpatiotemporalFilter(rig, replace(config, smoothing_lag_frames=0) if config.offline else config)
+    tracker = Pipeline(rig, config.replace(smoothing_lag_frames=0) if config.skeleton.offline else config)
     # The same low-pass filter as the method's (lag compensation included).
-    base_filter = make_filter(config)
+    base_filter = make_filter(config.skeleton)
     T = len(source)
     method = np.full((T, 25, 3), np.nan)
     baseline = np.full((T, 25, 3), np.nan)
@@ -79,7 +81,7 @@ def run_motion(motion: Motion, seed: int = 0, config: TrackerConfig | None = Non
     for t in tqdm(range(T), desc=motion.name, disable=not progress, leave=False):
         rot = tracker.tilt() if rotation else None
         pcm = source.render(t, rot)
-        results.append(tracker.step(pcm))
+        results.append(tracker.step(pcm).skeleton)
         # Baseline: same PCMs, the upright input (triangulation pipelines do not rotate).
         pcm0 = pcm if rot is None else source.render(t, None)
         uv, val = pcm0.peaks()
@@ -88,8 +90,8 @@ def run_motion(motion: Motion, seed: int = 0, config: TrackerConfig | None = Non
         last_base = pts
         if np.isfinite(pts).all():
             baseline[t, source.channels] = base_filter(pts)
-    if config.offline:
-        results = reconstruct(results, config)
+    if config.skeleton.offline:
+        results = reconstruct(results, config.skeleton)
     # By stamp: a fixed-lag result is the frame `lag` steps back.
     status = ["initializing"] * T
     for r in results:
@@ -206,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
         cfg["offline"] = True
     if args.lag is not None:
         cfg["smoothing_lag_frames"] = args.lag
-    config = TrackerConfig.from_dict(cfg)
+    config = PipelineConfig.from_dict(cfg)
     per_motion: dict[str, dict[str, object]] = {}
     if args.plots:
         args.plots.mkdir(parents=True, exist_ok=True)

@@ -168,7 +168,7 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
     for name in args.configs:
         rotation, precision = CONFIGS[name]
         out = args.out / f"{path.stem}_{name}.mcap"
-        process_bag(rec, out, rig, tracker={"fps": RATE_HZ, **getattr(args, "tracker", {})}, progress=not args.json,
+        process_bag(rec, out, rig, config={"fps": RATE_HZ, **getattr(args, "tracker", {})}, progress=not args.json,
                     provider=_Provider(rig, rotation, precision))
         est = read_estimates(out, stamps)
         row[name] = score(est, truth)

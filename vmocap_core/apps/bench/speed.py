@@ -14,10 +14,13 @@ import time
 import numpy as np
 from tqdm import tqdm
 
+from ...cameras.projection import Rig
 from ...keypoints import KEYPOINTS
+from ...method.config import PipelineConfig
+from ...method.pipeline import Pipeline
 from ...method.skeleton import Skeleton
-from ...method.tracker import SpatiotemporalFilter, TrackerConfig
 from ...pcm.synthetic import NoiseModel, SyntheticPcmSource, benchmark_rig
+from ...pcm.views import PcmViews
 
 
 def animated_keypoints(n_frames: int, fps: float = 60.0, seed: int = 0) -> np.ndarray:
@@ -56,14 +59,14 @@ def run(args: argparse.Namespace) -> int:
     rig = benchmark_rig(np.array([0.0, 0.0, 0.0]))
     noise = NoiseModel(stride=args.stride, sigma_cells=2.0 * 4 / args.stride)  # same Gaussian width in pixels
     source = SyntheticPcmSource(rig, gt, np.ones(len(KEYPOINTS), bool), seed=1, fps=fps, noise=noise)
-    cfg = TrackerConfig(fps=fps, lattice_k=args.k, coarse_to_fine=not args.full_lattice)
-    tracker = SpatiotemporalFilter(rig, cfg)
+    cfg = PipelineConfig.of(fps=fps, lattice_k=args.k, coarse_to_fine=not args.full_lattice)
+    tracker = Pipeline(rig, cfg)
     pcms = [source.render(t) for t in tqdm(range(len(gt)), desc="synthesizing PCMs", disable=args.json)]
     stages: dict[str, list[float]] = {"lattice": [], "ik": [], "filter": [], "ik2": []}
     total: list[float] = []
     for t, pcm in enumerate(tqdm(pcms, desc="tracking", disable=args.json)):
         t0 = time.perf_counter()
-        r = tracker.step(pcm)
+        r = tracker.step(pcm).skeleton
         dt = time.perf_counter() - t0
         if t >= warm and r.status == "tracking" and tracker.skeleton.timings:
             total.append(dt)
@@ -83,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         "cameras": len(rig),
         "keypoints": len(KEYPOINTS),
         "lattice_points": (2 * args.k + 1) ** 3,
-        "coarse_to_fine": cfg.coarse_to_fine,
+        "coarse_to_fine": cfg.markers.coarse_to_fine,
         "map_size": list(source.map_size),
         "frames": len(total),
     }
@@ -92,7 +95,23 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"back end per frame: median {result['backend_ms']['median']:.2f} ms, p95 {result['backend_ms']['p95']:.2f} ms "
               f"({len(rig)} cameras, {len(KEYPOINTS)} keypoints, {(2 * args.k + 1) ** 3} lattice points"
-              f"{', coarse-to-fine' if cfg.coarse_to_fine else ''}, maps {source.map_size[0]}x{source.map_size[1]}, {len(total)} frames)")
+              f"{', coarse-to-fine' if cfg.markers.coarse_to_fine else ''}, maps {source.map_size[0]}x{source.map_size[1]}, {len(total)} frames)")
         for k, v in result["stages_ms"].items():
             print(f"  {k:<8} median {v['median']:.2f} ms  p95 {v['p95']:.2f} ms")
     return 0
+
+
+def time_pipeline(frames: list[PcmViews], rig: Rig, config: PipelineConfig | None, n: int,
+                  period_ns: int = 33_333_333) -> dict[str, float]:
+    """Per-frame-set time (ms) of Pipeline.step over `n` frame sets handed out as the graph's
+    PCM node hands them out from a bag (`frames` looped, stamps one period apart): the
+    offline cost that the graph's end-to-end latency compares with."""
+    pipe = Pipeline(rig, config)
+    ms = np.empty(n)
+    for k in range(n):
+        src = frames[k % len(frames)]
+        pcm = PcmViews(src.maps, src.image_to_map, src.camera, src.keypoints, src.valid, src.presence, k * period_ns)
+        t0 = time.perf_counter()
+        pipe.step(pcm)
+        ms[k] = 1e3 * (time.perf_counter() - t0)
+    return {"p50": float(np.percentile(ms, 50)), "p95": float(np.percentile(ms, 95)), "mean": float(ms.mean()), "n": n}

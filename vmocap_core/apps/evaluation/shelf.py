@@ -26,14 +26,7 @@ import numpy as np
 
 from ...errors import VmocapError
 from ...keypoints import KEYPOINTS
-from ...method.multiperson import (
-    MultiPersonConfig,
-    MultiPersonTracker,
-    PcmRenderer,
-    assemble_people,
-    associate,
-    to_keypoints,
-)
+from ...method.multiperson import MultiPersonConfig, MultiPersonTracker, PcmRenderer, assemble_people, associate, to_keypoints
 from ...paths import SHARED_DATA
 from .pcp import PART_GROUPS, ShelfScore, to_shelf15
 from .shelf_data import BODY25_LIMBS, BODY25_TO_KEYPOINT, ShelfData, load_shelf
@@ -93,11 +86,11 @@ def evaluate(data: ShelfData, progress: bool = True, tracker_settings: dict | No
     """Run ours and the baseline over all frames; returns the results dictionary."""
     from tqdm import tqdm
 
-    from ...method.tracker import SpatiotemporalFilter, TrackerConfig
-
+    from ...method.config import PipelineConfig
+    from ...method.pipeline import Pipeline
     rig = data.rig
-    cfg = TrackerConfig.from_dict(tracker_settings or TRACKER_SETTINGS)
-    mpt = MultiPersonTracker(rig, make_renderer(data, sigma_cells or SIGMA_CELLS), lambda: SpatiotemporalFilter(rig, cfg), mp_config)
+    cfg = PipelineConfig.from_dict(tracker_settings or TRACKER_SETTINGS)
+    mpt = MultiPersonTracker(rig, make_renderer(data, sigma_cells or SIGMA_CELLS), lambda: Pipeline(rig, cfg), mp_config)
     ours, base = ShelfScore(), ShelfScore()
     sources = {"tracker": 0, "triangulated": 0}
     t_front = t_track = 0.0

@@ -1,0 +1,57 @@
+"""What the stages hand each other: virtual markers (marker stage -> skeleton stage) and the
+skeleton of a frame (skeleton stage -> outputs, and back to the marker stage as feedback)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..keypoints import KEYPOINTS
+from .skeleton import BodyDimensions
+
+N_KP = len(KEYPOINTS)
+
+
+@dataclass
+class Markers:
+    """Virtual markers of one frame set, in KEYPOINTS order."""
+
+    stamp_ns: int
+    positions: np.ndarray  # (25, 3), NaN where unknown
+    weights: np.ndarray  # (25,), 0 where unknown
+    kind: str  # "triangulated" | "lattice" | "none"
+    score: float = 0.0  # mean weight per view over the observed keypoints (0..1)
+    # triangulated markers: what a stalled initialization is diagnosed from (init_report.py)
+    residual_px: np.ndarray | None = None  # (25,) triangulation residual, NaN: not triangulated
+    cameras: np.ndarray | None = None  # (25,) bit masks of the cameras whose peaks went in
+    presence: dict[str, float] | None = None  # CNN presence per camera (not in messages)
+
+
+def nan_markers(stamp_ns: int, kind: str = "none") -> Markers:
+    return Markers(stamp_ns, np.full((N_KP, 3), np.nan), np.zeros(N_KP), kind, 0.0)
+
+
+# Statuses whose raw keypoints are fed back to the lattice search (the others re-initialize);
+# only "tracking" results are output.
+FEEDBACK_STATUSES = ("tracking", "identifying", "smoothing")
+
+
+@dataclass
+class TrackResult:
+    stamp_ns: int
+    status: str  # "initializing" | "identifying" | "smoothing" | "tracking" | "lost"
+    q: np.ndarray  # (40,) published DOF after the second IK (see Skeleton.to_angles)
+    joint_names: list[str]
+    keypoints: np.ndarray  # (25, 3) filtered output
+    raw_keypoints: np.ndarray  # (25, 3) first IK (fed back to the lattice search)
+    scores: np.ndarray  # (25,) marker weights
+    markers: np.ndarray  # (25, 3) virtual markers
+    link_lengths: dict[str, float] = field(default_factory=dict)
+    dims: BodyDimensions | None = None  # the subject's skeleton (tracking results only)
+
+
+def feedback_of(result: TrackResult) -> np.ndarray | None:
+    """What the skeleton stage feeds back to the next frame's lattice search and crops: the
+    first IK's keypoints (None: re-initialize)."""
+    return result.raw_keypoints if result.status in FEEDBACK_STATUSES else None

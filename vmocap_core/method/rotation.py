@@ -1,0 +1,18 @@
+"""Image rotation by the trunk tilt (paper III-B): inverted bodies made upright for the CNN."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..cameras.projection import Rig
+from ..keypoints import INDEX
+
+
+def trunk_tilt(rig: Rig, keypoints: np.ndarray) -> np.ndarray:
+    """Per camera, the angle (radians, in (-pi, pi]) of the projected pelvis->neck vector from
+    image-up: 0 upright, pi upside down. Rotating the input image by this angle makes the person
+    upright for the CNN (paper III-B)."""
+    pts = np.asarray(keypoints)[[INDEX["pelvis"], INDEX["neck"]]]
+    uv, _ = rig.project(pts)  # (C, 2, 2)
+    d = uv[:, 1] - uv[:, 0]
+    return np.arctan2(d[:, 0], -d[:, 1])

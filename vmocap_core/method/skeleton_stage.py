@@ -1,0 +1,202 @@
+"""The skeleton stage (paper II-C, II-E, II-F): virtual markers -> the subject's skeleton.
+
+Identification once the views agree (init.py); then per frame the weighted first IK to the
+virtual markers (ik.py, eq. 3-4) with a motion prior, the low-pass of the keypoint positions
+(filter.py; or a fixed-lag RTS smoother), and the second IK to the smoothed positions, so the
+output is smooth and keeps constant link lengths.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from ..keypoints import INDEX
+from .config import SkeletonConfig
+from .filter import make_filter, smoother_model
+from .ik import solve_ik
+from .ik import warm_up as warm_up_ik
+from .init import fit_skeleton, with_midpoints
+from .init_report import CORE
+from .one_euro import OneEuroFilter
+from .results import N_KP, Markers, TrackResult
+from .skeleton import Skeleton
+from .smoothing import FixedLagSmoother
+
+
+class SkeletonStage:
+    """Markers -> skeleton: identification, first IK (eq. 3-4), low-pass, second IK."""
+
+    def __init__(self, config: SkeletonConfig | None = None) -> None:
+        self.config = config or SkeletonConfig()
+        self.skeleton: Skeleton | None = None
+        self._buffer: deque[np.ndarray] = deque(maxlen=self.config.init_frames)
+        self._identify: list[np.ndarray] | None = None  # markers of the identification phase
+        self._q_raw: np.ndarray | None = None
+        self._q_out: np.ndarray | None = None
+        self._filter = make_filter(self.config)
+        # Fixed-lag mode: the smoother and the frames (stamp, weights, markers, first-IK q) it delays.
+        lag = self.config.smoothing_lag_frames
+        self._lag = FixedLagSmoother(smoother_model(self.config), lag) if lag > 0 else None
+        self._delayed: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=lag + 1)
+        self.status = "initializing"
+        self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
+        self._last_stamp: int | None = None
+        self._joint_names = Skeleton().joint_names
+        self.timings: dict[str, float] = {}
+        warm_up_ik()
+
+    @property
+    def joint_names(self) -> list[str]:
+        return self._joint_names
+
+    def reset(self) -> None:
+        self.skeleton = None
+        self._buffer.clear()
+        self._identify = None
+        self._q_raw = self._q_out = None
+        self._filter.reset()
+        if self._lag is not None:
+            self._lag.reset()
+        self._delayed.clear()
+        self.status = "initializing"
+
+    def step(self, markers: Markers) -> TrackResult:
+        cfg = self.config
+        if markers.kind == "triangulated" and self.skeleton is not None:
+            self.reset()
+            self.status = "lost"
+        if self.skeleton is None:
+            return self._initialize(markers)
+        if markers.kind != "lattice":
+            return self._empty(markers, "lost")
+        sk = self.skeleton
+        t0 = time.perf_counter()
+        dt = self._skipped_interval(markers.stamp_ns)
+        rate = cfg.fps if dt is None else 1.0 / dt
+        first = solve_ik(sk, self._q_raw, markers.positions, markers.weights, cfg.ik_iterations,
+                         damping=cfg.ik_damping, regularization=cfg.ik_regularization,
+                         prior=self._q_raw, prior_weight=cfg.ik_prior_weight * (rate / 60.0) ** 2)
+        self._q_raw = first.q
+        if self._identify is not None:
+            return self._identifying(markers, first.keypoints)
+        t1 = time.perf_counter()
+        frame = (markers.stamp_ns, markers.weights.copy(), markers.positions.copy(), first.q)
+        if self._lag is not None:
+            smooth = self._lag(first.keypoints)
+            self._delayed.append(frame)
+            if smooth is None:
+                return self._smoothing(markers, first.keypoints)
+            frame = self._delayed[0]  # the output is the frame `lag` back
+        elif isinstance(self._filter, OneEuroFilter):
+            smooth = self._filter(first.keypoints, dt)
+        else:
+            smooth = self._filter(first.keypoints)
+        t2 = time.perf_counter()
+        second = solve_ik(sk, self._q_out, smooth, np.ones(N_KP), cfg.second_ik_iterations,
+                          damping=cfg.ik_damping, regularization=cfg.ik_regularization)
+        if second.cost > cfg.second_ik_restart_m**2:
+            # The smoothed targets lie near the first IK's pose: restart from it when the
+            # warm start is caught in another branch (e.g. an arm twisted at a joint limit).
+            retry = solve_ik(sk, frame[3], smooth, np.ones(N_KP), cfg.second_ik_iterations,
+                             damping=cfg.ik_damping, regularization=cfg.ik_regularization)
+            if retry.cost < second.cost:
+                second = retry
+        self._q_out = second.q
+        self.status = "tracking"
+        angles = sk.to_angles(second.q)
+        t3 = time.perf_counter()
+        self.timings = {"ik": t1 - t0, "filter": t2 - t1, "ik2": t3 - t2}
+        return TrackResult(frame[0], "tracking", angles, self._joint_names,
+                           second.keypoints, first.keypoints, frame[1], frame[2], sk.dims.bone_lengths(), sk.dims)
+
+    def _smoothing(self, markers: Markers, raw: np.ndarray) -> TrackResult:
+        """Fixed-lag window filling: feedback, no output yet."""
+        self.status = "smoothing"
+        nan = np.full((N_KP, 3), np.nan)
+        return TrackResult(markers.stamp_ns, "smoothing", np.full(40, np.nan), self._joint_names, nan, raw.copy(),
+                           markers.weights.copy(), markers.positions.copy(), {})
+
+    def _skipped_interval(self, stamp_ns: int) -> float | None:
+        """Seconds since the previous frame set when frame sets were skipped (a graph that falls
+        behind), so the prior and the filter follow the real time; None at the nominal rate."""
+        last, self._last_stamp = self._last_stamp, stamp_ns
+        if last is None or stamp_ns <= last:
+            return None
+        dt = (stamp_ns - last) / 1e9
+        nominal = 1.0 / self.config.fps
+        return None if abs(dt / nominal - 1.0) < 0.25 else float(min(dt, 10 * nominal))
+
+    def _empty(self, markers: Markers, status: str) -> TrackResult:
+        nan = np.full((N_KP, 3), np.nan)
+        return TrackResult(markers.stamp_ns, status, np.full(40, np.nan), self._joint_names, nan, nan.copy(),
+                           markers.weights.copy(), markers.positions.copy(), {})
+
+    def _initialize(self, markers: Markers) -> TrackResult:
+        cfg = self.config
+        status = "lost" if self.status == "lost" else "initializing"
+        self.status = "initializing"
+        if markers.kind != "triangulated":
+            return self._empty(markers, status)
+        p = with_midpoints(markers.positions[None])[0]
+        if not all(np.isfinite(p[INDEX[n]]).all() for n in CORE + ("neck", "pelvis")):
+            self._buffer.clear()  # the views must agree on consecutive frames
+            return self._empty(markers, status)
+        self._buffer.append(markers.positions.copy())
+        if len(self._buffer) < cfg.init_frames:
+            return self._empty(markers, status)
+        frames = np.array(self._buffer)
+        fitted = fit_skeleton(frames, cfg.init_max_fit_error_m)
+        if fitted is None:
+            self._buffer.popleft()
+            self.init_problem = (f"the views agree, but {cfg.init_frames} frame sets of triangulated keypoints do not "
+                                 f"fit one skeleton within init_max_fit_error_m = {cfg.init_max_fit_error_m:g} m")
+            return self._empty(markers, status)
+        self.init_problem = None
+        sk, fit = fitted
+        self.skeleton = sk
+        self._q_raw = fit.q.copy()
+        if cfg.identify_frames > 0:
+            self._identify = []
+            return self._identifying(markers, fit.keypoints)
+        return self._start_tracking(markers, sk, fit)
+
+    def _identifying(self, markers: Markers, raw: np.ndarray) -> TrackResult:
+        """Identification phase: collect the virtual markers; once there are enough, identify
+        the skeleton on all of them and start tracking (the provisional one stays otherwise)."""
+        cfg = self.config
+        assert self._identify is not None  # started by the first fit
+        self._identify.append(np.where((markers.weights > 0)[:, None], markers.positions, np.nan))
+        if len(self._identify) >= cfg.identify_frames:
+            frames = np.array(self._identify)
+            self._identify = None
+            fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, self._q_raw)
+            if fitted is not None:
+                return self._start_tracking(markers, *fitted)
+            fit = solve_ik(self.skeleton, self._q_raw, frames[-1], np.isfinite(frames[-1]).all(axis=1).astype(float),
+                           30, damping=1e-2, regularization=1e-6, line_search=True)
+            return self._start_tracking(markers, self.skeleton, fit)
+        self.status = "identifying"
+        nan = np.full((N_KP, 3), np.nan)
+        return TrackResult(markers.stamp_ns, "identifying", np.full(40, np.nan), self._joint_names, nan, raw.copy(),
+                           markers.weights.copy(), markers.positions.copy(), {})
+
+    def _start_tracking(self, markers: Markers, sk: Skeleton, fit: Any) -> TrackResult:
+        self.skeleton = sk
+        self._q_raw = fit.q.copy()
+        self._q_out = fit.q.copy()
+        self._filter.reset()
+        self._filter(fit.keypoints)
+        if self._lag is not None:
+            self._lag.reset()
+            self._delayed.clear()
+            self._delayed.append((markers.stamp_ns, markers.weights.copy(), markers.positions.copy(), fit.q.copy()))
+            self._lag(fit.keypoints)
+            return self._smoothing(markers, fit.keypoints)
+        self.status = "tracking"
+        return TrackResult(markers.stamp_ns, "tracking", sk.to_angles(fit.q), self._joint_names, fit.keypoints,
+                           fit.keypoints.copy(), markers.weights.copy(), markers.positions.copy(),
+                           sk.dims.bone_lengths(), sk.dims)

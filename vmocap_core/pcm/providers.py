@@ -1,0 +1,103 @@
+"""Where a frame set's heatmaps come from (method.pipeline.PcmProvider): the CNN, a bag of
+recorded heatmaps, or the synthetic noise model. Each takes the rig cameras' images and the
+skeleton fed back from the previous frame set."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..bag import BagReader
+from ..cameras.projection import Rig
+from ..errors import BagError
+from ..graph_config import Topics
+from .assembly import PcmAssembler, pcm_topics
+from .views import PcmViews
+
+
+class BagPcmProvider:
+    """Heatmaps read from a bag's PCM topics, handed out in order, one frame set per call
+    (looping): stands in for the CNN while keeping the rest of the graph real."""
+
+    name = "bag"
+
+    def __init__(self, path: str | Path, rig: Rig, keypoints: np.ndarray, namespace: str = "/vmocap") -> None:
+        topics = Topics(namespace)
+        with BagReader(path) as reader:
+            views = pcm_topics(reader.topics, topics, None)
+            if not views:
+                raise BagError(f"{path}: no PCM topics under {topics.ns}/pcm/")
+            asm = PcmAssembler(rig, views, keypoints)
+            sel = {topics.pcm(v): (v, "image") for v in views} | {topics.pcm_info(v): (v, "info") for v in views}
+            self.frames: list[PcmViews] = []
+            for m in reader.messages(list(sel)):
+                v, kind = sel[m.topic]
+                self.frames += asm.add_image(v, m.decode()) if kind == "image" else asm.add_info(v, m.decode())
+            self.frames += asm.flush()
+        if not self.frames:
+            raise BagError(f"{path}: no complete PCM frame set")
+        self._k = 0
+
+    def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
+        src = self.frames[self._k % len(self.frames)]
+        self._k += 1
+        return PcmViews(src.maps, src.image_to_map, src.camera, src.keypoints, src.valid, src.presence, stamp_ns)
+
+
+class SyntheticPcmProvider:
+    """Heatmaps rendered from a motion clip's ground truth (vmocap_core.pcm.synthetic): the clip's
+    frame at the frame set's stamp (stamp x fps, modulo the clip's length), so that PCM workers
+    of different cameras render the same instant whatever frames each of them skipped; the input
+    rotation follows the fed-back skeleton."""
+
+    name = "synthetic"
+
+    def __init__(self, rig: Rig, motion_path: str | Path, fps: float, seed: int | None = None) -> None:
+        """seed None: from the camera names, so that per-camera workers draw independent noise
+        (one seed for all would give every view the same false peaks and swaps)."""
+        import zlib
+
+        from ..motion import extend, load_motion, resample
+        from .synthetic import SyntheticPcmSource
+
+        seed = zlib.crc32(",".join(rig.names).encode()) if seed is None else seed
+        motion = extend(resample(load_motion(motion_path), fps), 2.0)
+        self.source = SyntheticPcmSource(rig, motion.positions, motion.present, seed=seed, fps=fps)
+        self.rig = rig
+        self.fps = fps
+
+    def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
+        from ..method.rotation import trunk_tilt
+
+        rot = trunk_tilt(self.rig, feedback) if feedback is not None else None
+        pcm = self.source.render(int(round(stamp_ns * self.fps / 1e9)) % len(self.source), rotation=rot)
+        keep = np.isin(pcm.camera, cameras)
+        return PcmViews(pcm.maps[keep], pcm.image_to_map[keep], pcm.camera[keep], pcm.keypoints,
+                        pcm.valid[keep], pcm.presence[keep], stamp_ns)
+
+
+class ModelPcmProvider:
+    """The CNN (vmocap_core.pcm.pipeline.BlazePosePcm): detector crops until a skeleton is fed
+    back, then crops around the projected skeleton, rotated by the trunk tilt."""
+
+    def __init__(self, rig: Rig, model: str = "", rotation: str = "all", threads: int = 2) -> None:
+        from .pipeline import BlazePosePcm
+
+        variant = "lite" if model.endswith("lite") else "full"
+        self.rig = rig
+        self.pcm = BlazePosePcm(rig, rotation=rotation, threads=threads, variant=variant)
+        lm = self.pcm.landmark
+        self.name = f"blazepose-{variant} {lm.precision} (rotation {rotation})"
+        self.precision, self.precision_reason = lm.precision, lm.precision_reason
+
+    def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
+        full: list[np.ndarray | None] = [None] * len(self.rig)
+        for c, img in zip(cameras, images):
+            full[int(c)] = img
+        usable = feedback is not None and np.isfinite(feedback[[0, 1]]).all()
+        return self.pcm.infer(full, keypoints=feedback if usable else None, stamp_ns=stamp_ns)
+
+
+def make_model_provider(model: str, rig: Rig, rotation: str = "all", threads: int = 2) -> ModelPcmProvider:
+    return ModelPcmProvider(rig, model, rotation, threads)
