@@ -28,7 +28,7 @@ def _models_present() -> bool:
 
 @needs_demo
 def test_qualisys_rig_matches_the_file_and_sees_the_scene() -> None:
-    from vmocap_core.apps.demo import load_qualisys_rig, video_paths, video_sizes
+    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes
 
     qca = DEMO / "calibration" / "Calib.qca.txt"
     sizes = video_sizes(video_paths(DEMO))
@@ -53,14 +53,9 @@ def test_qualisys_rig_matches_the_file_and_sees_the_scene() -> None:
 @needs_demo
 @pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
 def test_demo_pipeline_tracks_the_walker(tmp_path: Path) -> None:
-    from vmocap_core.apps.demo import (
-        load_qualisys_rig,
-        reprojection_errors,
-        run_pipeline,
-        video_paths,
-        video_sizes,
-        videos_to_bag,
-    )
+    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes, videos_to_bag
+    from vmocap_core.apps.demo.report import reprojection_errors
+    from vmocap_core.apps.demo.runs import run_pipeline
     from vmocap_core.bag import BagReader
 
     videos = video_paths(DEMO)
@@ -107,15 +102,9 @@ def test_report_markdown_from_a_real_shelf_run(tmp_path: Path) -> None:
 @pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
 def test_demo_on_the_node_graph(tmp_path: Path) -> None:
     pytest.importorskip("rclpy")
-    from vmocap_core.apps.demo import (
-        load_qualisys_rig,
-        recording_from_graph,
-        reprojection_errors,
-        run_graph,
-        video_paths,
-        video_sizes,
-        videos_to_bag,
-    )
+    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes, videos_to_bag
+    from vmocap_core.apps.demo.report import reprojection_errors
+    from vmocap_core.apps.demo.runs import recording_from_graph, run_graph
     from vmocap_core.cameras.rig_file import save_rig
 
     videos = video_paths(DEMO)

@@ -80,7 +80,7 @@ def test_ground_truth_ids_and_frames() -> None:
 
 
 def test_rendered_pcm_peaks_at_the_detection() -> None:
-    from vmocap_core.method.multiperson import PcmRenderer
+    from vmocap_core.method.people import PcmRenderer
 
     kps = np.array([INDEX["left_wrist"], INDEX["nose"]])
     r = PcmRenderer([(1032, 776)] * 2, kps, stride=8, sigma_cells=2.0, radius=6)

@@ -195,7 +195,7 @@ def test_graph_with_cnn_equals_offline_and_demo(tmp_path: Path, listener) -> Non
     tracker = {"fps": 30.0, "identify_seconds": 0.0}
     stats = process_bag(bag, offline, rig, config=tracker, progress=False)
     assert stats["frames"] == n and stats["tracking"] >= 3, stats
-    from vmocap_core.apps.demo import run_pipeline
+    from vmocap_core.apps.demo.runs import run_pipeline
 
     demo_bag = tmp_path / "demo.mcap"
     rec = run_pipeline(bag, rig, demo_bag, n, settings=tracker)

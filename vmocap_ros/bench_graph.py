@@ -92,7 +92,7 @@ def _pose2sim_bag(work: Path, args: argparse.Namespace):
     (intrinsics scaled to match), stamps at --fps."""
     import cv2
 
-    from vmocap_core.apps.demo import load_qualisys_rig, video_paths, video_sizes
+    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes
     from vmocap_core.bag import BagWriter
     from vmocap_core.bag import messages as M
     from vmocap_core.calibration.datasets import pose2sim_demo

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol, Sequence
+from typing import Protocol, Sequence
 
 import numpy as np
 
@@ -25,9 +25,6 @@ from .markers import MarkerStage
 from .results import Markers, TrackResult, feedback_of
 from .rotation import trunk_tilt
 from .skeleton_stage import SkeletonStage
-
-if TYPE_CHECKING:
-    from ..graph_config import GraphConfig
 
 
 class PcmProvider(Protocol):
@@ -103,8 +100,3 @@ class Pipeline:
             return np.zeros(len(self.rig))
         return trunk_tilt(self.rig, self.last.skeleton.keypoints)
 
-
-def build_pipeline(config: "GraphConfig", rig: Rig | None = None, pcm: Any = None) -> Pipeline:
-    """The pipeline a graph config describes: the rig it names (unless given), the marker
-    stage from its vmocap_markers section, the skeleton stage from vmocap_skeleton."""
-    return Pipeline(rig if rig is not None else config.load_rig(), config.pipeline_config(), pcm)

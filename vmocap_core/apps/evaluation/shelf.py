@@ -26,7 +26,8 @@ import numpy as np
 
 from ...errors import VmocapError
 from ...keypoints import KEYPOINTS
-from ...method.multiperson import MultiPersonConfig, MultiPersonTracker, PcmRenderer, assemble_people, associate, to_keypoints
+from ...method.multiperson import MultiPersonConfig, MultiPersonTracker
+from ...method.people import PcmRenderer, assemble_people, associate, to_keypoints
 from ...paths import SHARED_DATA
 from .pcp import PART_GROUPS, ShelfScore, to_shelf15
 from .shelf_data import BODY25_LIMBS, BODY25_TO_KEYPOINT, ShelfData, load_shelf

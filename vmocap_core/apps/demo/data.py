@@ -1,0 +1,195 @@
+"""The demo's data: the Pose2Sim videos, their Qualisys calibration as a rig, the videos as an
+MCAP bag, and that bag's synchronized frame sets."""
+
+from __future__ import annotations
+
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from ...cameras.projection import Camera, Rig
+from ...errors import RigFileError, VmocapError
+
+FPS = 60.0
+
+
+QUALISYS_SUBPIXELS = 64
+
+
+# Qualisys camera axes: x right, y up, z backwards; OpenCV's: x right, y down, z forward.
+QUALISYS_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
+
+
+def log(msg: str) -> None:
+    print(f"vmocap demo: {msg}", file=sys.stderr, flush=True)
+
+
+# ------------------------------------------------------------------------------ calibration
+def load_qualisys_rig(path: str | Path, sizes: dict[str, tuple[int, int]] | None = None) -> Rig:
+    """Full rig (intrinsics, distortion, extrinsics) from a Qualisys .qca.txt calibration.
+
+    `transform` holds the camera position (mm) and a rotation whose rows are the Qualisys camera
+    axes in world coordinates (y up, z backwards): world->camera for OpenCV is
+    R = diag(1, -1, -1) @ rows, t = -R @ position. Intrinsics are in 1/64 pixel relative to the
+    sensor; the video field of view gives the crop. `sizes` (name -> (w, h)) overrides the image
+    size where a video was stored cropped at the right/bottom (e.g. 1080 of 1088 columns).
+    """
+    path = Path(path)
+    try:
+        root = ET.parse(path).getroot()
+    except (OSError, ET.ParseError) as exc:
+        raise RigFileError(path, "xml", str(exc)) from None
+    cams: list[Camera] = []
+    for cam in root.iter("camera"):
+        name = cam.get("serial") or f"cam{len(cams) + 1:02d}"
+        tr, it, fov = cam.find("transform"), cam.find("intrinsic"), cam.find("fov_video")
+        if tr is None or it is None or fov is None:
+            raise RigFileError(path, f"camera {name}", "missing transform, intrinsic or fov_video")
+        try:
+            rows = np.array([[float(tr.get(f"r{i}{j}")) for j in (1, 2, 3)] for i in (1, 2, 3)])
+            pos = np.array([float(tr.get(a)) for a in "xyz"]) / 1000.0
+            fx = float(it.get("focalLengthU")) / QUALISYS_SUBPIXELS
+            fy = float(it.get("focalLengthV")) / QUALISYS_SUBPIXELS
+            cx = float(it.get("centerPointU")) / QUALISYS_SUBPIXELS - float(fov.get("left"))
+            cy = float(it.get("centerPointV")) / QUALISYS_SUBPIXELS - float(fov.get("top"))
+            dist = [float(it.get(k)) for k in ("radialDistortion1", "radialDistortion2", "tangentalDistortion1",
+                                               "tangentalDistortion2", "radialDistortion3")]
+            w = int(fov.get("right")) - int(fov.get("left")) + 1
+            h = int(fov.get("bottom")) - int(fov.get("top")) + 1
+        except (TypeError, ValueError) as exc:
+            raise RigFileError(path, f"camera {name}", f"bad number ({exc})") from None
+        if sizes and name in sizes:
+            w, h = sizes[name]
+        R = QUALISYS_TO_OPENCV @ rows
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        cams.append(Camera(name, K, dist, R, -R @ pos, w, h))
+    if not cams:
+        raise RigFileError(path, "cameras", "no camera")
+    return Rig(cams)
+
+
+def video_paths(demo: Path) -> dict[str, Path]:
+    vids = sorted((demo / "videos").glob("cam*.mp4"))
+    if not vids:
+        raise VmocapError(f"{demo}/videos: no cam*.mp4")
+    return {p.stem: p for p in vids}
+
+
+def video_sizes(videos: dict[str, Path]) -> dict[str, tuple[int, int]]:
+    import cv2
+
+    out = {}
+    for name, p in videos.items():
+        cap = cv2.VideoCapture(str(p))
+        out[name] = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+        cap.release()
+    return out
+
+
+# ------------------------------------------------------------------------------ videos -> bag
+def videos_to_bag(videos: dict[str, Path], rig: Rig, bag: Path, max_frames: int | None = None, quality: int = 90,
+                  raw: bool = False) -> int:
+    """Write the synchronized videos as JPEG CompressedImage + CameraInfo per camera
+    (stamp = frame index / 60 fps). Returns the number of frame sets. raw=True writes
+    sensor_msgs/Image (bgr8) on NS/CAM/image_raw instead (about 25 MB per frame set before
+    the bag's zstd compression; the camera node reads either)."""
+    import cv2
+    from tqdm import tqdm
+
+    from ...bag import BagWriter
+    from ...bag import messages as M
+    from ...graph_config import Topics
+
+    topics = Topics()
+    caps = {c.name: cv2.VideoCapture(str(videos[c.name])) for c in rig}
+    n = min(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) for cap in caps.values())
+    if max_frames:
+        n = min(n, max_frames)
+    bag.parent.mkdir(parents=True, exist_ok=True)
+    tmp = bag.with_suffix(".part")
+    written = 0
+    with BagWriter(tmp, compression="zstd" if raw else "none") as writer:
+        for f in tqdm(range(n), desc="videos -> bag", unit="frame", file=sys.stderr):
+            ns = int(round(f * 1e9 / FPS))
+            frames = {}
+            for name, cap in caps.items():
+                ok, img = cap.read()
+                if not ok:
+                    break
+                frames[name] = img
+            if len(frames) < len(caps):
+                break
+            for cam in rig:
+                if raw:
+                    writer.write(topics.image(cam.name), "sensor_msgs/msg/Image", M.image_msg(frames[cam.name], ns, cam.name), ns)
+                    writer.write(topics.camera_info(cam.name), "sensor_msgs/msg/CameraInfo", M.camera_info_msg(cam, ns), ns)
+                    continue
+                ok, jpg = cv2.imencode(".jpg", frames[cam.name], [cv2.IMWRITE_JPEG_QUALITY, quality])
+                writer.write(topics.image(cam.name) + "/compressed", "sensor_msgs/msg/CompressedImage",
+                             {"header": M.header(ns, cam.name), "format": "jpeg", "data": jpg.tobytes()}, ns)
+                writer.write(topics.camera_info(cam.name), "sensor_msgs/msg/CameraInfo", M.camera_info_msg(cam, ns), ns)
+            written += 1
+    for cap in caps.values():
+        cap.release()
+    tmp.replace(bag)
+    return written
+
+
+def bag_frame_sets(bag: Path, rig: Rig):
+    """(stamp_ns, images in rig order) of the bag's camera images (JPEG CompressedImage, or raw
+    Image), by stamp."""
+    import cv2
+
+    from ...bag import BagReader
+    from ...bag import messages as M
+    from ...graph_config import Topics
+
+    topics = Topics()
+    pending: dict[int, dict[int, np.ndarray]] = {}
+    with BagReader(bag) as reader:
+        want = {}
+        for i, c in enumerate(rig):
+            raw = topics.image(c.name)
+            want[raw + "/compressed" if raw + "/compressed" in reader.topics else raw] = i
+        missing = [t for t in want if t not in reader.topics]
+        if missing:
+            raise VmocapError(f"{bag}: no topics {missing}")
+        for m in reader.messages(list(want)):
+            msg = m.decode()
+            ns = M.stamp_ns(msg)
+            if m.topic.endswith("/compressed"):
+                img = cv2.imdecode(np.frombuffer(bytes(msg["data"]), np.uint8), cv2.IMREAD_COLOR)
+                if img is None:
+                    raise VmocapError(f"{bag}: undecodable image on {m.topic} at {ns} ns")
+            else:
+                img = M.image_array(msg)
+            pending.setdefault(ns, {})[want[m.topic]] = img
+            if len(pending[ns]) == len(rig):
+                imgs = pending.pop(ns)
+                yield ns, [imgs[i] for i in range(len(rig))]
+
+
+def _count_frame_sets(bag: Path, rig: Rig, raw: bool = False) -> int:
+    from ...bag import BagReader
+    from ...errors import BagError
+    from ...graph_config import Topics
+
+    suffix = "" if raw else "/compressed"
+    try:
+        with BagReader(bag) as reader:
+            return min(reader.message_counts.get(Topics().image(c.name) + suffix, 0) for c in rig)
+    except BagError:
+        return -1
+
+
+def _video_frames(videos: dict[str, Path]) -> int:
+    import cv2
+
+    counts = []
+    for p in videos.values():
+        cap = cv2.VideoCapture(str(p))
+        counts.append(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
+        cap.release()
+    return min(counts)

@@ -1,0 +1,215 @@
+"""The demo's two ways to run the method on its bag: in this process (Pipeline.step with the
+real CNN) or as the ROS 2 node graph; both give the per-frame record the report reads."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ...cameras.projection import Rig
+from ...errors import VmocapError
+from ...keypoints import KEYPOINTS
+from ...paths import REPO
+from .data import FPS, bag_frame_sets
+
+# 60 fps: a Butterworth at 20 Hz, since 8 Hz lags ~3 px behind fast limbs (the speed-adaptive
+# default: 12.17 vs 11.63 px). The clip lasts 1.7 s: output from the provisional fit instead of
+# a 0.5 s identification phase (which left 67 of 100 frames tracked).
+TRACKER_SETTINGS = {"fps": FPS, "filter_kind": "butterworth", "filter_cutoff_hz": 20.0, "identify_seconds": 0.0}
+
+
+# ------------------------------------------------------------------------------ pipeline
+def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int = 2,
+                 settings: dict[str, Any] | None = None) -> dict:
+    """The pipeline on the bag's images with the real CNN; records everything the report needs.
+    `settings`: the method's tunables (default TRACKER_SETTINGS)."""
+    from tqdm import tqdm
+
+    from ...bag import BagWriter
+    from ...graph_config import Topics
+    from ...method.config import PipelineConfig
+    from ...method.pipeline import ImageSet, Pipeline
+    from ...outputs.messages import CLOUD, markers_message, write_results
+    from ...outputs.streams import SubjectOutputs
+    from ...pcm.peaks import camera_keypoints
+    from ...pcm.providers import ModelPcmProvider
+
+    topics = Topics()
+    pipe = Pipeline(rig, PipelineConfig.from_dict(TRACKER_SETTINGS if settings is None else settings),
+                    ModelPcmProvider(rig, threads=threads))
+    subject = SubjectOutputs(rig)
+    rec: dict[str, list] = {k: [] for k in ("stamp", "status", "keypoints", "raw", "markers", "uv", "w", "score", "weights",
+                                             "t_decode", "t_pcm", "t_markers", "t_skeleton", "n_views", "links")}
+    cameras = np.arange(len(rig))
+    it = bag_frame_sets(bag, rig)
+    with BagWriter(out_bag, compression="zstd") as writer:
+        bar = tqdm(total=n_frames, desc="pipeline", unit="frame", file=sys.stderr)
+        while True:
+            t0 = time.perf_counter()
+            try:
+                ns, images = next(it)
+            except StopIteration:
+                break
+            t1 = time.perf_counter()
+            res = pipe.step(ImageSet(ns, images, cameras))
+            result, markers, pcm = res.skeleton, res.markers, res.pcm
+            writer.write(topics.markers, CLOUD, markers_message(markers), ns)
+            write_results(writer, topics, result, ns, subject)
+            uv, w = camera_keypoints(pcm, len(rig))
+            for k, v in (("stamp", ns), ("status", result.status), ("keypoints", result.keypoints),
+                         ("raw", result.raw_keypoints), ("markers", markers.positions), ("uv", uv),
+                         ("w", w), ("score", markers.score), ("weights", markers.weights), ("t_decode", t1 - t0),
+                         ("t_pcm", pipe.timings["pcm"]), ("t_markers", pipe.timings["markers"]),
+                         ("t_skeleton", pipe.timings["skeleton"]), ("n_views", pcm.n_views), ("links", result.link_lengths)):
+                rec[k].append(v)
+            bar.update(1)
+        bar.close()
+    out = {k: (np.array(v) if k not in ("status", "links") else v) for k, v in rec.items()}
+    return out
+
+
+# ------------------------------------------------------------------------------ node graph
+def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int, rate: float = 0.05) -> Path:
+    """The ROS 2 node graph (camera from the bag: JPEG CompressedImage decoded in the camera
+    node, or raw Image; CNN PCM node, markers, skeleton, recorder) as `vmocap launch`
+    processes; returns the recorded MCAP (outputs + PCMs).
+
+    The bag is played at `rate` x real time so the CNN on this CPU keeps up (frames the PCM
+    node cannot take are dropped by design: freshness over completeness)."""
+    import os
+    import signal
+    import subprocess
+
+    import yaml
+    from tqdm import tqdm
+
+    from ...graph_config import Topics, stage_sections
+
+    topics = Topics()
+    record = [topics.keypoints, topics.joint_states, topics.markers, topics.skeleton, Topics.diagnostics]
+    record += [topics.pcm(c.name) for c in rig] + [topics.pcm_info(c.name) for c in rig]
+    output = out_dir / "graph_outputs.mcap"
+    stages = stage_sections(TRACKER_SETTINGS)
+    cfg = {
+        "/**": {"ros__parameters": {"rig": str(rig_yaml), "cameras": [""], "namespace": topics.ns,
+                                    "pcm_keypoints": [""], "use_sim_time": False, **stages["/**"]}},
+        "vmocap_camera": {"ros__parameters": {"source": "bag", "uri": str(bag), "rate": rate, "loop": False,
+                                              "start_offset": 0.0}},
+        "vmocap_pcm": {"ros__parameters": {"source": "model", "model": "blazepose", "min_cameras": 2,
+                                           "silent_after_ms": 5000.0, "use_feedback": True, "queue_depth": 50}},
+        "vmocap_markers": {"ros__parameters": {"min_cameras": 2, "silent_after_ms": 5000.0,
+                                               "feedback_timeout_ms": 2000.0, "views": [""],
+                                               **stages["vmocap_markers"]}},
+        "vmocap_skeleton": {"ros__parameters": stages["vmocap_skeleton"]},
+        "vmocap_recorder": {"ros__parameters": {"output": str(output), "topics": record, "compression": "zstd"}},
+        "vmocap_launch": {"mode": "processes", "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml"),
+                          "nodes": ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]},
+    }
+    cfg_path = out_dir / "graph.yaml"
+    cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    launch = [sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg_path), "--nodes"]
+    back = ["vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]
+    procs: list[subprocess.Popen] = []
+
+    def stop(proc: subprocess.Popen) -> None:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)  # the launcher stops its nodes; the recorder flushes
+            try:
+                proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+    log_main, log_cam = out_dir / "graph.log", out_dir / "graph_camera.log"
+    with open(log_main, "w") as lf, open(log_cam, "w") as lc:
+        try:
+            # The camera starts only once the other nodes are up (else the first frames, the
+            # ones that initialize the tracker, would go to a PCM node still loading its model).
+            procs.append(subprocess.Popen(launch + back, stdout=lf, stderr=subprocess.STDOUT, env=env, cwd=REPO))
+            deadline = time.monotonic() + 180
+            while time.monotonic() < deadline and procs[0].poll() is None:
+                if all(f"READY {n}" in log_main.read_text() for n in back):
+                    break
+                time.sleep(0.5)
+            else:
+                raise VmocapError(f"the node graph did not start; see {log_main}")
+            procs.append(subprocess.Popen(launch + ["vmocap_camera"], stdout=lc, stderr=subprocess.STDOUT, env=env, cwd=REPO))
+            seconds = int(n_frames / FPS / rate + 15)  # playback + the last frames through the graph
+            for _ in tqdm(range(seconds), desc="node graph", unit="s", file=sys.stderr):
+                if any(p.poll() is not None for p in procs):
+                    break
+                time.sleep(1.0)
+        finally:
+            for proc in reversed(procs):
+                stop(proc)
+    if not output.exists():
+        raise VmocapError(f"the node graph wrote no {output}; see {out_dir / 'graph.log'}")
+    return output
+
+
+def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
+    """The report's per-frame record from the graph's recorded topics (frame f = stamp f/60 s)."""
+    from ...bag import BagReader
+    from ...bag import messages as M
+    from ...graph_config import Topics
+    from ...pcm.assembly import PcmAssembler, channel_keypoints
+    from ...pcm.peaks import camera_keypoints
+    topics = Topics()
+    stamps = np.array([int(round(f * 1e9 / FPS)) for f in range(n_frames)], dtype=np.int64)
+    index = {int(s): f for f, s in enumerate(stamps)}
+    J, C = len(KEYPOINTS), len(rig)
+    nan3 = np.full((n_frames, J, 3), np.nan)
+    rec: dict[str, Any] = {"stamp": stamps, "status": ["dropped"] * n_frames, "keypoints": nan3.copy(), "raw": nan3.copy(),
+           "markers": nan3.copy(), "uv": np.full((n_frames, C, J, 2), np.nan), "w": np.zeros((n_frames, C, J)),
+           "score": np.zeros(n_frames), "weights": np.zeros((n_frames, J)), "n_views": np.zeros(n_frames, int)}
+    for k in ("t_decode", "t_pcm", "t_markers", "t_skeleton"):
+        rec[k] = np.full(n_frames, np.nan)  # per-stage timing: `vmocap bench graph` measures the graph
+    asm = PcmAssembler(rig, rig.names, channel_keypoints([]), tolerance_ns=1_000_000, min_views=1)
+    pcm_topics = {topics.pcm(c.name): (c.name, "image") for c in rig} | {topics.pcm_info(c.name): (c.name, "info") for c in rig}
+
+    def take(pcms) -> None:
+        for pcm in pcms:
+            f = index.get(int(pcm.stamp_ns))
+            if f is not None:
+                rec["uv"][f], rec["w"][f] = camera_keypoints(pcm, C)
+                rec["n_views"][f] = pcm.n_views
+
+    node_timing: dict[str, dict[str, float]] = {}
+    with BagReader(path) as reader:
+        for m in reader.messages():
+            msg = m.decode()
+            if m.topic == Topics.diagnostics:
+                for st in msg.get("status", []):  # the nodes' own processing time (last report wins)
+                    kv = {e["key"]: e["value"] for e in st.get("values", [])}
+                    if "proc_ms_p50" in kv:
+                        node_timing[st["name"]] = {"median_ms": float(kv["proc_ms_p50"]), "p95_ms": float(kv["proc_ms_p95"]),
+                                                   "frames": float(kv.get("proc_ms_n", "nan"))}
+                continue
+            if m.topic in pcm_topics:
+                view, kind = pcm_topics[m.topic]
+                take(asm.add_image(view, msg) if kind == "image" else asm.add_info(view, msg))
+                continue
+            f = index.get(M.stamp_ns(msg)) if isinstance(msg, dict) and "header" in msg else None
+            if f is None:
+                continue
+            if m.topic == topics.keypoints:
+                P, S, _ = M.cloud_keypoints(msg)
+                rec["status"][f] = "tracking" if P is not None else "initializing"
+                if P is not None:
+                    rec["keypoints"][f] = P
+                    rec["raw"][f] = P
+            elif m.topic == topics.markers:
+                P, S, _ = M.cloud_keypoints(msg)
+                if P is not None:
+                    rec["markers"][f] = P
+                rec["weights"][f] = S
+        take(asm.flush())
+    rec["node_timing"] = node_timing
+    seen = rec["n_views"] > 0
+    rec["score"] = np.where(seen, rec["weights"].sum(axis=1) / np.maximum(rec["n_views"], 1) / J, 0.0)
+    return rec
