@@ -184,12 +184,12 @@ def test_graph_with_cnn_equals_offline_and_demo(tmp_path: Path, listener) -> Non
     except Exception as exc:  # noqa: BLE001 - models / demo videos not on this machine
         pytest.skip(f"CNN or Pose2Sim demo not available ({exc})")
     from vmocap_core.apps.process import joint_trajectory, process_bag
-    from vmocap_ros.bench_graph import _pose2sim_bag
+    from vmocap_ros.bench_graph_setup import pose2sim_bag
 
     env, counter = listener
     counter.reset()
     n = 10
-    rig, bag, rig_path, _, _ = _pose2sim_bag(tmp_path, argparse.Namespace(size="640x480", cameras=4, frames=n, fps=30.0))
+    rig, bag, rig_path, _, _ = pose2sim_bag(tmp_path, argparse.Namespace(size="640x480", cameras=4, frames=n, fps=30.0))
     offline = tmp_path / "offline.mcap"
     # 10 frames: output from the provisional fit (no identification phase)
     tracker = {"fps": 30.0, "identify_seconds": 0.0}

@@ -48,7 +48,7 @@ def test_slim_heatmap_convolution_gives_the_same_maps(crops) -> None:
 @pytest.mark.parametrize("precision", ["float", "int8"])
 def test_smaller_input_keeps_peaks_and_presence(crops, precision: str) -> None:
     """224 x 224 input: maps of 56 x 56 cells, peaks near the 256 ones, presence kept; the int8
-    graph's interpolation matrices (quantize.prepare) are resized as the float Resize sizes."""
+    graph's interpolation matrices (int8_prepare.prepare) are resized as the float Resize sizes."""
     if precision == "int8" and not selfcheck.verdict("full").int8_correct:
         pytest.skip("int8 fails the self-check on this CPU")
     _, p256, c256 = _run(crops, precision, input_size=256)

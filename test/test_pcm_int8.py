@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from vmocap_core.errors import ModelError
-from vmocap_core.pcm import fetch, quantize
+from vmocap_core.pcm import fetch, int8_equalize, int8_prepare, quantize
 from vmocap_core.pcm.blazepose import BlazePoseLandmark, resolve_precision
 from vmocap_core.pcm.crops import Crops
 from vmocap_core.pcm.detector import PoseDetector
@@ -119,9 +119,9 @@ def test_prepared_and_equalized_graph_computes_the_float_function(models, images
     crop = flt.sample(images[:1], flt.views_from_crops(Crops([0], [d.crop()[0]], [d.crop()[1]], [d.crop()[2]])))
     x = flt.normalize(crop)
     original = onnx.load(str(flt.path))
-    model = quantize.prepare(original)
+    model = int8_prepare.prepare(original)
     assert not [n for n in model.graph.node if n.op_type == "Resize"]
-    quantize.equalize(model, json.loads(quantize.calibration_path("pose_landmark_full").read_text())["equalization"])
+    int8_equalize.equalize(model, json.loads(quantize.calibration_path("pose_landmark_full").read_text())["equalization"])
     outs = ["Identity_1", "Identity_3"]
     run = lambda m: ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(outs, {"input_1": x})  # noqa: E731
     (p0, h0), (p1, h1) = run(original), run(model)

@@ -260,8 +260,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _probe(env: dict[str, str]):
-    """A node in this process receiving joint_states (bench_graph.Probe), on the graph's domain."""
-    from .bench_graph import Probe
+    """A node in this process receiving joint_states (bench_probe.Probe), on the graph's domain."""
+    from .bench_probe import Probe
     from .common import init_rclpy
 
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION") if k in env})

@@ -45,7 +45,9 @@ def rss_mib(pid: int) -> float:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from . import bench_graph as G
+    from .bench_graph import cpu_flags
+    from .bench_graph_setup import graph_config, graph_env, synthetic_bag
+    from .bench_probe import Probe, latency, missing_periods
     from .common import init_rclpy
 
     if args.minutes <= 0:
@@ -55,15 +57,15 @@ def run(args: argparse.Namespace) -> int:
     work.mkdir(parents=True, exist_ok=True)
     # bench_graph's bag and config: 15 looped frame sets, PCM from the bag, the camera node feeding
     g = argparse.Namespace(size=args.size, cameras=args.cameras, frames=15, fps=30.0, pcm="bag", model="", feed="camera")
-    rig, bag, rig_path, kps, motion = G._bag(work, g)
-    cfg = G._config(work, args.mode, rig_path, kps, g, bag, motion)
+    rig, bag, rig_path, kps, motion = synthetic_bag(work, g)
+    cfg = graph_config(work, args.mode, rig_path, kps, g, bag, motion)
     c = yaml.safe_load(cfg.read_text())  # the recorder too: a long run's memory includes its bag
     c["vmocap_launch"]["nodes"].append("vmocap_recorder")
     c["vmocap_recorder"]["ros__parameters"]["output"] = str(work / "soak_out.mcap")
     cfg.write_text(yaml.safe_dump(c))
-    env = G.graph_env()
+    env = graph_env()
     rclpy = init_rclpy()
-    probe = G.Probe(rclpy, rig.names, input_topic=False)
+    probe = Probe(rclpy, rig.names, input_topic=False)
     launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     pids = {"graph (one process)": launch.pid}
@@ -87,8 +89,8 @@ def run(args: argparse.Namespace) -> int:
             probe.spin_for(args.window)
             secs = time.monotonic() - t0
             out = sorted({st for _, st in probe.samples["keypoints"]})
-            missing = G._missing_periods(out, 1e9 / g.fps)
-            lat = G._lat(probe.samples["joint_states"])
+            missing = missing_periods(out, 1e9 / g.fps)
+            lat = latency(probe.samples["joint_states"])
             windows.append({"rate_hz": round(len(out) / secs, 2), "dropped": missing,
                             "dropped_pct": round(100.0 * missing / max(len(out) + missing, 1), 2),
                             "latency_p95_ms": lat["p95"], "latency_p50_ms": lat["p50"],
@@ -113,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     trend = {k: _slope([w[k] for w in windows]) for k in ("dropped", "latency_p95_ms", "rate_hz")}
     res = {"mode": args.mode, "minutes": args.minutes, "window_s": args.window, "cameras": len(rig), "size": args.size,
            "rss_start_mib": rss0, "rss_end_mib": rss1, "rss_growth_after_first_window_pct": growth,
-           "trend_per_window": trend, "windows": windows, "cpu": G._cpu_flags(), "load": os.getloadavg()}
+           "trend_per_window": trend, "windows": windows, "cpu": cpu_flags(), "load": os.getloadavg()}
     if args.json:
         print(json.dumps(res))
         return 0

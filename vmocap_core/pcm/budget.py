@@ -4,7 +4,7 @@ without retraining, applied in memory where the model is loaded (no cache file c
 - `resize_input(model, size)`: run the network on size x size crops instead of 256 x 256. The
   convolutions are size-agnostic; what is not: the input shape, the decoder's bilinear upsampling
   (Resize `sizes` in the float graph, the two interpolation matrices per Resize in the int8 graph,
-  quantize.prepare), and the presence head, whose 2 x 2 valid convolution after two 2 x 2 max
+  int8_prepare.prepare), and the presence head, whose 2 x 2 valid convolution after two 2 x 2 max
   pools needs the 8 x 8 bottom of a 256 crop. Its branch input is resampled bilinearly to the
   native 8 x 8 (the head then sees the same layout it was trained on). Heatmaps come out at
   size / 4 cells, still stride 4 in network pixels, so the crop -> map affine is unchanged.
@@ -24,7 +24,7 @@ import onnx
 from onnx import helper, numpy_helper, shape_inference
 
 from ..errors import ModelError
-from .quantize import linear_resize_matrix
+from .int8_prepare import linear_resize_matrix
 
 NATIVE_SIZE = 256
 STEP = 32  # five stride-2 stages: the bottom of the encoder is size / 32 cells
@@ -93,7 +93,7 @@ def resize_input(model: onnx.ModelProto, size: int, native_branch: tuple[list[st
             t = inits[n.input[3]]
             sizes = numpy_helper.to_array(t)
             t.CopyFrom(numpy_helper.from_array(np.array([scaled(int(s)) for s in sizes], sizes.dtype), t.name))
-        elif n.op_type == "MatMul":  # quantize.prepare's Resize: x @ cols, then rows @ (...)
+        elif n.op_type == "MatMul":  # int8_prepare.prepare's Resize: x @ cols, then rows @ (...)
             for name, rows in ((n.input[1], False), (n.input[0], True)):
                 if name in inits and name.endswith("_rows" if rows else "_cols"):
                     a = numpy_helper.to_array(inits[name])

@@ -8,23 +8,25 @@ onnx / onnxruntime), a few seconds. What is learnt from images lives in a commit
 equalization scales, activation ranges and the GPTQ rounding of the small convolutions.
 
 Steps of `build()`:
-- `prepare()` names the nodes, folds the explicit Pads into the next Conv and turns each bilinear
-  Resize into two MatMuls with the same interpolation weights (onnxruntime's NCHW Resize took
-  0.8-0.9 ms of a crop for the 32 -> 64 upsampling; the float function is unchanged, heatmaps
-  within 3e-6);
-- `equalize()`: cross-layer equalization (Nagel et al. 2019) of the residual streams (Conv outputs
-  without activation joined by Adds, read only by Convs): channel c of every producer is scaled
-  by s_c, the readers' input channel c by 1 / s_c, which is exact in float (heatmaps within 6e-5);
-  s_c widens the narrow channels to the per-tensor uint8 range. The ReLU6 tensors are not
-  rescaled: most of their channels reach the clip at 6, and scaling a channel past the
-  calibrated maximum changes the float function on other images (p95 0.1 cells on Panoptic);
+- `prepare()` (int8_prepare.py) names the nodes, folds the explicit Pads into the next Conv and
+  turns each bilinear Resize into two MatMuls with the same interpolation weights (onnxruntime's
+  NCHW Resize took 0.8-0.9 ms of a crop for the 32 -> 64 upsampling; the float function is
+  unchanged, heatmaps within 3e-6);
+- `equalize()` (int8_equalize.py): cross-layer equalization (Nagel et al. 2019) of the residual
+  streams (Conv outputs without activation joined by Adds, read only by Convs): channel c of
+  every producer is scaled by s_c, the readers' input channel c by 1 / s_c, which is exact in
+  float (heatmaps within 6e-5); s_c widens the narrow channels to the per-tensor uint8 range.
+  The ReLU6 tensors are not rescaled: most of their channels reach the clip at 6, and scaling a
+  channel past the calibrated maximum changes the float function on other images (p95 0.1
+  cells on Panoptic);
 - `onnxruntime.quantization.quantize_static` writes QDQ nodes (uint8 activations per tensor,
   MinMax ranges; int8 symmetric per-channel weights) for INT8_SPAN minus KEEP_FLOAT;
-- GPTQ (Frantar et al. 2022) replaces rounding to nearest for the convolutions with at most
-  GPTQ_MAX_INPUTS inputs per output: each weight column is rounded in turn and its error pushed
-  onto the columns not yet rounded and the bias, using the second moments of the layer's input on
-  the calibration crops. The calibration file stores the resulting int8 offsets from onnxruntime's
-  own rounding and the corrected biases, so the build needs no data and no linear algebra.
+- GPTQ (Frantar et al. 2022, int8_gptq.py) replaces rounding to nearest for the convolutions
+  with at most GPTQ_MAX_INPUTS inputs per output: each weight column is rounded in turn and its
+  error pushed onto the columns not yet rounded and the bias, using the second moments of the
+  layer's input on the calibration crops. The calibration file stores the resulting int8 offsets
+  from onnxruntime's own rounding and the corrected biases, so the build needs no data and no
+  linear algebra.
 
 Measured (heatmap peaks as 5 x 5-weighted centroids, in 64 x 64 map cells, against the float
 model on 88 real crops: 38 Panoptic detector crops, never used for calibration, and 50 Pose2Sim
@@ -65,9 +67,12 @@ from typing import Sequence
 
 import numpy as np
 import onnx
-from onnx import numpy_helper, shape_inference
+from onnx import numpy_helper
 
 from ..errors import ModelError
+from .int8_equalize import equalization_groups, equalization_scales, equalize
+from .int8_gptq import conv_patches, gptq_rows, weight_scale
+from .int8_prepare import prepare
 
 QUANTIZER_VERSION = "3"  # bump when build() changes its output
 DATA_DIR = Path(__file__).resolve().parents[1] / "data" / "pcm"
@@ -97,238 +102,6 @@ def calibration_path(name: str) -> Path:
 
 def _sha256_bytes(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
-
-
-# ------------------------------------------------------------------------------ graph preparation
-def prepare(model: onnx.ModelProto) -> onnx.ModelProto:
-    """Copy of a converted BlazePose graph ready for quantization (same function, see module doc)."""
-    out = onnx.ModelProto()
-    out.CopyFrom(model)
-    m = shape_inference.infer_shapes(out)
-    g = m.graph
-    shapes = {v.name: [d.dim_value for d in v.type.tensor_type.shape.dim] for v in [*g.value_info, *g.input, *g.output]}
-    inits = {i.name: i for i in g.initializer}
-    consumers: dict[str, list[onnx.NodeProto]] = {}
-    for n in g.node:
-        for i in n.input:
-            consumers.setdefault(i, []).append(n)
-    drop, resize_as_matmul = [], []
-    for k, n in enumerate(g.node):
-        n.name = n.name or f"{n.op_type}_{k}"
-        if n.op_type == "Resize" and len(n.input) == 4 and n.input[3] in inits:
-            sizes = numpy_helper.to_array(inits[n.input[3]])
-            shape = shapes.get(n.input[0], [])
-            axes = [list(a.ints) for a in n.attribute if a.name == "axes"]
-            if len(shape) != 4 or not all(shape[2:]) or axes not in ([[2, 3]], []) or sizes.size != 2:
-                raise ModelError(f"{n.name}: unexpected Resize (sizes {sizes}, input shape {shape}, axes {axes})")
-            attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
-            if attrs.get("mode") != b"linear" or attrs.get("coordinate_transformation_mode") != b"half_pixel":
-                raise ModelError(f"{n.name}: only bilinear half_pixel Resize is supported ({attrs})")
-            resize_as_matmul.append((n, int(shape[2]), int(shape[3]), int(sizes[0]), int(sizes[1])))
-        if n.op_type == "Pad" and len(n.input) == 2 and n.input[1] in inits and len(consumers.get(n.output[0], [])) == 1:
-            conv = consumers[n.output[0]][0]
-            pads = numpy_helper.to_array(inits[n.input[1]])
-            if conv.op_type == "Conv" and pads.size == 8 and not pads[[0, 1, 4, 5]].any() and (pads >= 0).all():
-                attr = [a for a in conv.attribute if a.name == "pads"]
-                old = list(attr[0].ints) if attr else [0, 0, 0, 0]
-                new = [old[0] + int(pads[2]), old[1] + int(pads[3]), old[2] + int(pads[6]), old[3] + int(pads[7])]
-                if attr:
-                    del attr[0].ints[:]
-                    attr[0].ints.extend(new)
-                else:
-                    conv.attribute.append(onnx.helper.make_attribute("pads", new))
-                conv.input[0] = n.input[0]
-                drop.append(n)
-    for n in drop:
-        g.node.remove(n)
-    for n, h, w, out_h, out_w in resize_as_matmul:
-        _resize_to_matmul(g, n, h, w, out_h, out_w)
-    used = {i for n in g.node for i in n.input}
-    for t in [t for t in g.initializer if t.name not in used]:  # the replaced sizes and pads
-        g.initializer.remove(t)
-    del g.value_info[:]
-    return m
-
-
-def linear_resize_matrix(n_in: int, n_out: int) -> np.ndarray:
-    """(n_out, n_in) weights of ONNX Resize mode=linear, coordinate_transformation_mode=half_pixel
-    along one axis: output i samples x = (i + 0.5) n_in / n_out - 0.5, clamped to the edge pixels."""
-    A = np.zeros((n_out, n_in), np.float64)
-    for i in range(n_out):
-        x = min(max((i + 0.5) * n_in / n_out - 0.5, 0.0), n_in - 1.0)
-        i0 = int(np.floor(x))
-        i1, f = min(i0 + 1, n_in - 1), x - i0
-        A[i, i0] += 1.0 - f
-        A[i, i1] += f
-    return A.astype(np.float32)
-
-
-def _resize_to_matmul(g: onnx.GraphProto, n: onnx.NodeProto, h: int, w: int, out_h: int, out_w: int) -> None:
-    """Replace a bilinear Resize of an (N, C, h, w) tensor by x @ A_w^T then A_h @ (...): the same
-    weights (each output is a 2 x 2 weighted sum, the other products are exact zeros), run by
-    onnxruntime's GEMM instead of its NCHW Resize kernel (32 x 32 -> 64 x 64 x 48: 0.8-0.9 ms of a
-    ~15 ms crop, the GEMMs ~0.2 ms)."""
-    a_w, a_h = n.name + "_cols", n.name + "_rows"
-    g.initializer.extend([numpy_helper.from_array(np.ascontiguousarray(linear_resize_matrix(w, out_w).T), a_w),
-                          numpy_helper.from_array(linear_resize_matrix(h, out_h), a_h)])
-    k = list(g.node).index(n)
-    first = onnx.helper.make_node("MatMul", [n.input[0], a_w], [n.output[0] + "_cols"], name=n.name + "_cols")
-    second = onnx.helper.make_node("MatMul", [a_h, n.output[0] + "_cols"], [n.output[0]], name=n.name)
-    g.node.remove(n)
-    g.node.insert(k, second)
-    g.node.insert(k, first)
-
-
-# ------------------------------------------------------------------------------ equalization, GPTQ
-def _consumers(g: onnx.GraphProto) -> dict[str, list[onnx.NodeProto]]:
-    out: dict[str, list[onnx.NodeProto]] = {}
-    for n in g.node:
-        for i in n.input:
-            out.setdefault(i, []).append(n)
-    return out
-
-
-def _group(n: onnx.NodeProto) -> int:
-    return next((a.i for a in n.attribute if a.name == "group"), 1)
-
-
-def equalization_groups(model: onnx.ModelProto) -> list[dict]:
-    """Channel groups whose channels can be rescaled without changing the network's function:
-    the linear tensors of a residual stream (Conv outputs without activation joined by Adds) whose
-    every reader is a Conv. Scaling channel c of every producer (weights and bias) by s_c and the
-    input channel c of every reader by 1 / s_c is exact (no activation in between). Graph order."""
-    g = model.graph
-    inits = {i.name for i in g.initializer}
-    producer = {o: n for n in g.node for o in n.output}
-    consumers = _consumers(g)
-    parent: dict[str, str] = {}
-
-    def find(t: str) -> str:
-        while parent.setdefault(t, t) != t:
-            t = parent[t]
-        return t
-
-    for n in g.node:
-        if n.op_type == "Add" and not any(i in inits for i in n.input):
-            for i in n.input:
-                parent[find(i)] = find(n.output[0])
-    members: dict[str, list[str]] = {}
-    for n in g.node:
-        if n.op_type in ("Conv", "Add"):
-            members.setdefault(find(n.output[0]), []).append(n.output[0])
-    groups = []
-    for tensors in members.values():
-        root = find(tensors[0])
-        producers, readers, ok = [], [], True
-        for t in tensors:
-            p = producer[t]
-            if p.op_type == "Conv":
-                producers.append(p.name)
-            elif not (p.op_type == "Add" and all(find(i) == root for i in p.input)):
-                ok = False
-            for c in consumers.get(t, []):
-                if c.op_type == "Conv" and c.input[0] == t:
-                    readers.append(c.name)
-                elif not (c.op_type == "Add" and find(c.output[0]) == root):
-                    ok = False
-        if ok and producers and readers:
-            groups.append({"tensors": tensors, "producers": producers, "readers": list(dict.fromkeys(readers))})
-    return groups
-
-
-def equalization_scales(groups: list[dict], low: dict[str, np.ndarray], high: dict[str, np.ndarray],
-                        max_scale: float = 1000.0) -> dict[str, list[float]]:
-    """Per group (keyed by its first tensor), the largest channel scales that keep every tensor of
-    the group inside its calibrated range: narrow channels are widened to use the per-tensor uint8
-    grid that the widest channel sets (cross-layer equalization, Nagel et al. 2019)."""
-    out = {}
-    for gr in groups:
-        s = np.full(np.asarray(high[gr["tensors"][0]]).size, np.inf)
-        for t in gr["tensors"]:
-            h, lo = np.asarray(high[t], np.float64), np.asarray(low[t], np.float64)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                s = np.minimum(s, np.where(h > 1e-9, h.max() / h, np.inf))
-                s = np.minimum(s, np.where(lo < -1e-9, lo.min() / lo, np.inf))
-        s = np.where(np.isfinite(s), np.clip(s, 1.0, max_scale), 1.0)
-        out[gr["tensors"][0]] = [float(np.float32(v)) for v in s]
-    return out
-
-
-def equalize(model: onnx.ModelProto, scales: dict[str, list[float]]) -> None:
-    """Apply `equalization_scales` in place (the groups are found again in the graph)."""
-    g = model.graph
-    inits = {i.name: i for i in g.initializer}
-    nodes = {n.name: n for n in g.node}
-    factor_out: dict[str, np.ndarray] = {}
-    factor_in: dict[str, np.ndarray] = {}
-    groups = {gr["tensors"][0]: gr for gr in equalization_groups(model)}
-    for key, s in scales.items():
-        if key not in groups:
-            raise ModelError(f"equalization group {key} is not in the prepared graph")
-        sc = np.asarray(s, np.float64)
-        for p in groups[key]["producers"]:
-            factor_out[p] = factor_out.get(p, 1.0) * sc
-        for r in groups[key]["readers"]:
-            factor_in[r] = factor_in.get(r, 1.0) / sc
-    for name in sorted(set(factor_out) | set(factor_in)):
-        n = nodes[name]
-        W = numpy_helper.to_array(inits[n.input[1]]).astype(np.float64)
-        if name in factor_in:
-            f = factor_in[name]
-            W = W * (f.reshape(1, -1, 1, 1) if _group(n) == 1 else f.reshape(-1, 1, 1, 1))
-        if name in factor_out:
-            W = W * factor_out[name].reshape(-1, 1, 1, 1)
-            if len(n.input) > 2 and n.input[2]:
-                b = numpy_helper.to_array(inits[n.input[2]]).astype(np.float64) * factor_out[name]
-                inits[n.input[2]].CopyFrom(numpy_helper.from_array(b.astype(np.float32), n.input[2]))
-        inits[n.input[1]].CopyFrom(numpy_helper.from_array(W.astype(np.float32), n.input[1]))
-
-
-def _patches(x: np.ndarray, n: onnx.NodeProto, W: np.ndarray) -> np.ndarray:
-    """Conv input patches: (positions, C) for a 1 x 1 conv, (C, positions, k*k) for a depthwise one."""
-    attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
-    st = list(attrs.get("strides", [1, 1]))
-    pads = list(attrs.get("pads", [0, 0, 0, 0]))
-    O, I, kh, kw = W.shape
-    xp = np.pad(x, ((0, 0), (0, 0), (pads[0], pads[2]), (pads[1], pads[3])))
-    ho, wo = (xp.shape[2] - kh) // st[0] + 1, (xp.shape[3] - kw) // st[1] + 1
-    cols = [xp[:, :, dy : dy + st[0] * (ho - 1) + 1 : st[0], dx : dx + st[1] * (wo - 1) + 1 : st[1]]
-            for dy in range(kh) for dx in range(kw)]
-    P = np.stack(cols, 2)  # N, C, k*k, ho, wo
-    if _group(n) == 1:
-        if kh * kw != 1:
-            raise ModelError(f"{n.name}: GPTQ handles 1 x 1 and depthwise convolutions only")
-        return P[:, :, 0].transpose(0, 2, 3, 1).reshape(-1, P.shape[1])
-    return P.transpose(1, 0, 3, 4, 2).reshape(P.shape[1], -1, kh * kw)
-
-
-def _gptq_rows(W: np.ndarray, b: np.ndarray, H: np.ndarray, scale: np.ndarray, damp: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
-    """GPTQ (Frantar et al. 2022) of rows W (O, d) sharing H = E[[x, 1][x, 1]^T] (d + 1 square):
-    columns are rounded one by one to the int8 grid `scale` (per row) and the rounding error is
-    pushed onto the columns not yet rounded and onto the bias (the last, never rounded, column),
-    minimizing the output error on the calibration inputs. Returns (int weights, new bias)."""
-    O, d = W.shape
-    Hd = H.astype(np.float64).copy()
-    Hd[np.arange(d + 1), np.arange(d + 1)] += damp * np.mean(np.diag(Hd)[:d]) + 1e-9
-    Hinv = np.linalg.inv(Hd)
-    V = np.concatenate([W.astype(np.float64), b.astype(np.float64)[:, None]], 1)
-    s = scale.astype(np.float64)
-    q = np.zeros((O, d), np.int64)
-    alive = np.ones(d + 1, bool)
-    for j in range(d):
-        q[:, j] = np.clip(np.round(V[:, j] / s), -127, 127)
-        err = (V[:, j] - q[:, j] * s) / Hinv[j, j]
-        alive[j] = False
-        V[:, alive] -= np.outer(err, Hinv[j, alive])
-        Hinv = Hinv - np.outer(Hinv[:, j], Hinv[j, :]) / Hinv[j, j]
-    return q, V[:, d]
-
-
-def _weight_scale(W: np.ndarray) -> np.ndarray:
-    """The per-output-channel symmetric int8 scale quantize_static gives these weights."""
-    a = np.abs(W.astype(np.float32).reshape(W.shape[0], -1)).max(1)
-    s = (a * np.float32(2.0) / np.float32(254.0)).astype(np.float32)
-    return np.where(s == 0, np.float32(1.0), s)
 
 
 def _encode_int8(a: np.ndarray) -> str:
@@ -494,7 +267,7 @@ def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: P
     count: dict[str, int] = {}
     for values in _tensor_values(model, x[::2], sorted({nodes[c].input[0] for c in convs})):
         for c in convs:
-            P = _patches(values[nodes[c].input[0]].astype(np.float64), nodes[c], weights[c])
+            P = conv_patches(values[nodes[c].input[0]].astype(np.float64), nodes[c], weights[c])
             if P.ndim == 2:
                 P1 = np.concatenate([P, np.ones((len(P), 1))], 1)
                 hess[c] = hess.get(c, 0.0) + P1.T @ P1
@@ -510,11 +283,11 @@ def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: P
         O = W.shape[0]
         b = numpy_helper.to_array(inits[nodes[c].input[2]])
         H = hess[c] / count[c]
-        scale = _weight_scale(W)
+        scale = weight_scale(W)
         if H.ndim == 2:
-            qw, nb = _gptq_rows(W.reshape(O, -1), b, H, scale)
+            qw, nb = gptq_rows(W.reshape(O, -1), b, H, scale)
         else:  # depthwise: one second-moment matrix per channel
-            parts = [_gptq_rows(W[o].reshape(1, -1), b[o : o + 1], H[o], scale[o : o + 1]) for o in range(O)]
+            parts = [gptq_rows(W[o].reshape(1, -1), b[o : o + 1], H[o], scale[o : o + 1]) for o in range(O)]
             qw, nb = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
         delta = qw.reshape(W.shape) - numpy_helper.to_array(rtn[c]).astype(np.int64)
         if np.abs(delta).max() > 127:

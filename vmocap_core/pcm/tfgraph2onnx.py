@@ -17,7 +17,8 @@ from onnx import TensorProto, helper, numpy_helper
 
 from ..errors import ModelError
 from .tfgraph import Node, read_graph
-from .tflite2onnx import OPSET, _same_pads
+from .tflite2onnx import OPSET
+from .tflite_ops import same_pads
 
 CONVERTER_VERSION = "2"
 
@@ -85,7 +86,7 @@ def convert(nodes: list[Node], output: str, input_size: tuple[int, int], name: s
             if node.op != "MaxPool" and tuple(a.get("dilations", [1, 1, 1, 1])[1:3]) != (1, 1):
                 raise ModelError(f"{name}: dilated convolutions are not supported")
             if pad_mode == b"SAME":
-                pads = _same_pads((h, w), k, stride, (1, 1))
+                pads = same_pads((h, w), k, stride, (1, 1))
                 oh, ow = -(-h // stride[0]), -(-w // stride[1])
             elif pad_mode == b"VALID":
                 pads = [0, 0, 0, 0]
