@@ -84,6 +84,8 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "(at most this long) for the skeleton of frame t-1, exactly as offline (deterministic)", 0.0, 1e5),
         Param("queue_depth", 2, "subscription depth per image topic and frame sets waiting (reliable; when the node "
               "falls behind, older frames are dropped: freshness over completeness)", 1, 1000),
+        Param("inference_thread", True, "run the CNN in a thread of its own, beside the spin loop (the process's "
+              "other nodes work while it runs); false: inside the subscription callback"),
     ],
     "vmocap_markers": [
         Param("sync_tolerance_ms", 1.0, "max stamp difference of PCM views of one frame set", 0.0, 1000.0),

@@ -63,6 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also the default mode on 1 and 2 cores (taskset) with 2, 4 and 6 cameras (--images pose2sim: "
                              "cameras beyond the 4 videos repeat them), to size a machine")
     parser.add_argument("--workdir", default=None, help="where the bag and configs go (default: a temp dir)")
+    parser.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
+                        help="a parameter of the benchmarked graph (e.g. vmocap_pcm.inference_thread=false)")
 
 
 def _proc_cpu_s(pid: int) -> float:

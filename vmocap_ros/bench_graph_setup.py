@@ -119,6 +119,10 @@ def graph_config(work: Path, mode: str, rig_path: Path, kps: list[str], args: ar
                             "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
     if mode == "default":
         cfg["vmocap_launch"]["groups"] = shipped.get("groups") or []
+    from .run_node import parse_sets
+
+    for node, params in parse_sets(getattr(args, "set", None) or []).items():  # --set NODE.PARAM=VALUE
+        cfg.setdefault(node, {"ros__parameters": {}})["ros__parameters"].update(params)
     path = work / f"graph_{mode}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path

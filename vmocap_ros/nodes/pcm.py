@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -53,6 +54,8 @@ class PcmNode(VmocapNode):
         self.awaiting_since = 0.0
         if self.wait > 0:
             self.create_timer(min(0.02, self.wait / 2), self._check_timeout)
+        self.busy = False  # a frame set is in the inference thread
+        self.worker = ThreadPoolExecutor(1, thread_name_prefix=self.get_name()) if p["inference_thread"] else None
 
     def _make_provider(self):
         from vmocap_core.pcm.providers import BagPcmProvider, SyntheticPcmProvider
@@ -113,38 +116,76 @@ class PcmNode(VmocapNode):
 
     def _pump(self) -> None:
         """Frame sets in order; with feedback_wait_ms > 0 frame t waits for the skeleton of the
-        frame before it (crops from t-1, as offline), otherwise the latest skeleton is used."""
-        while self.sets and self.awaiting is None:
+        frame before it (crops from t-1, as offline), otherwise the latest skeleton is used.
+        With inference_thread the CNN runs beside the spin loop (onnxruntime releases the GIL),
+        so camera frames, markers and skeleton of the previous frame set go on meanwhile."""
+        while self.sets and self.awaiting is None and not self.busy:
             fs = self.sets.popleft()
-            t0 = time.perf_counter()
-            cams = [n for n in self.rig.names if n in fs.items]
-            idx = np.array([self.rig.names.index(n) for n in cams])
             fb = self.feedback if self.p["use_feedback"] else None
-            pcm = self.provider.infer([fs.items[n] for n in cams], idx, fs.stamp_ns, fb)
             if self.wait > 0 and self.p["use_feedback"]:
                 self.awaiting, self.awaiting_since = fs.stamp_ns, time.monotonic()
-            seen: dict[str, int] = {}
             # without a DDS reader of the heatmaps (all nodes in one process), our vmocap_markers
             # gets the maps themselves: no interleaving into Image data and back (~1 ms a set)
             data = any(pi.dds_wanted() for pi, _ in self._pubs.values())
-            for img, info in M.pcm_msgs(pcm, self.rig, data=data):
-                cam_name = img["header"]["frame_id"]
-                k = seen.get(cam_name, 0)
-                seen[cam_name] = k + 1
-                view = cam_name if k == 0 else f"{cam_name}_{k}"
-                if view not in self._pubs:
-                    self._pubs[view] = (self.publisher(IMAGE, self.topics.pcm(view)), self.publisher(INFO, self.topics.pcm_info(view)))
-                pi, pc = self._pubs[view]
-                pc(info)
-                if data:
-                    pi(img)
-                else:
-                    pi.send((img, None))  # to our nodes only
-            if pcm.n_views == 0 and self.awaiting is not None:
-                self.awaiting = None  # nothing published: no skeleton will answer this frame
-            self.frames += 1
-            self.proc.add(1e3 * (time.perf_counter() - t0))
-            self.record_age(fs.stamp_ns)
+            if self.worker is None or self.transport.due.wake is None:  # no spin loop to hand back to
+                self._publish(fs, data, *self._infer(fs, fb, data))
+                continue
+            self.busy = True
+            self.worker.submit(self._infer_in_thread, fs, fb, data)
+
+    def _infer(self, fs: Any, fb: np.ndarray | None, data: bool) -> tuple[Any, list, float]:
+        t0 = time.perf_counter()
+        cams = [n for n in self.rig.names if n in fs.items]
+        idx = np.array([self.rig.names.index(n) for n in cams])
+        pcm = self.provider.infer([fs.items[n] for n in cams], idx, fs.stamp_ns, fb)
+        return pcm, M.pcm_msgs(pcm, self.rig, data=data), time.perf_counter() - t0
+
+    def _infer_in_thread(self, fs: Any, fb: np.ndarray | None, data: bool) -> None:
+        try:
+            out = self._infer(fs, fb, data)
+        except Exception as exc:  # noqa: BLE001 - reported by the spin loop, the node goes on
+            error = exc
+            self.transport.due.put(time.monotonic(), lambda: self._failed(error))
+            return
+        self.transport.due.put(time.monotonic(), lambda: self._publish(fs, data, *out))
+
+    def _failed(self, exc: Exception) -> None:
+        self.busy = False
+        self.awaiting = None
+        self.problems["inference"] = f"PCM inference failed: {exc}"
+        self.get_logger().error(self.problems["inference"])
+        self._pump()
+
+    def _publish(self, fs: Any, data: bool, pcm: Any, msgs: list, seconds: float) -> None:
+        """In the spin loop's thread: the frame set's heatmaps out, then the next frame set in."""
+        t0 = time.perf_counter()
+        seen: dict[str, int] = {}
+        for img, info in msgs:
+            cam_name = img["header"]["frame_id"]
+            k = seen.get(cam_name, 0)
+            seen[cam_name] = k + 1
+            view = cam_name if k == 0 else f"{cam_name}_{k}"
+            if view not in self._pubs:
+                self._pubs[view] = (self.publisher(IMAGE, self.topics.pcm(view)), self.publisher(INFO, self.topics.pcm_info(view)))
+            pi, pc = self._pubs[view]
+            pc(info)
+            if data:
+                pi(img)
+            else:
+                pi.send((img, None))  # to our nodes only
+        if pcm.n_views == 0 and self.awaiting is not None:
+            self.awaiting = None  # nothing published: no skeleton will answer this frame
+        self.problems.pop("inference", None)
+        self.frames += 1
+        self.proc.add(1e3 * (seconds + time.perf_counter() - t0))
+        self.record_age(fs.stamp_ns)
+        self.busy = False
+        self._pump()
+
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.shutdown(wait=True, cancel_futures=True)
+        super().close()
 
     def status(self) -> dict[str, Any]:
         st = self.sync.stats()
