@@ -4,19 +4,36 @@ per view (NS/pcm/VIEW/heatmaps + camera_info); crops and rotation from the fed-b
 from __future__ import annotations
 
 import time
-from collections import deque
+from collections import Counter, deque
 from typing import Any
 
 import numpy as np
 
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
+from vmocap_core.camera_check import image_problem
 from vmocap_core.errors import VmocapError
+from vmocap_core.heatmaps import PcmViews
 from vmocap_core.process import CLOUD, IMAGE, INFO, channel_keypoints
 from vmocap_core.sync import ApproximateSync
 
 from ..transport import Output, Transport
 from .base import VmocapNode
+
+
+def blank_views(pcm: PcmViews, cameras: list[int]) -> PcmViews:
+    """`pcm` plus views of `cameras` that say nothing (every channel invalid, presence 0), as
+    many per camera as the others have (rotation lower_body: 2): a camera whose image was not
+    used still has its views in the frame set, so vmocap_markers does not wait for them."""
+    V, J, H, W = pcm.maps.shape
+    per = max(Counter(pcm.camera.tolist()).values())
+    cams = np.repeat(np.asarray(cameras, dtype=np.intp), per)
+    n = len(cams)
+    return PcmViews(np.concatenate([pcm.maps, np.zeros((n, J, H, W), np.float32)]),
+                    np.concatenate([pcm.image_to_map, np.tile(np.eye(2, 3), (n, 1, 1))]),
+                    np.concatenate([pcm.camera, cams]), pcm.keypoints,
+                    np.concatenate([pcm.valid, np.zeros((n, J), bool)]), np.concatenate([pcm.presence, np.zeros(n)]),
+                    pcm.stamp_ns)
 
 
 class PcmNode(VmocapNode):
@@ -47,6 +64,7 @@ class PcmNode(VmocapNode):
         self.frames = 0
         self.sets: deque = deque()
         self.counts = {"queue_dropped": 0, "feedback_timeouts": 0}
+        self.bad_images = {n: 0 for n in names}  # images not given to the CNN (wrong size, no contrast)
         self.wait = p["feedback_wait_ms"] / 1e3
         self.awaiting: int | None = None
         self.awaiting_since = 0.0
@@ -117,10 +135,13 @@ class PcmNode(VmocapNode):
         while self.sets and self.awaiting is None:
             fs = self.sets.popleft()
             t0 = time.perf_counter()
-            cams = [n for n in self.rig.names if n in fs.items]
+            cams = [n for n in self.rig.names if n in fs.items and self._usable(n, fs.items[n])]
             idx = np.array([self.rig.names.index(n) for n in cams])
             fb = self.feedback if self.p["use_feedback"] else None
             pcm = self.provider.infer([fs.items[n] for n in cams], idx, fs.stamp_ns, fb)
+            unused = [self.rig.names.index(n) for n in fs.items if n not in cams]
+            if unused and pcm.n_views:
+                pcm = blank_views(pcm, unused)
             if self.wait > 0 and self.p["use_feedback"]:
                 self.awaiting, self.awaiting_since = fs.stamp_ns, time.monotonic()
             seen: dict[str, int] = {}
@@ -146,9 +167,21 @@ class PcmNode(VmocapNode):
             self.proc.add(1e3 * (time.perf_counter() - t0))
             self.record_age(fs.stamp_ns)
 
+    def _usable(self, cam: str, image: np.ndarray) -> bool:
+        """False (and a WARN naming the camera, held WARN_HOLD_S) for an image the CNN must not
+        get: another size than the rig's calibration, or no contrast (all black / white). The
+        camera then has no view in this frame set, as a camera without a frame; the others go on."""
+        c = self.rig[cam]
+        problem = image_problem(image, c.width, c.height)
+        if not problem:
+            return True
+        self.bad_images[cam] += 1
+        self.warn_for(f"image:{cam}", f"{cam}: {problem}: not used ({self.bad_images[cam]} frames so far)")
+        return False
+
     def status(self) -> dict[str, Any]:
         st = self.sync.stats()
         self.watch_late(st.late)
-        return dict(self.counts, frames=self.frames, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
+        return dict(self.counts, frames=self.frames, bad_images=self.bad_images, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
                     queued=len(self.sets), precision=getattr(self.provider, "precision", "n/a"),
                     precision_reason=getattr(self.provider, "precision_reason", "n/a"))
