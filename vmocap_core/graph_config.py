@@ -67,6 +67,10 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "every image topic has a subscriber (frames sent before the PCM node matched are lost)", 0.0, 600.0),
         Param("restamp", False, "recorded sources: stamp each frame with the wall-clock time it is published at "
               "(as a live camera stamps its capture time; loops keep counting forward)"),
+        Param("reconnect_s", 1.0, "live cameras (aravis, v4l2): after a disconnection, try to reopen the camera "
+              "every this many seconds", 0.05, 60.0),
+        Param("reconnect_attempts", 60, "live cameras: give a disconnected camera up after this many failed "
+              "reopen attempts (its thread ends, the node and the other cameras go on)", 1, 1000000),
     ],
     "vmocap_pcm": [
         Param("source", "model", "where heatmaps come from", choices=("model", "synthetic")),
