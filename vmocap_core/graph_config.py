@@ -10,6 +10,8 @@ file in launch/ read it too)::
     vmocap_launch:            # read by `vmocap launch` only (not a node)
       mode: processes         # or single_process
       nodes: [vmocap_markers, vmocap_skeleton]
+      restart: [vmocap_recorder]   # processes mode: restart these nodes' process when it dies ([all]: any)
+      restart_limit: 3        # at most this many restarts per process, then the graph stops
 
 Every parameter is declared here with a type (from its default), a description and a range;
 a key that is not declared is rejected with GraphConfigError naming the file and the key.
@@ -116,7 +118,8 @@ NODE_PARAMS: dict[str, list[Param]] = {
 TRACKER_NODES = ("vmocap_markers", "vmocap_skeleton")  # these also take tracker.* parameters
 # groups: nodes that share a process in `processes` mode (their messages stay in-process, e.g. a
 # camera's images and the PCM inference); nodes in no group get a process each
-LAUNCH_KEYS: dict[str, Any] = {"mode": "processes", "nodes": None, "groups": None, "env": {}, "fastdds_profile": "fastdds_shm.xml"}
+LAUNCH_KEYS: dict[str, Any] = {"mode": "processes", "nodes": None, "groups": None, "env": {}, "fastdds_profile": "fastdds_shm.xml",
+                               "restart": [], "restart_limit": 3}
 
 
 def tracker_params() -> list[Param]:
@@ -355,6 +358,18 @@ def load(path: str | Path) -> GraphConfig:
             node_type(node)
         except KeyError as exc:
             raise GraphConfigError(path, "vmocap_launch.groups", str(exc.args[0])) from None
+    restart = launch.get("restart") or []
+    if not isinstance(restart, list) or not all(isinstance(n, str) for n in restart):
+        raise GraphConfigError(path, "vmocap_launch.restart", "must be a list of node names (or [all])")
+    for node in restart:
+        if node != "all":
+            try:
+                node_type(node)
+            except KeyError as exc:
+                raise GraphConfigError(path, "vmocap_launch.restart", str(exc.args[0])) from None
+    limit = launch.get("restart_limit")
+    if not isinstance(limit, int) or isinstance(limit, bool) or limit < 0:
+        raise GraphConfigError(path, "vmocap_launch.restart_limit", "must be an integer >= 0")
     for node in set(cfg.node_names()) | {s for s in raw if s not in ("/**", "vmocap_launch")}:
         cfg.node_params(node)  # validate early: a bad file fails before anything starts
     return cfg
