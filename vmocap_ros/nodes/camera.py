@@ -39,9 +39,13 @@ class CameraNode(VmocapNode):
         self.wrong_size = {c.name: 0 for c in self.rig}  # frames of another size than the rig's calibration
         self.disconnects = {c.name: 0 for c in self.rig}
         self.reconnects = {c.name: 0 for c in self.rig}
+        self.last_frame = {c.name: time.monotonic() for c in self.rig}  # when each camera last delivered
+        self._live: set[str] = set()
         for cam in self.rig:
             src = self._make_source(cam.name)
             src.open()
+            if getattr(src, "live", False):
+                self._live.add(cam.name)
             pub_img = self.publisher(IMAGE, self.topics.image(cam.name))
             pub_info = self.publisher(INFO, self.topics.camera_info(cam.name))
             self._image_topics.append(self.topics.image(cam.name))
@@ -88,14 +92,13 @@ class CameraNode(VmocapNode):
         slot = threading.Semaphore(1)  # one frame of this camera waits for its time, the next is read meanwhile
         last_due: float | None = None
         prev_due: float | None = None  # due time of the frame read before (sent or not)
-        last_frame = time.monotonic()
         while not self._stop.is_set():
             try:
                 frame = src.read(timeout=0.5)
             except VmocapError as exc:
                 if getattr(src, "live", False):  # reported and retried; the thread ends when given up
                     if self._reconnect(src, cam.name, str(exc)):
-                        last_frame = time.monotonic()
+                        self.last_frame[cam.name] = time.monotonic()
                         continue
                     return
                 self.problems[f"camera:{cam.name}"] = str(exc)
@@ -107,11 +110,8 @@ class CameraNode(VmocapNode):
             if frame is None:
                 if src.exhausted:
                     return
-                quiet = time.monotonic() - last_frame
-                if getattr(src, "live", False) and quiet > STALL_S:  # connected, but nothing comes
-                    self.warn_for(f"stalled:{cam.name}", f"{cam.name}: no frame for {quiet:.1f} s (connected)")
                 continue
-            last_frame = time.monotonic()
+            self.last_frame[cam.name] = time.monotonic()
             h, w = frame.image.shape[:2]
             if (w, h) != (cam.width, cam.height):  # published as it is; vmocap_pcm does not use it
                 self.wrong_size[cam.name] += 1
@@ -191,6 +191,12 @@ class CameraNode(VmocapNode):
         self.record_age(M.stamp_ns(img[0]))  # how late the frame went out
 
     def status(self) -> dict[str, Any]:
+        # checked here, at 1 Hz, not by the camera's reader thread: that may be the one stuck
+        now = time.monotonic()
+        for cam in self._live:
+            quiet = now - self.last_frame[cam]
+            if quiet > STALL_S and f"camera:{cam}" not in self.problems:  # connected, but nothing comes
+                self.warn_for(f"stalled:{cam}", f"{cam}: no frame for {quiet:.1f} s (connected)")
         return {"published": self.published, "late_dropped": self.late_dropped, "wrong_size": self.wrong_size,
                 "disconnects": self.disconnects, "reconnects": self.reconnects}
 
