@@ -281,7 +281,12 @@ def image_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, env
             and (after >= 0.5 * (IMAGE_FRAMES - window.stop) if window.stop < IMAGE_FRAMES else True),
             "diagnosed": pcm_warned and (cam_warned or how != "half"), "frames_lost": lost, "launcher_rc": rc,
             "frames_out": len(got), "first_tracked": first, "tracked_during": during, "tracked_after": after,
-            "images_not_used": max(bad, default=0), "camera_warned": cam_warned}
+            "images_not_used": max(bad, default=0), "camera_warned": cam_warned,
+            # vmocap_markers' per-camera reprojection residual (camera_check), its highest over
+            # the run: how far cam02's heatmap peaks lay from the markers (None: no figure)
+            "residual_px_cam02_max": max((float(v[f"residual_px:{IMAGE_CAMERA}"]) for _, _, _, v in o.diag.get("vmocap_markers", [])
+                                          if f"residual_px:{IMAGE_CAMERA}" in v), default=None),
+            "markers_warned_cam02": o.warned("vmocap_markers", IMAGE_CAMERA)}
 
 
 def _restarted(name: str, launch: H.Proc, ref: H.Proc | None, out: Path, ref_path: Path) -> dict:
@@ -339,7 +344,8 @@ def aravis_fault(work: Path, env: dict[str, str]) -> dict:
     4 s for 3 s (fault_harness.aravis_camera_run). survived: cam1 delivers again after it is
     back and the other cameras go on meanwhile; diagnosed: a WARN naming cam1 as disconnected
     while it is away and one saying it reconnected. frames_lost: frames of the other cameras
-    missing by their stamps (cam1's frames while unplugged are reported apart)."""
+    missing by their stamps (cam1's frames while unplugged are reported apart: camera_away_s,
+    its longest gap between two frames)."""
     import numpy as np
 
     from vmocap_core.rig_io import save_rig
@@ -372,7 +378,6 @@ def aravis_fault(work: Path, env: dict[str, str]) -> dict:
         during[c] = sum(unplug <= t <= plug for t, _ in fr)
     mine = by_cam.get(cam, [])
     back = [t for t, _ in mine if t > plug]
-    gone = max((t for t, _ in mine if t < unplug + 0.2e9), default=unplug)
     msgs = [(t, lvl, m) for t, lvl, m, _ in rec["diags"]]
     warned_gone = any(lvl >= 1 and f"{cam}: disconnected" in m for t, lvl, m in msgs if unplug <= t <= plug + 1e9)
     warned_back = any(lvl >= 1 and f"{cam}: reconnected" in m for t, lvl, m in msgs if t > plug)
@@ -380,7 +385,7 @@ def aravis_fault(work: Path, env: dict[str, str]) -> dict:
     return {"survived": len(back) >= fps and all(n >= 0.8 * fps * away for n in during.values()) and len(during) == 3,
             "diagnosed": warned_gone and warned_back, "frames_lost": lost,
             "back_after_s": round((back[0] - plug) / 1e9, 2) if back else None,
-            "camera_away_s": round(((back[0] if back else plug) - gone) / 1e9, 2), "others_frames_while_away": during,
+            "camera_away_s": round(float(np.diff(sorted(t for t, _ in mine)).max(initial=0)) / 1e9, 2), "others_frames_while_away": during,
             "frames_after_back": len(back), "disconnects": last.get("disconnects"), "reconnects": last.get("reconnects")}
 
 

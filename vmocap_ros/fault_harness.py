@@ -286,7 +286,8 @@ def aravis_camera_run(config: Path, camera: str, after_s: float, away_s: float, 
     only interface enabled: no GigE/USB3 discovery); after `after_s` one camera is unplugged
     (Aravis' 'control-lost' signal, and the Fake interface disabled so that reopening fails
     as for an absent device) for `away_s`, then plugged in again (interface enabled). A probe
-    node here receives every camera_info (one per frame) and /diagnostics over DDS."""
+    node here receives every camera_info (one per frame) and /diagnostics over DDS. (A stream
+    that stops while connected cannot be made so: the Fake camera ignores AcquisitionStop.)"""
     from vmocap_core import graph_config
     from vmocap_core.process import DIAG, INFO
     from vmocap_core.sources import aravis as arv
