@@ -57,6 +57,9 @@ def run(args: argparse.Namespace) -> int:
     for k, v in (cfg.launch.get("env") or {}).items():
         env[str(k)] = str(v)
     if single:
+        if cfg.launch.get("restart"):
+            print("vmocap launch: vmocap_launch.restart has no effect in single_process mode (one process: "
+                  "nothing is left to restart it)", file=sys.stderr, flush=True)
         os.environ.update(env)
         from .run_node import spin_nodes
 
