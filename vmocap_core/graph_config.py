@@ -10,6 +10,8 @@ file in launch/ read it too)::
     vmocap_launch:            # read by `vmocap launch` only (not a node)
       mode: processes         # or single_process
       nodes: [vmocap_markers, vmocap_skeleton]
+      restart: [vmocap_recorder]   # processes mode: restart these nodes' process when it dies ([all]: any)
+      restart_limit: 3        # at most this many restarts per process, then the graph stops
 
 Every parameter is declared here with a type (from its default), a description and a range;
 a key that is not declared is rejected with GraphConfigError naming the file and the key.
@@ -68,6 +70,10 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "every image topic has a subscriber (frames sent before the PCM node matched are lost)", 0.0, 600.0),
         Param("restamp", False, "recorded sources: stamp each frame with the wall-clock time it is published at "
               "(as a live camera stamps its capture time; loops keep counting forward)"),
+        Param("reconnect_s", 1.0, "live cameras (aravis, v4l2): after a disconnection, try to reopen the camera "
+              "every this many seconds", 0.05, 60.0),
+        Param("reconnect_attempts", 60, "live cameras: give a disconnected camera up after this many failed "
+              "reopen attempts (its thread ends, the node and the other cameras go on)", 1, 1000000),
     ],
     "vmocap_pcm": [
         Param("source", "model", "where heatmaps come from", choices=("model", "synthetic")),
@@ -114,7 +120,8 @@ NODE_PARAMS: dict[str, list[Param]] = {
 }
 # groups: nodes that share a process in `processes` mode (their messages stay in-process, e.g. a
 # camera's images and the PCM inference); nodes in no group get a process each
-LAUNCH_KEYS: dict[str, Any] = {"mode": "processes", "nodes": None, "groups": None, "env": {}, "fastdds_profile": "fastdds_shm.xml"}
+LAUNCH_KEYS: dict[str, Any] = {"mode": "processes", "nodes": None, "groups": None, "env": {}, "fastdds_profile": "fastdds_shm.xml",
+                               "restart": [], "restart_limit": 3}
 
 
 def stage_params(node_type_name: str) -> list[Param]:
@@ -379,6 +386,18 @@ def load(path: str | Path) -> GraphConfig:
             node_type(node)
         except KeyError as exc:
             raise GraphConfigError(path, "vmocap_launch.groups", str(exc.args[0])) from None
+    restart = launch.get("restart") or []
+    if not isinstance(restart, list) or not all(isinstance(n, str) for n in restart):
+        raise GraphConfigError(path, "vmocap_launch.restart", "must be a list of node names (or [all])")
+    for node in restart:
+        if node != "all":
+            try:
+                node_type(node)
+            except KeyError as exc:
+                raise GraphConfigError(path, "vmocap_launch.restart", str(exc.args[0])) from None
+    limit = launch.get("restart_limit")
+    if not isinstance(limit, int) or isinstance(limit, bool) or limit < 0:
+        raise GraphConfigError(path, "vmocap_launch.restart_limit", "must be an integer >= 0")
     for node in set(cfg.node_names()) | {s for s in raw if s not in ("/**", "vmocap_launch")}:
         cfg.node_params(node)  # validate early: a bad file fails before anything starts
         if node_type(node) in ("vmocap_markers", "vmocap_skeleton"):

@@ -1,6 +1,7 @@
 """`vmocap bench faults [--json] [--modes ...] [--only NAME ...]`: inject faults one at a time into
-real runs (MCAP bags of a synthetic subject, the node graph started by `vmocap launch`, `vmocap
-play`, `vmocap process`) and report per fault whether it was survived, whether it was
+real runs (MCAP bags of a synthetic subject or of the Pose2Sim demo's videos, the node graph
+started by `vmocap launch`, `vmocap play`, `vmocap process`, the camera node on Aravis' Fake
+cameras) and report per fault whether it was survived, whether it was
 diagnosed, and the frames lost. What each fault does and what the two words mean per fault:
 docs/faults.md."""
 
@@ -22,8 +23,13 @@ from . import fault_harness as H
 BAG_FAULTS = ["truncated_bag:process", "truncated_bag:play", "corrupted_bag:process", "corrupted_bag:play"]
 PCM_FAULTS = ["heatmaps_nan", "heatmaps_inf", "heatmaps_negative", "person_leaves", "camera_pause", "calibration_rotated",
               "calibration_moved"]
-GRAPH_FAULTS = ["launcher_sigint", "launcher_sigterm", "recorder_sigkill", "node_killed"]
-PROCESSES_ONLY = {"node_killed"}  # one process: killing a node kills the graph (that is recorder_sigkill)
+GRAPH_FAULTS = ["launcher_sigint", "launcher_sigterm", "recorder_sigkill", "node_killed", "node_restarted",
+                "recorder_restarted"]
+CAMERA_FAULTS = ["aravis_reconnect"]  # the camera node alone, on Aravis' Fake cameras (no launch mode)
+IMAGE_FAULTS = ["image_black", "image_white", "image_size_midstream", "image_size_wrong"]
+IMAGE_FRAMES, IMAGE_WINDOW, IMAGE_CAMERA = 45, range(15, 30), "cam02"  # Pose2Sim demo frame sets; the bad ones
+# one process: killing a node kills the graph (that is recorder_sigkill), and nothing restarts it
+PROCESSES_ONLY = {"node_killed", "node_restarted", "recorder_restarted"}
 PCM_TOPICS = ("heatmaps", "camera_info")
 
 
@@ -31,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the results as JSON")
     parser.add_argument("--modes", nargs="+", default=["default", "single_process"], choices=("default", "single_process"))
     parser.add_argument("--only", nargs="+", default=None, metavar="FAULT",
-                        help=f"run only these faults (of {', '.join(BAG_FAULTS + PCM_FAULTS + GRAPH_FAULTS)})")
+                        help=f"run only these faults (of {', '.join(BAG_FAULTS + CAMERA_FAULTS + PCM_FAULTS + GRAPH_FAULTS + IMAGE_FAULTS)})")
     parser.add_argument("--workdir", default=None, help="where bags, configs and recordings go (default: a temp dir)")
 
 
@@ -175,13 +181,15 @@ def graph_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps
     nodes = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]
     extra = {"vmocap_camera": {"source": "bag", "uri": str(bag), "loop": True, "restamp": True},
              "vmocap_pcm": {"source": "model", "model": str(bag)}}
-    cfg = H.write_config(work / f"{name}_{mode}.yaml", rig_path, kps, nodes, _mode(mode), out, groups=[nodes[:4]], extra=extra)
+    restart = {"node_restarted": ["vmocap_markers"], "recorder_restarted": ["vmocap_recorder"]}.get(name, [])
+    cfg = H.write_config(work / f"{name}_{mode}.yaml", rig_path, kps, nodes, _mode(mode), out, groups=[nodes[:4]], extra=extra,
+                         launch={"restart": restart, "restart_limit": 3})
     launch = H.Proc.start(H.vmocap_cmd("launch", str(cfg)), env)
     ref = None
     r: dict = {"frames_lost": 0}
     try:
         H.wait_ready(launch, nodes)
-        if name == "recorder_sigkill":  # a second recorder: what the killed one should have had
+        if name in ("recorder_sigkill", "recorder_restarted"):  # a second recorder: what the killed one should have had
             ref = H.Proc.start(H.vmocap_cmd("record", "-o", str(work / f"ref_{mode}.mcap"), "/vmocap/joint_states"), env)
         time.sleep(8.0)
         if name in ("launcher_sigint", "launcher_sigterm"):
@@ -197,7 +205,9 @@ def graph_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps
             o = H.Outputs.read(out)
             reported = f"{group} exited with -9" in launch.text
             r.update(survived=exited and o.closed, diagnosed=reported, launcher_rc=rc,
-                     note="the launcher stops the graph (no restart policy)")
+                     note="not in vmocap_launch.restart: the launcher stops the graph")
+        elif name in ("node_restarted", "recorder_restarted"):
+            r.update(_restarted(name, launch, ref, out, work / f"ref_{mode}.mcap"))
         else:  # recorder_sigkill
             victim = launch.pids().get("vmocap_recorder", launch.popen.pid)
             t_kill = time.time_ns()
@@ -224,6 +234,161 @@ def graph_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps
     return r
 
 
+# ------------------------------------------------------------- bad camera images, the CNN
+def image_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, env: dict[str, str]) -> dict:
+    """The graph (camera node playing the Pose2Sim demo's JPEGs at 0.05 x real time, the CNN in
+    vmocap_pcm, markers, skeleton, recorder) with IMAGE_CAMERA's images all black, all white, or
+    at half size in IMAGE_WINDOW (image_size_wrong: in every frame set)."""
+    from vmocap_core.apps.demo.runs import TRACKER_SETTINGS
+    from vmocap_core.graph_config import stage_sections
+
+    how = {"image_black": "black", "image_white": "white"}.get(name, "half")
+    window = range(IMAGE_FRAMES) if name == "image_size_wrong" else IMAGE_WINDOW
+    src = H.alter_images(bag, work / f"{name}.mcap", IMAGE_CAMERA, window, how)
+    out = work / f"{name}_{mode}_out.mcap"
+    nodes = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]
+    stages = stage_sections(TRACKER_SETTINGS)
+    extra = {"/**": {"pcm_keypoints": [""], **stages["/**"]},
+             "vmocap_camera": {"source": "bag", "uri": str(src), "rate": 0.05, "loop": False, "wait_subscribers": 60.0},
+             "vmocap_pcm": {"source": "model", "model": "blazepose", "min_cameras": 2, "silent_after_ms": 5000.0,
+                            "queue_depth": 50},
+             "vmocap_markers": {"min_cameras": 2, "silent_after_ms": 5000.0, "feedback_timeout_ms": 2000.0,
+                                "queue_depth": 100, **stages["vmocap_markers"]},
+             "vmocap_skeleton": {"queue_depth": 100, **stages["vmocap_skeleton"]}}
+    cfg = H.write_config(work / f"{name}_{mode}.yaml", rig_path, [""], nodes, _mode(mode), out, groups=[nodes[:4]], extra=extra)
+    launch = H.Proc.start(H.vmocap_cmd("launch", str(cfg)), env)
+    try:
+        H.wait_ready(launch, nodes, timeout=180.0)
+        if not H.wait_for(lambda: "playing" in launch.text, 120.0):
+            raise RuntimeError(f"the camera node did not start playing:\n{launch.text[-3000:]}")
+        time.sleep(IMAGE_FRAMES / H.DEMO_FPS / 0.05 + 10.0)  # the playback, then the last frame sets through the CNN
+    finally:
+        rc = launch.stop()
+    o = H.Outputs.read(out)
+    got = {round(st * H.DEMO_FPS / 1e9) for _, st in o.joint_states}
+    first = min(got, default=IMAGE_FRAMES)
+    lost = sum(k not in got for k in range(first, IMAGE_FRAMES))
+    during = sum(k in got for k in window)
+    after = sum(k in got for k in range(window.stop, IMAGE_FRAMES))
+    reason = "the rig is calibrated at" if how == "half" else f"image all {how}"
+    pcm_warned = any(lvl >= 1 and f"{IMAGE_CAMERA}: image " in msg and reason in msg
+                     for _, lvl, msg, _ in o.diag.get("vmocap_pcm", []))
+    cam_warned = o.warned("vmocap_camera", f"{IMAGE_CAMERA}: frames of")
+    bad = [ast.literal_eval(v["bad_images"]).get(IMAGE_CAMERA, 0) for _, _, _, v in o.diag.get("vmocap_pcm", [])
+           if "bad_images" in v]
+    # tracking from the other cameras during the bad images, and after them
+    return {"survived": rc == 0 and bool(got) and during >= 0.5 * sum(k >= first for k in window)
+            and (after >= 0.5 * (IMAGE_FRAMES - window.stop) if window.stop < IMAGE_FRAMES else True),
+            "diagnosed": pcm_warned and (cam_warned or how != "half"), "frames_lost": lost, "launcher_rc": rc,
+            "frames_out": len(got), "first_tracked": first, "tracked_during": during, "tracked_after": after,
+            "images_not_used": max(bad, default=0), "camera_warned": cam_warned,
+            # vmocap_markers' per-camera reprojection residual (camera_check), its highest over
+            # the run: how far cam02's heatmap peaks lay from the markers (None: no figure)
+            "residual_px_cam02_max": max((float(v[f"residual_px:{IMAGE_CAMERA}"]) for _, _, _, v in o.diag.get("vmocap_markers", [])
+                                          if f"residual_px:{IMAGE_CAMERA}" in v), default=None),
+            "markers_warned_cam02": o.warned("vmocap_markers", IMAGE_CAMERA)}
+
+
+def _restarted(name: str, launch: H.Proc, ref: H.Proc | None, out: Path, ref_path: Path) -> dict:
+    """SIGKILL to the tracker group (node_restarted) or the recorder (recorder_restarted), both
+    in vmocap_launch.restart: the launcher must report it and start the process again, and the
+    graph go on. frames_lost: node_restarted: joint_states periods without output between the
+    last one before the kill and the first after the restart; recorder_restarted: joint_states
+    of the reference recorder (from the first that either recording has to the last) that
+    neither the killed recording (recovered) nor the restarted one holds."""
+    from vmocap_core.bag import BagReader
+    from vmocap_core.bag import messages as M
+
+    group = next(g for g in launch.pids() if ("vmocap_markers" if name == "node_restarted" else "vmocap_recorder") in g)
+    old_pid = launch.pids()[group]
+    t_kill = time.time_ns()
+    os.kill(old_pid, signal.SIGKILL)
+    restarted = H.wait_for(lambda: launch.pids().get(group, old_pid) != old_pid, 10.0)
+    alive = launch.popen.poll() is None
+    time.sleep(10.0)  # the new process starts (~3-5 s) and works
+    if ref is not None:
+        ref.stop()
+    rc = launch.stop()
+    o = H.Outputs.read(out)
+    reported = f"{group} exited with -9; restarted as" in launch.text
+    r: dict = {"launcher_rc": rc, "restarted": restarted, "launcher_alive_after_kill": alive}
+    if name == "node_restarted":
+        before = [t for t, _ in o.joint_states if t < t_kill]
+        after = [t for t, _ in o.joint_states if t > t_kill]
+        gap = (after[0] - before[-1]) / 1e9 if before and after else float("inf")
+        r.update(survived=restarted and alive and rc == 0 and o.closed and len(after) > 30, diagnosed=reported,
+                 frames_lost=round(gap * H.FPS) - 1 if after and before else -1, outage_s=round(gap, 2),
+                 joint_states_before=len(before), joint_states_after=len(after))
+        return r
+    kept = out.with_name(f"{out.stem}.killed1{out.suffix}.partial")
+    k = H.Outputs.read(kept, recover=True) if kept.exists() else H.Outputs([], {}, False)
+    have = {st for _, st in k.joint_states} | {st for _, st in o.joint_states}
+    with BagReader(ref_path) as rr:
+        want = sorted(M.stamp_ns(m.decode()) for m in rr.messages())
+    span = [s for s in want if have and min(have) <= s <= max(have)]
+    lost = [s for s in span if s not in have]
+    kept_warned = o.warned("vmocap_recorder", "kept as")
+    r.update(survived=restarted and alive and rc == 0 and o.closed and kept.exists() and len(o.joint_states) > 30,
+             diagnosed=reported and kept_warned, frames_lost=len(lost), killed_file_recovered=len(k.joint_states),
+             restarted_file=len(o.joint_states), reference=len(span),
+             lost_s=round(len(lost) / H.FPS, 2), recorder_warned_kept=kept_warned,
+             # the open chunk of the killed recorder, and the restart (process start, discovery)
+             unwritten_before_kill_s=round((t_kill - max((st for _, st in k.joint_states), default=t_kill)) / 1e9, 2),
+             restart_gap_s=round((min((st for _, st in o.joint_states), default=t_kill) - t_kill) / 1e9, 2))
+    return r
+
+
+# ------------------------------------------------------------- a camera unplugged and back
+def aravis_fault(work: Path, env: dict[str, str]) -> dict:
+    """vmocap_camera with 4 Aravis Fake cameras (15 fps, mono8 512x512); cam1 unplugged after
+    4 s for 3 s (fault_harness.aravis_camera_run). survived: cam1 delivers again after it is
+    back and the other cameras go on meanwhile; diagnosed: a WARN naming cam1 as disconnected
+    while it is away and one saying it reconnected. frames_lost: frames of the other cameras
+    missing by their stamps (cam1's frames while unplugged are reported apart: camera_away_s,
+    its longest gap between two frames)."""
+    import numpy as np
+
+    from vmocap_core.cameras.rig_file import save_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
+
+    fps, cam, after, away, total = 15.0, "cam1", 4.0, 3.0, 12.0
+    rig_path = work / "fake512.rig.yaml"
+    save_rig(benchmark_rig(width=512, height=512), rig_path)
+    extra = {"vmocap_camera": {"source": "aravis", "uri": f"Fake_1?fps={fps:g}&pixel_format=Mono8&mono=true",
+                               "rate": 0.0, "reconnect_s": 0.5, "reconnect_attempts": 20}}
+    cfg = H.write_config(work / "aravis.yaml", rig_path, [], ["vmocap_camera"], "single_process", work / "unused.mcap",
+                         extra=extra)
+    run = subprocess.run([sys.executable, "-m", "vmocap_ros.fault_harness", "aravis", str(cfg), cam, str(after), str(away),
+                          str(total)], env=env, cwd=H.REPO, capture_output=True, text=True, timeout=120)
+    if run.returncode != 0:
+        raise RuntimeError(f"the camera node's run failed (rc {run.returncode}):\n{run.stderr[-3000:]}")
+    rec = json.loads(run.stdout.strip().splitlines()[-1])
+    unplug, plug = rec["marks"]["unplug"], rec["marks"]["plug"]
+    by_cam: dict[str, list[tuple[int, int]]] = {}
+    for t, c, st in rec["frames"]:
+        by_cam.setdefault(c, []).append((t, st))
+    lost, during = 0, {}
+    for c, fr in by_cam.items():
+        if c == cam:
+            continue
+        st = np.sort(np.array([s for _, s in fr], dtype=np.int64))
+        d = np.diff(st)
+        period = float(np.median(d)) if d.size else 1e9 / fps
+        lost += int(sum(round(x / period) - 1 for x in d if x > 1.5 * period))
+        during[c] = sum(unplug <= t <= plug for t, _ in fr)
+    mine = by_cam.get(cam, [])
+    back = [t for t, _ in mine if t > plug]
+    msgs = [(t, lvl, m) for t, lvl, m, _ in rec["diags"]]
+    warned_gone = any(lvl >= 1 and f"{cam}: disconnected" in m for t, lvl, m in msgs if unplug <= t <= plug + 1e9)
+    warned_back = any(lvl >= 1 and f"{cam}: reconnected" in m for t, lvl, m in msgs if t > plug)
+    last = rec["diags"][-1][3] if rec["diags"] else {}
+    return {"survived": len(back) >= fps and all(n >= 0.8 * fps * away for n in during.values()) and len(during) == 3,
+            "diagnosed": warned_gone and warned_back, "frames_lost": lost,
+            "back_after_s": round((back[0] - plug) / 1e9, 2) if back else None,
+            "camera_away_s": round(float(np.diff(sorted(t for t, _ in mine)).max(initial=0)) / 1e9, 2), "others_frames_while_away": during,
+            "frames_after_back": len(back), "disconnects": last.get("disconnects"), "reconnects": last.get("reconnects")}
+
+
 def _chunk_size() -> int:
     """The recorder's MCAP chunk size: what a SIGKILL can lose at most (plus the OS buffer)."""
     from vmocap_core.graph_config import NODE_PARAMS
@@ -237,7 +402,14 @@ def run(args: argparse.Namespace) -> int:
     work.mkdir(parents=True, exist_ok=True)
     env = H.env_for(100 + os.getpid() % 100)
     plan = [(f, None) for f in BAG_FAULTS]
-    plan += [(f, m) for m in args.modes for f in PCM_FAULTS + GRAPH_FAULTS if not (f in PROCESSES_ONLY and m != "default")]
+    from vmocap_core.cameras import aravis as arv
+
+    if arv.available():
+        plan += [(f, None) for f in CAMERA_FAULTS]
+    elif not args.only or set(args.only) & set(CAMERA_FAULTS):
+        print("bench faults: Aravis 0.8 / PyGObject not installed: aravis_reconnect left out", file=sys.stderr)
+    plan += [(f, m) for m in args.modes for f in PCM_FAULTS + GRAPH_FAULTS + IMAGE_FAULTS
+             if not (f in PROCESSES_ONLY and m != "default")]
     if args.only:
         plan = [(f, m) for f, m in plan if f in args.only or f.split(":")[0] in args.only]
         if not plan:
@@ -245,10 +417,11 @@ def run(args: argparse.Namespace) -> int:
             return 2
     pcm_bag = H.synthetic_bag(work / "pcm.mcap", 150, images=False)
     cam_bag = H.synthetic_bag(work / "cams.mcap", 30, images=True) if any(f in GRAPH_FAULTS for f, _ in plan) else None
+    demo = H.demo_bag(work / "demo.mcap", IMAGE_FRAMES) if any(f in IMAGE_FAULTS for f, _ in plan) else None
     probe = _probe(env) if any(m is not None for _, m in plan) else None
     faults: dict[str, dict] = {}
     try:
-        _run_plan(plan, work, env, probe, pcm_bag, cam_bag, faults, args.json)
+        _run_plan(plan, work, env, probe, pcm_bag, cam_bag, demo, faults, args.json)
     finally:
         if probe is not None:
             probe.close()
@@ -270,7 +443,8 @@ def _probe(env: dict[str, str]):
     return Probe(init_rclpy(), ["cam0"], input_topic=False)
 
 
-def _run_plan(plan, work: Path, env: dict[str, str], probe, pcm_bag, cam_bag, faults: dict[str, dict], quiet: bool) -> None:
+def _run_plan(plan, work: Path, env: dict[str, str], probe, pcm_bag, cam_bag, demo, faults: dict[str, dict],
+              quiet: bool) -> None:
     from tqdm import tqdm
 
     for f, m in tqdm(plan, desc="faults", disable=quiet, file=sys.stderr):
@@ -278,8 +452,14 @@ def _run_plan(plan, work: Path, env: dict[str, str], probe, pcm_bag, cam_bag, fa
         d = work / key.replace(":", "_")
         d.mkdir(exist_ok=True)
         try:
-            if m is None:
+            if f in CAMERA_FAULTS:
+                faults[key] = aravis_fault(d, env)
+            elif m is None:
                 faults[key] = bag_fault(f, d, work / "pcm.mcap", pcm_bag[1], pcm_bag[2], env)
+            elif f in IMAGE_FAULTS:
+                if demo is None:
+                    raise RuntimeError("the Pose2Sim demo is not cached (models/pose2sim: `make demo` fetches it)")
+                faults[key] = image_fault(f, m, d, work / "demo.mcap", demo[1], env)
             elif f in PCM_FAULTS:
                 faults[key] = pcm_fault(f, m, d, work / "pcm.mcap", pcm_bag[1], pcm_bag[2], env, probe)
             else:

@@ -103,13 +103,13 @@ def damage(src: Path, dst: Path, how: str, at: float = 0.6, seed: int = 0) -> Pa
 
 
 def write_config(path: Path, rig_path: Path, kps: list[str], nodes: list[str], mode: str, output: Path,
-                 groups: list[list[str]] | None = None, extra: dict | None = None) -> Path:
+                 groups: list[list[str]] | None = None, extra: dict | None = None, launch: dict | None = None) -> Path:
     cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
     cfg["/**"]["ros__parameters"].update(rig=str(rig_path), pcm_keypoints=kps)
     cfg["vmocap_pcm"]["ros__parameters"]["model"] = str(MOTION)
     cfg["vmocap_recorder"]["ros__parameters"]["output"] = str(output)
     cfg["vmocap_launch"] = {"mode": mode, "nodes": nodes, "groups": groups or [],
-                            "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
+                            "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml"), **(launch or {})}
     # the synthetic heatmaps' noise (6 px, false peaks, swaps) is harsher than the CNN's: a wider
     # skeleton-fit bound lets the subject initialize on these bags (as test/test_graph_hosts.py)
     cfg["vmocap_skeleton"]["ros__parameters"]["init_max_fit_error_m"] = 0.08
@@ -142,11 +142,15 @@ class Proc:
 
     def pids(self) -> dict[str, int]:
         """The launcher's children (processes mode): `vmocap launch: N processes: a+b[pid], ...`."""
+        out: dict[str, int] = {}
         for line in self.lines:
             if line.startswith("vmocap launch:") and "processes:" in line:
                 items = line.rsplit("processes: ", 1)[1].split(", ")
-                return {i.split("[")[0]: int(i.split("[")[1].rstrip("]\n")) for i in items}
-        return {}
+                out = {i.split("[")[0]: int(i.split("[")[1].rstrip("]\n")) for i in items}
+            elif line.startswith("vmocap launch:") and "; restarted as " in line:  # restart policy
+                item = line.split("; restarted as ", 1)[1].split(" ", 1)[0]
+                out[item.split("[")[0]] = int(item.split("[")[1].rstrip("]"))
+        return out
 
     def stop(self, sig: int = signal.SIGINT, timeout: float = 30.0) -> int:
         if self.popen.poll() is None:
@@ -224,3 +228,131 @@ def env_for(domain: int) -> dict[str, str]:
     env["ROS_DOMAIN_ID"] = str(domain)
     env["PYTHONUNBUFFERED"] = "1"
     return env
+
+
+# ------------------------------------------------------------------ camera images (the CNN path)
+DEMO_FPS = 60.0  # the Pose2Sim demo's videos; frame f has stamp f / 60 s
+
+
+def demo_bag(path: Path, frames: int):
+    """The first `frames` frame sets of the Pose2Sim demo's 4 videos (a real person, 1080x1920
+    portrait, JPEG CompressedImage as `vmocap demo` writes them) and its rig; None when the
+    pose2sim wheel is not cached (models/pose2sim or ~/.cache/vmocap/pose2sim: `make demo`)."""
+    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes, videos_to_bag
+    from vmocap_core.calibration.datasets import pose2sim_demo
+    from vmocap_core.cameras.rig_file import save_rig
+
+    demo = pose2sim_demo(fetch=False)
+    if demo is None:
+        return None
+    videos = video_paths(demo)
+    rig = load_qualisys_rig(demo / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    rig_path = path.with_suffix(".rig.yaml")
+    save_rig(rig, rig_path)
+    if not path.exists():
+        videos_to_bag(videos, rig, path, frames)
+    return rig, rig_path
+
+
+def alter_images(src: Path, dst: Path, camera: str, frames: range, how: str) -> Path:
+    """A copy of `src` whose JPEG images of `camera` in `frames` are all black, all white, or
+    the same picture at half the width and height (`half`: a camera delivering another size
+    than the rig was calibrated at)."""
+    import cv2
+
+    from vmocap_core.bag import BagReader, BagWriter, cdr
+
+    with BagReader(src) as r, BagWriter(dst) as w:
+        for m in r.messages():
+            data: bytes = bytes(m.data)
+            k = round(m.log_time_ns * DEMO_FPS / 1e9)
+            if m.topic.endswith("/compressed") and m.topic.split("/")[-3] == camera and k in frames:
+                msg = cdr.decode(m.type, data)
+                img = cv2.imdecode(np.frombuffer(bytes(msg["data"]), np.uint8), cv2.IMREAD_COLOR)
+                if how == "half":
+                    img = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+                else:
+                    img = np.full_like(img, {"black": 0, "white": 255}[how])
+                msg["data"] = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+                data = cdr.encode(m.type, msg)
+            w.write(m.topic, m.type, data, m.log_time_ns)
+    return dst
+
+
+# ------------------------------------------------------------------ an Aravis camera unplugged
+def aravis_camera_run(config: Path, camera: str, after_s: float, away_s: float, total_s: float) -> dict:
+    """vmocap_camera (the real node, in this process) on Aravis' in-process Fake cameras (the
+    only interface enabled: no GigE/USB3 discovery); after `after_s` one camera is unplugged
+    (Aravis' 'control-lost' signal, and the Fake interface disabled so that reopening fails
+    as for an absent device) for `away_s`, then plugged in again (interface enabled). A probe
+    node here receives every camera_info (one per frame) and /diagnostics over DDS. (A stream
+    that stops while connected cannot be made so: the Fake camera ignores AcquisitionStop.)"""
+    from vmocap_core import graph_config
+    from vmocap_core.cameras import aravis as arv
+    from vmocap_core.outputs.messages import DIAG, INFO
+
+    from .common import Topics, init_rclpy, msg_class, qos
+    from .nodes.camera import CameraNode
+
+    Ar = arv.setup_interfaces(("Fake",))  # before any device list update; open() keeps this setting
+    rclpy = init_rclpy()
+    node = CameraNode(graph_config.load(config))
+    probe = rclpy.create_node("vmocap_fault_probe")
+    frames: list[tuple[int, str, int]] = []  # (receive ns, camera, stamp ns)
+    diags: list[tuple[int, int, str, dict[str, str]]] = []
+    for name in node.rig.names:
+        probe.create_subscription(msg_class(INFO), Topics(node.p["namespace"]).camera_info(name),
+                                  lambda m, n=name: frames.append((time.time_ns(), n, m.header.stamp.sec * 10**9
+                                                                   + m.header.stamp.nanosec)), qos(100))
+
+    def on_diag(m) -> None:
+        for s in m.status:
+            if s.name == "vmocap_camera":
+                lvl = s.level[0] if isinstance(s.level, (bytes, bytearray)) else int(s.level)
+                diags.append((time.time_ns(), lvl, s.message, {v.key: v.value for v in s.values}))
+
+    probe.create_subscription(msg_class(DIAG), "/diagnostics", on_diag, qos(50))
+    from rclpy.executors import SingleThreadedExecutor
+
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    ex.add_node(probe)
+    sources = {src.name: src for _, src in node._threads}
+    t0 = time.monotonic()
+    marks: dict[str, int] = {}
+    try:
+        while time.monotonic() - t0 < total_s:
+            ex.spin_once(timeout_sec=0.05)
+            now = time.monotonic() - t0
+            if "unplug" not in marks and now >= after_s:
+                Ar.disable_interface("Fake")
+                sources[camera]._cam.get_device().emit("control-lost")  # what Aravis signals when a camera drops
+                marks["unplug"] = time.time_ns()
+            if "plug" not in marks and now >= after_s + away_s:
+                Ar.enable_interface("Fake")
+                marks["plug"] = time.time_ns()
+    finally:
+        node.close()
+        ex.shutdown()
+        probe.destroy_node()
+        node.destroy_node()
+        rclpy.shutdown()
+    return {"frames": frames, "diags": diags, "marks": marks, "cameras": list(sources)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m vmocap_ros.fault_harness aravis CONFIG CAMERA AFTER AWAY TOTAL`: the run above,
+    its record as JSON on stdout (one line)."""
+    import json
+
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 6 or args[0] != "aravis":
+        print(main.__doc__, file=sys.stderr)
+        return 2
+    out = aravis_camera_run(Path(args[1]), args[2], float(args[3]), float(args[4]), float(args[5]))
+    print(json.dumps(out), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -6,6 +6,9 @@ one per remaining node (`python -m vmocap_ros.run_node CONFIG NODE [NODE ...]`);
 `--single-process` (or `mode: single_process`): all nodes in this process with one executor.
 Ctrl-C/SIGTERM: every node is asked to stop (SIGINT), closes its outputs (the recorder
 finalizes its MCAP) and exits; stragglers get SIGTERM after --grace seconds, then SIGKILL.
+A process that exits on its own is reported (`<group> exited with <code>`); when one of its
+nodes is in `vmocap_launch.restart` (or that list is [all]) and it failed (code != 0), it is
+started again, at most `restart_limit` times; otherwise the rest of the graph is stopped.
 Discovery is localhost-only unless ROS_AUTOMATIC_DISCOVERY_RANGE is set (docs/graph.md).
 """
 
@@ -54,14 +57,20 @@ def run(args: argparse.Namespace) -> int:
     for k, v in (cfg.launch.get("env") or {}).items():
         env[str(k)] = str(v)
     if single:
+        if cfg.launch.get("restart"):
+            print("vmocap launch: vmocap_launch.restart has no effect in single_process mode (one process: "
+                  "nothing is left to restart it)", file=sys.stderr, flush=True)
         os.environ.update(env)
         from .run_node import spin_nodes
 
         return spin_nodes(args.config, nodes, sets)
-    return run_processes(args.config, cfg.process_groups(nodes), args.set, env, args.grace)
+    restart = set(cfg.launch.get("restart") or [])
+    return run_processes(args.config, cfg.process_groups(nodes), args.set, env, args.grace,
+                         restart=restart, restart_limit=int(cfg.launch.get("restart_limit", 3)))
 
 
-def run_processes(config: str, groups: list[list[str]], sets: list[str], env: dict[str, str], grace: float) -> int:
+def run_processes(config: str, groups: list[list[str]], sets: list[str], env: dict[str, str], grace: float,
+                  restart: set[str] | None = None, restart_limit: int = 3) -> int:
     procs: list[tuple[str, subprocess.Popen]] = []
     stopping = {"flag": False}
 
@@ -70,23 +79,39 @@ def run_processes(config: str, groups: list[list[str]], sets: list[str], env: di
 
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGTERM, stop)
+    cmds: dict[str, list[str]] = {}
+    restartable: set[str] = set()
     for group in groups:
         n = "+".join(group)
         cmd = [sys.executable, "-m", "vmocap_ros.run_node", config, *group]
         for s in sets:
             if any(s.startswith(g + ".") for g in group):
                 cmd += ["--set", s]
+        cmds[n] = cmd
+        if restart and ("all" in restart or restart & set(group)):
+            restartable.add(n)
         # own process group: a terminal Ctrl-C reaches us, we forward it in order
         procs.append((n, subprocess.Popen(cmd, env=env, start_new_session=True)))
     print(f"vmocap launch: {len(procs)} processes: " + ", ".join(f"{n}[{p.pid}]" for n, p in procs), flush=True)
     code = 0
+    restarts = {n: 0 for n in cmds}
     while not stopping["flag"]:
         time.sleep(0.1)
-        dead = [(n, p) for n, p in procs if p.poll() is not None]
-        if dead:
-            for n, p in dead:
-                print(f"vmocap launch: {n} exited with {p.returncode}; stopping the graph", file=sys.stderr, flush=True)
-                code = code or p.returncode or 0
+        dead = [(i, n, p) for i, (n, p) in enumerate(procs) if p.poll() is not None]
+        fatal = False
+        for i, n, p in dead:
+            if n in restartable and p.returncode != 0 and restarts[n] < restart_limit and not stopping["flag"]:
+                restarts[n] += 1
+                procs[i] = (n, subprocess.Popen(cmds[n], env=env, start_new_session=True))
+                print(f"vmocap launch: {n} exited with {p.returncode}; restarted as {n}[{procs[i][1].pid}] "
+                      f"(restart {restarts[n]} of {restart_limit})", file=sys.stderr, flush=True)
+                continue
+            why = (f"restarted {restart_limit} times already" if n in restartable and p.returncode != 0
+                   else "not in vmocap_launch.restart" if p.returncode != 0 else "it ended")
+            print(f"vmocap launch: {n} exited with {p.returncode}; stopping the graph ({why})", file=sys.stderr, flush=True)
+            code = code or p.returncode or 0
+            fatal = True
+        if fatal:
             break
     for _, p in procs:
         if p.poll() is None:

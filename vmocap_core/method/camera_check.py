@@ -66,3 +66,27 @@ class OddCamera:
         if med[name] >= ODD_MIN_PX and med[name] >= ODD_RATIO * max(others, 1.0):
             return name, med[name], others
         return None
+
+
+# ------------------------------------------------------------------ images a camera delivers
+UNIFORM_STD = 2.0  # grey levels: a sampled image flatter than this shows nothing (lens cap, dark, saturated)
+SAMPLE_STEP = 16  # every 16th pixel of every 16th row: ~0.1 ms on a 1920x1080 image
+
+
+def image_problem(image: np.ndarray, width: int, height: int) -> str:
+    """Why a camera image cannot go to the CNN ("" when it can): a size other than the one the
+    rig was calibrated at (the CNN's crops and the rays would be computed with the wrong
+    intrinsics: silently wrong markers), or an image without contrast (all black, all white,
+    one grey), in which the CNN can find nobody."""
+    h, w = image.shape[:2]
+    if (w, h) != (int(width), int(height)):
+        return f"image {w}x{h}, the rig is calibrated at {int(width)}x{int(height)}"
+    sample = image[::SAMPLE_STEP, ::SAMPLE_STEP]
+    if sample.size == 0:
+        return "empty image"
+    std = float(sample.std())
+    if std < UNIFORM_STD:
+        mean = float(sample.mean())
+        kind = "black" if mean < 16 else "white" if mean > 239 else "one grey level"
+        return f"image all {kind} (mean {mean:.0f}, std {std:.1f})"
+    return ""

@@ -165,3 +165,18 @@ class PcmViews:
         uv = np.einsum("vij,vkj->vki", inv[:, :, :2], xy) + inv[:, None, :, 2]
         ok = self.valid & (val >= threshold)
         return uv, np.where(ok, val, 0.0)
+
+
+def blank_views(pcm: PcmViews, cameras: list[int]) -> PcmViews:
+    """`pcm` plus views of `cameras` that say nothing (every channel invalid, presence 0), as
+    many per camera as the others have (rotation lower_body: 2): a camera whose image was not
+    used still has its views in the frame set, so vmocap_markers does not wait for them."""
+    V, J, H, W = pcm.maps.shape
+    per = int(np.bincount(np.asarray(pcm.camera, dtype=np.intp)).max())
+    cams = np.repeat(np.asarray(cameras, dtype=np.intp), per)
+    n = len(cams)
+    return PcmViews(np.concatenate([pcm.maps, np.zeros((n, J, H, W), np.float32)]),
+                    np.concatenate([pcm.image_to_map, np.tile(np.eye(2, 3), (n, 1, 1))]),
+                    np.concatenate([pcm.camera, cams]), pcm.keypoints,
+                    np.concatenate([pcm.valid, np.zeros((n, J), bool)]), np.concatenate([pcm.presence, np.zeros(n)]),
+                    pcm.stamp_ns)

@@ -25,6 +25,7 @@ from ..transport import Output, Transport
 
 STREAM_DEPTH = 10  # images, PCMs, markers: reliable, keep last 10
 AGE_WINDOW_NS = 3600 * 10**9  # a stamp further than this from the node's clock is on another clock
+WARN_HOLD_S = 5.0  # a WARN of a passing fault (warn_for) stays this long after its last occurrence
 
 
 def age_problem(now_ns: int, stamp_ns: int) -> str:
@@ -81,6 +82,7 @@ class VmocapNode(Node):
         self._late_before: dict[str, int] = {}
         self._rate_mark = (time.monotonic(), 0)
         self.problems: dict[str, str] = {}
+        self._held: dict[str, float] = {}  # problem key -> monotonic time its WARN ends (warn_for)
         self._pending_subs: list = []
         self._dds_pubs: dict[str, Any] = {}  # topic -> rclpy publisher, for matched-subscriber counts
         self._diag = self.create_publisher(msg_class(DIAG), Topics.diagnostics, qos(10))
@@ -141,6 +143,12 @@ class VmocapNode(Node):
         else:
             self.problems.pop("late", None)
 
+    def warn_for(self, key: str, text: str, hold_s: float = WARN_HOLD_S) -> None:
+        """A WARN of a passing fault (a bad frame, a short disconnection): kept on /diagnostics
+        for `hold_s` after its last occurrence, so a 1 Hz status cannot miss it, then cleared."""
+        self.problems[key] = text
+        self._held[key] = time.monotonic() + hold_s
+
     def record_age(self, stamp_ns: int) -> None:
         """Capture stamp -> now on this node's clock (sim time under use_sim_time). Stamps of a
         recording replayed without restamp are on no clock of this machine: no figure then."""
@@ -162,11 +170,16 @@ class VmocapNode(Node):
         values["rate_hz"] = f"{(n - self._rate_mark[1]) / max(t - self._rate_mark[0], 1e-9):.2f}"  # achieved, last period
         self._rate_mark = (t, n)
         values.update({k: str(v) for k, v in self.status().items()})
+        for key, until in list(self._held.items()):
+            if t > until:
+                del self._held[key]
+                self.problems.pop(key, None)
         # matched DDS subscribers per output: volatile outputs published before a subscriber
         # matched are gone, so whoever records or controls can check it is connected
         values.update({f"subscribers:{t}": str(pub.get_subscription_count()) for t, pub in self._dds_pubs.items()})
-        level = 1 if self.problems else 0
-        message = "; ".join(sorted(self.problems.values()))[:500] or "ok"
+        problems = dict(self.problems)  # camera threads add to it meanwhile
+        level = 1 if problems else 0
+        message = "; ".join(sorted(problems.values()))[:500] or "ok"
         self._diag.publish(cdr.encode(DIAG, M.diagnostics_msg(time.time_ns(), [(level, self.get_name(), message, values)])))
 
     def close(self) -> None:

@@ -17,6 +17,8 @@ from vmocap_core.outputs.messages import IMAGE, INFO
 from ..transport import Output, Transport
 from .base import VmocapNode
 
+STALL_S = 2.0  # a live camera that delivers nothing for this long (but is not lost) is WARNed about
+
 
 class CameraNode(VmocapNode):
     """Frames of a FrameSource per camera -> NS/CAM/image_raw + NS/CAM/camera_info."""
@@ -34,9 +36,16 @@ class CameraNode(VmocapNode):
         self._threads = []
         self.published = {c.name: 0 for c in self.rig}
         self.late_dropped = {c.name: 0 for c in self.rig}  # restamped replay: frames a period late, skipped
+        self.wrong_size = {c.name: 0 for c in self.rig}  # frames of another size than the rig's calibration
+        self.disconnects = {c.name: 0 for c in self.rig}
+        self.reconnects = {c.name: 0 for c in self.rig}
+        self.last_frame = {c.name: time.monotonic() for c in self.rig}  # when each camera last delivered
+        self._live: set[str] = set()
         for cam in self.rig:
             src = self._make_source(cam.name)
             src.open()
+            if getattr(src, "live", False):
+                self._live.add(cam.name)
             pub_img = self.publisher(IMAGE, self.topics.image(cam.name))
             pub_info = self.publisher(INFO, self.topics.camera_info(cam.name))
             self._image_topics.append(self.topics.image(cam.name))
@@ -87,6 +96,11 @@ class CameraNode(VmocapNode):
             try:
                 frame = src.read(timeout=0.5)
             except VmocapError as exc:
+                if getattr(src, "live", False):  # reported and retried; the thread ends when given up
+                    if self._reconnect(src, cam.name, str(exc)):
+                        self.last_frame[cam.name] = time.monotonic()
+                        continue
+                    return
                 self.problems[f"camera:{cam.name}"] = str(exc)
                 self.get_logger().error(str(exc))
                 return
@@ -97,6 +111,12 @@ class CameraNode(VmocapNode):
                 if src.exhausted:
                     return
                 continue
+            self.last_frame[cam.name] = time.monotonic()
+            h, w = frame.image.shape[:2]
+            if (w, h) != (cam.width, cam.height):  # published as it is; vmocap_pcm does not use it
+                self.wrong_size[cam.name] += 1
+                self.warn_for(f"size:{cam.name}", f"{cam.name}: frames of {w}x{h}, the rig is calibrated at "
+                              f"{cam.width}x{cam.height} ({self.wrong_size[cam.name]} frames)")
             if not getattr(src, "live", False) and not self._matched.is_set():
                 while not self._matched.wait(0.05):
                     if self._stop.is_set():
@@ -130,6 +150,33 @@ class CameraNode(VmocapNode):
             self._send(cam.name, *prepared, pub_img, pub_info)
             slot.release()
 
+    def _reconnect(self, src, cam: str, error: str) -> bool:
+        """A live camera that failed (unplugged, power lost, network down): reported, then
+        reopened every reconnect_s seconds, at most reconnect_attempts times. True once it
+        delivers again (a WARN stays for a while after), False when given up or stopping."""
+        self.disconnects[cam] += 1
+        t0, attempts = time.monotonic(), self.p["reconnect_attempts"]
+        self.get_logger().warning(f"{cam}: disconnected ({error}); reopening every {self.p['reconnect_s']} s")
+        for k in range(1, attempts + 1):
+            self.problems[f"camera:{cam}"] = (f"{cam}: disconnected ({error}); reconnecting, attempt {k} of {attempts}")
+            if self._stop.wait(self.p["reconnect_s"]):
+                return False
+            try:
+                src.close()
+                src.open()
+            except VmocapError as exc:
+                error = str(exc)
+                continue
+            self.reconnects[cam] += 1
+            self.problems.pop(f"camera:{cam}", None)
+            msg = f"{cam}: reconnected after {time.monotonic() - t0:.1f} s ({self.disconnects[cam]} disconnections)"
+            self.get_logger().warning(msg)
+            self.warn_for(f"reconnected:{cam}", msg)
+            return True
+        self.get_logger().error(f"{cam}: given up after {attempts} reconnection attempts")
+        self.problems[f"camera:{cam}"] = f"{cam}: disconnected, given up after {attempts} attempts ({error})"
+        return False
+
     def _send_due(self, cam: str, prepared: tuple, pub_img: Output, pub_info: Output, slot: threading.Semaphore,
                   release_at: float) -> None:
         self._send(cam, *prepared, pub_img, pub_info)
@@ -144,7 +191,14 @@ class CameraNode(VmocapNode):
         self.record_age(M.stamp_ns(img[0]))  # how late the frame went out
 
     def status(self) -> dict[str, Any]:
-        return {"published": self.published, "late_dropped": self.late_dropped}
+        # checked here, at 1 Hz, not by the camera's reader thread: that may be the one stuck
+        now = time.monotonic()
+        for cam in self._live:
+            quiet = now - self.last_frame[cam]
+            if quiet > STALL_S and f"camera:{cam}" not in self.problems:  # connected, but nothing comes
+                self.warn_for(f"stalled:{cam}", f"{cam}: no frame for {quiet:.1f} s (connected)")
+        return {"published": self.published, "late_dropped": self.late_dropped, "wrong_size": self.wrong_size,
+                "disconnects": self.disconnects, "reconnects": self.reconnects}
 
     def close(self) -> None:
         self._stop.set()

@@ -14,8 +14,10 @@ from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.sync import ApproximateSync
 from vmocap_core.errors import VmocapError
+from vmocap_core.method.camera_check import image_problem
 from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO
 from vmocap_core.pcm.assembly import channel_keypoints
+from vmocap_core.pcm.views import blank_views
 
 from ..transport import Output, Transport
 from .base import VmocapNode
@@ -49,6 +51,7 @@ class PcmNode(VmocapNode):
         self.frames = 0
         self.sets: deque = deque()
         self.counts = {"queue_dropped": 0, "feedback_timeouts": 0}
+        self.bad_images = {n: 0 for n in names}  # images not given to the CNN (wrong size, no contrast)
         self.wait = p["feedback_wait_ms"] / 1e3
         self.awaiting: int | None = None
         self.awaiting_since = 0.0
@@ -121,6 +124,7 @@ class PcmNode(VmocapNode):
         so camera frames, markers and skeleton of the previous frame set go on meanwhile."""
         while self.sets and self.awaiting is None and not self.busy:
             fs = self.sets.popleft()
+            cams = [n for n in self.rig.names if n in fs.items and self._usable(n, fs.items[n])]
             fb = self.feedback if self.p["use_feedback"] else None
             if self.wait > 0 and self.p["use_feedback"]:
                 self.awaiting, self.awaiting_since = fs.stamp_ns, time.monotonic()
@@ -128,21 +132,24 @@ class PcmNode(VmocapNode):
             # gets the maps themselves: no interleaving into Image data and back (~1 ms a set)
             data = any(pi.dds_wanted() for pi, _ in self._pubs.values())
             if self.worker is None or self.transport.due.wake is None:  # no spin loop to hand back to
-                self._publish(fs, data, *self._infer(fs, fb, data))
+                self._publish(fs, data, *self._infer(fs, cams, fb, data))
                 continue
             self.busy = True
-            self.worker.submit(self._infer_in_thread, fs, fb, data)
+            self.worker.submit(self._infer_in_thread, fs, cams, fb, data)
 
-    def _infer(self, fs: Any, fb: np.ndarray | None, data: bool) -> tuple[Any, list, float]:
+    def _infer(self, fs: Any, cams: list[str], fb: np.ndarray | None, data: bool) -> tuple[Any, list, float]:
+        """The CNN on the usable cameras' images; the others get blank views (see blank_views)."""
         t0 = time.perf_counter()
-        cams = [n for n in self.rig.names if n in fs.items]
         idx = np.array([self.rig.names.index(n) for n in cams])
         pcm = self.provider.infer([fs.items[n] for n in cams], idx, fs.stamp_ns, fb)
+        unused = [self.rig.names.index(n) for n in fs.items if n not in cams]
+        if unused and pcm.n_views:
+            pcm = blank_views(pcm, unused)
         return pcm, M.pcm_msgs(pcm, self.rig, data=data), time.perf_counter() - t0
 
-    def _infer_in_thread(self, fs: Any, fb: np.ndarray | None, data: bool) -> None:
+    def _infer_in_thread(self, fs: Any, cams: list[str], fb: np.ndarray | None, data: bool) -> None:
         try:
-            out = self._infer(fs, fb, data)
+            out = self._infer(fs, cams, fb, data)
         except Exception as exc:  # noqa: BLE001 - reported by the spin loop, the node goes on
             error = exc
             self.transport.due.put(time.monotonic(), lambda: self._failed(error))
@@ -187,9 +194,21 @@ class PcmNode(VmocapNode):
             self.worker.shutdown(wait=True, cancel_futures=True)
         super().close()
 
+    def _usable(self, cam: str, image: np.ndarray) -> bool:
+        """False (and a WARN naming the camera, held WARN_HOLD_S) for an image the CNN must not
+        get: another size than the rig's calibration, or no contrast (all black / white). The
+        camera then has no view in this frame set, as a camera without a frame; the others go on."""
+        c = self.rig[cam]
+        problem = image_problem(image, c.width, c.height)
+        if not problem:
+            return True
+        self.bad_images[cam] += 1
+        self.warn_for(f"image:{cam}", f"{cam}: {problem}: not used ({self.bad_images[cam]} frames so far)")
+        return False
+
     def status(self) -> dict[str, Any]:
         st = self.sync.stats()
         self.watch_late(st.late)
-        return dict(self.counts, frames=self.frames, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
+        return dict(self.counts, frames=self.frames, bad_images=self.bad_images, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
                     queued=len(self.sets), precision=getattr(self.provider, "precision", "n/a"),
                     precision_reason=getattr(self.provider, "precision_reason", "n/a"))

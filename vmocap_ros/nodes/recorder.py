@@ -16,6 +16,24 @@ from ..transport import Transport
 from .base import VmocapNode
 
 
+def keep_partial(output: str) -> str:
+    """Move OUTPUT.partial, which only a killed recorder leaves, out of the way of a new
+    recording (OUT.mcap -> OUT.killed1.mcap.partial, .killed2 ...); "" when there was none."""
+    from pathlib import Path
+
+    from vmocap_core.bag.mcap_io import PARTIAL_SUFFIX
+
+    out = Path(output)
+    partial = out.with_name(out.name + PARTIAL_SUFFIX)
+    if not partial.exists():
+        return ""
+    k = 1
+    while (keep := out.with_name(f"{out.stem}.killed{k}{out.suffix}{PARTIAL_SUFFIX}")).exists():
+        k += 1
+    partial.rename(keep)
+    return str(keep)
+
+
 class RecorderNode(VmocapNode):
     """Topics -> MCAP (CDR bytes as received). The file is complete and renamed from .partial
     when the node is closed (Ctrl-C/SIGTERM of the launcher or `vmocap record`)."""
@@ -27,6 +45,11 @@ class RecorderNode(VmocapNode):
 
         if not self.p["output"]:
             raise VmocapError("vmocap_recorder: parameter 'output' (an .mcap path) is required")
+        self.kept = keep_partial(self.p["output"])
+        if self.kept:  # a recorder of this output was killed (and restarted by the launcher)
+            msg = f"a killed recorder's file was kept as {self.kept} (`vmocap process --recover` reads it)"
+            self.get_logger().warning(msg)
+            self.warn_for("kept", msg, hold_s=30.0)
         # small chunks: on SIGKILL only the chunk being filled is lost (`--recover` reads the rest)
         self.writer = BagWriter(self.p["output"], compression=self.p["compression"], chunk_size=self.p["chunk_kb"] << 10).open()
         self.known = recorded_outputs(self.topics)
