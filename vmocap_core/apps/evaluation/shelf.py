@@ -38,22 +38,20 @@ FPS = 25.0  # Shelf's frame rate (approximately)
 STRIDE = 8  # OpenPose's output stride
 SIGMA_CELLS = 2.0  # Gaussian of a rendered candidate, in map cells (a wide basin for the lattice)
 
-# Tracker settings for Shelf (25 fps, people 3-6 m from the cameras).
+# Tracker settings for Shelf (25 fps, people 3-6 m from the cameras); the measurements behind
+# each choice are in docs/benchmarks.md.
 TRACKER_SETTINGS = {
     "fps": FPS,
     "lattice_k": 5,  # +-10 cm around the constant-velocity prediction
     "lattice_spacing": 0.02,
-    "coarse_to_fine": False,  # measured on Shelf: the full lattice is 0.5-1 PCP point better
+    "coarse_to_fine": False,  # the full lattice scores slightly better on Shelf
     "prediction": "constant_velocity",  # 25 fps: limbs move up to ~10 cm per frame
-    # The default speed-adaptive filter (measured: PCP 97.72 %, MPJPE 57.0 mm; the Butterworth
-    # tuned for Shelf before, second order at 10 Hz without lag compensation: 97.40 %, 57.3 mm).
     "init_frames": 3,
-    # Our peak refinement (peak_refinement.py) is off here: measured on Shelf, PCP 97.72 ->
-    # 97.44 %, MPJPE 57.0 -> 57.9 mm (radius 2 cells: 97.57 %); several people's peaks share
-    # the maps, so a view's window catches a neighbour's peak more often than on one person.
+    # Several people's peaks share the maps: a view's refinement window catches a neighbour's
+    # peak more often than on one person, so the lattice argmax is kept.
     "refine_markers": False,
-    # People walk in and out: output from the first agreeing frames counts more than exact link
-    # lengths (measured: 0.5 s of identification, PCP 97.40 -> 95.9 %, id 3 97.0 -> 91.2 %).
+    # People walk in and out: output from the first agreeing frames counts more than exact
+    # link lengths.
     "identify_seconds": 0.0,
     "init_max_reprojection_px": 15.0,
     "lost_frames": 8,
