@@ -66,4 +66,4 @@ fi
 
 # Compile the back end's numba kernels once into their on-disk cache (about 15 s), so the first
 # tracked frame of a node or a test does not wait for the compiler.
-.venv/bin/python -c "import numpy as np; from vmocap_core.method.tracker import SpatiotemporalFilter; from vmocap_core.pcm.synthetic import benchmark_rig; SpatiotemporalFilter(benchmark_rig(np.zeros(3)))"
+.venv/bin/python -c "import numpy as np; from vmocap_core.method.pipeline import Pipeline; from vmocap_core.pcm.synthetic import benchmark_rig; Pipeline(benchmark_rig(np.zeros(3)))"

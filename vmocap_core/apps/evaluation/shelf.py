@@ -3,7 +3,7 @@
 Per frame and view the BODY_25 candidates are grouped into 2D people with their part-affinity
 scores; 2D people are given to the person trackers whose projected skeleton they fit, the
 rest are associated across views (epipolar consistency + triangulation) to start new trackers.
-Each tracker is one `tracker.SpatiotemporalFilter` whose PCMs are rendered (a Gaussian per
+Each tracker is one `method.pipeline.Pipeline` whose PCMs are rendered (a Gaussian per
 candidate at OpenPose's stride 8, amplitude = candidate score) from its own person's
 candidates only. While a tracker initializes (the paper's II-C needs a few agreeing frames)
 its person is reported by triangulation of its own detections.
