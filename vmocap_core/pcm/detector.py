@@ -28,7 +28,7 @@ INPUT = 224
 STRIDES = (8, 16, 32, 32, 32)
 ANCHORS_PER_LAYER = 2
 CROP_SCALE = 1.25  # MediaPipe's ROI enlargement around 2 * |kp1 - kp0|
-TILE_FRACTION = 2.0 / 3.0  # tile side / shorter image side of the zoomed pass (detect_tiled)
+TILE_FRACTION = 2.0 / 3.0  # tile side / shorter image side of the zoomed pass (detect_zoomed)
 
 
 def ssd_anchors(size: int = INPUT, strides: Sequence[int] = STRIDES, per_layer: int = ANCHORS_PER_LAYER) -> np.ndarray:
@@ -159,13 +159,24 @@ class PoseDetector:
             out.append([Detection(float(scores[k, cand[i]]), boxes[i], img_pts[i, 2:]) for i in keep])
         return out
 
-    def detect_tiled(self, images: Sequence[np.ndarray], fraction: float = TILE_FRACTION) -> list[list[Detection]]:
-        """Like detect, from overlapping zoomed tiles of each image (see tiles), one batch, merged
-        per image by NMS. The whole image letterboxed to 224 px makes a person far from the
-        camera a few dozen pixels tall, where the detector misses them or places the hips tens
-        of pixels off; a tile of 2/3 of the image height doubles that (4:3 image: 6 tiles)."""
+    def detect_zoomed(self, images: Sequence[np.ndarray], near: Sequence[np.ndarray | None],
+                      fraction: float = TILE_FRACTION) -> list[list[Detection]]:
+        """A second, zoomed look, one batch: per image, square regions of side `fraction` of the
+        shorter image side, i.e. twice the whole-image pass's resolution on a 4:3 image. Where
+        `near[k]` (2,) is a point (a person found there by the whole-image pass) one region
+        centred on it (kept inside the image); where it is None overlapping tiles covering the
+        image (tiles: 6 on 4:3). Per image the detections merged by NMS, best first."""
         checked = [check_image(im, i) for i, im in enumerate(images)]
-        regions = [tiles(im.shape[1], im.shape[0], fraction) for im in checked]
+        regions = []
+        for im, p in zip(checked, near):
+            h, w = im.shape[:2]
+            if p is None:
+                regions.append(tiles(w, h, fraction))
+                continue
+            side = max(int(round(min(w, h) * fraction)), 1)
+            x0 = int(np.clip(np.round(p[0] - side / 2), 0, max(w - side, 0)))
+            y0 = int(np.clip(np.round(p[1] - side / 2), 0, max(h - side, 0)))
+            regions.append(np.array([[x0, y0, x0 + side, y0 + side]]))
         owner = np.repeat(np.arange(len(checked)), [len(r) for r in regions])
         dets = self.detect([checked[k] for k in owner], np.concatenate(regions)) if checked else []
         out: list[list[Detection]] = []

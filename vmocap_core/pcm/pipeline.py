@@ -82,12 +82,13 @@ class BlazePosePcm:
         for c, dets in zip(have, self.detector.detect([images[c] for c in have])):
             found[c] = dets
         # A person far from the camera is a few dozen pixels tall in the detector's 224 px input:
-        # missed, or found with the hips tens of pixels off (and then a loose crop). Where a view
-        # found nobody or only a person smaller than a tile, look again in zoomed tiles and keep
-        # the best of both passes (NMS by score).
-        small = [c for c in have if not found[c]
-                 or found[c][0].crop()[1] < ZOOM_BELOW * min(images[c].shape[:2])]
-        for c, dets in zip(small, self.detector.detect_tiled([images[c] for c in small])):
+        # missed, or found with the hips tens of pixels off (and then a loose crop). Look again
+        # at twice the resolution: in tiles over the image where a view found nobody, in one
+        # region around the person where it found only one smaller than that region (one extra
+        # run, not six: initialization stays cheap), and keep the best of both passes.
+        again = [c for c in have if not found[c] or found[c][0].crop()[1] < ZOOM_BELOW * min(images[c].shape[:2])]
+        near = [found[c][0].keypoints[0] if found[c] else None for c in again]
+        for c, dets in zip(again, self.detector.detect_zoomed([images[c] for c in again], near)):
             both = found[c] + dets
             if both:
                 keep = nms(np.array([d.box for d in both]), np.array([d.score for d in both]), self.detector.iou_threshold)
