@@ -154,6 +154,7 @@ def crops_from_skeleton(
     Projects with `rig.project` (lens distortion included); points behind a camera are ignored.
     rotation: (C,) per-camera trunk tilt (e.g. `tracker.trunk_tilt(rig, keypoints)`); default
     computed here from the projected pelvis -> neck vector; pass zeros for upright crops.
+    The side is at least BODY_FRACTION x margin x body_length imaged at the pelvis' depth.
     Returns centre (C, 2), side (C,), rotation (C,), usable (C,) bool (False: the body is not
     in front of the camera or its crop lies entirely outside the image).
     """
