@@ -11,7 +11,15 @@ from vmocap_core.errors import ModelError
 from vmocap_core.keypoints import INDEX, KEYPOINTS, LOWER_BODY
 from vmocap_core.method.rotation import trunk_tilt
 from vmocap_core.pcm.blazepose import CROP_TO_MAP, rotated_crops
-from vmocap_core.pcm.crops import Crops, compose_affine, crop_affine, crops_from_skeleton, tilt_from_points
+from vmocap_core.pcm.crops import (
+    BODY_FRACTION,
+    Crops,
+    body_length,
+    compose_affine,
+    crop_affine,
+    crops_from_skeleton,
+    tilt_from_points,
+)
 from vmocap_core.pcm.model import letterbox_affine
 from vmocap_core.pcm.views import PcmViews, apply_affine, invert_affine, stride_affine
 
@@ -125,6 +133,22 @@ def test_crops_from_skeleton_upright_inverted_and_behind() -> None:
     assert not ok_behind[2]  # above the top camera: behind it
     with pytest.raises(ModelError):
         crops_from_skeleton(rig, kp[:10])
+
+
+def test_crop_side_does_not_shrink_with_foreshortening() -> None:
+    """A body seen end-on (here a standing one from the ceiling camera; a person lying along a
+    camera's line of sight) gets a crop scaled by its pose-independent length, not by its tiny
+    2D extent (BlazePose lost the hips on getup_faceup with extent-fitted crops)."""
+    rig = _rig()
+    kp = _standing()
+    _, side, _, ok = crops_from_skeleton(rig, kp)
+    uv, _ = rig.project(kp)
+    extent = np.ptp(uv[2], axis=0).max()
+    assert body_length(kp) == pytest.approx(1.02 + 0.5 + 0.17)
+    least = BODY_FRACTION * 1.25 * body_length(kp) * 800 / (6.0 - 0.95)  # focal 800, pelvis 5.05 m below
+    assert ok[2] and side[2] == pytest.approx(least) and side[2] > 2 * 1.25 * extent
+    # the side views see the standing body at full length: the extent rules there (see above)
+    assert (side[:2] > least * 4.05 / 5.05).all()
 
 
 def test_rotated_crops_variants() -> None:

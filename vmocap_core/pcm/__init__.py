@@ -10,12 +10,13 @@ tracking; `precision="float"` or VMOCAP_PCM_PRECISION=float selects the float mo
 Public API (images are per camera, in rig order, uint8 BGR (H, W, 3) or mono (H, W)):
 - `pipeline.BlazePosePcm(rig, rotation="all", threads=2, margin=1.25, variant="full", precision=None)`
   `.infer(images, keypoints=None, tilt=None, stamp_ns=0, seed=None) -> PcmViews`: keypoints=None
-  runs the detector (initialization; seed (3,) picks the person nearest to it in every camera); keypoints (25, 3) = the current skeleton gives crops by projection
+  runs the detector (initialization, zoomed again where it finds nobody or a small person; seed (3,) picks the person nearest to it in every camera); keypoints (25, 3) = the current skeleton gives crops by projection
   (tracking, no detector); tilt (C,) overrides the trunk tilt (e.g. tracker.trunk_tilt).
 - `blazepose.BlazePoseLandmark(path=None, threads=2, variant="full", precision=None, input_size=None)`
   (input_size or VMOCAP_PCM_INPUT: 256 default, 224/192/160 cheaper and less accurate, budget.py), `openpose.OpenPoseModel(path=None,
   OpenPoseConfig(...), threads=2)`: both `PcmModel`s, `.infer(images, crops_or_views=None, stamp_ns)`.
-- `detector.PoseDetector(threads=2).detect(images) -> list[list[Detection]]`, `Detection.crop()`.
+- `detector.PoseDetector(threads=2).detect(images, regions=None) -> list[list[Detection]]`, `Detection.crop()`;
+  `.detect_zoomed(images, near)`: the second look at twice the resolution (tiles, or one region around `near`).
 - `crops.Crops`, `crops.crops_from_skeleton(rig, keypoints, rotation=None, margin=1.25)`,
   `blazepose.rotated_crops(camera, centre, side, tilt, mode)` (paper III-B variants).
 - `peaks.camera_keypoints(pcm_views, n_cameras) -> (uv (C, 25, 2), weights (C, 25))` for triangulation.

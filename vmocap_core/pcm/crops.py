@@ -126,6 +126,23 @@ def crops_from_keypoints_2d(
     return center, side, rot
 
 
+# Least crop side / (margin x body_length at the pelvis' depth): below the extent of a standing
+# person (whose crops stay as they were), above that of a body foreshortened in the view.
+BODY_FRACTION = 0.8
+
+
+def body_length(keypoints: np.ndarray) -> float:
+    """A pose-independent length of a skeleton (25, 3): mean leg (hip-knee-ankle) + pelvis-neck +
+    neck-nose, metres (NaN when a part is missing)."""
+    kp = np.asarray(keypoints, dtype=np.float64)
+
+    def d(a: str, b: str) -> float:
+        return float(np.linalg.norm(kp[INDEX[a]] - kp[INDEX[b]]))
+
+    leg = np.nanmean([d(f"{s}_hip", f"{s}_knee") + d(f"{s}_knee", f"{s}_ankle") for s in ("left", "right")])
+    return float(leg + d("pelvis", "neck") + d("neck", "nose"))
+
+
 def crops_from_skeleton(
     rig: Rig,
     keypoints: np.ndarray,
@@ -137,6 +154,7 @@ def crops_from_skeleton(
     Projects with `rig.project` (lens distortion included); points behind a camera are ignored.
     rotation: (C,) per-camera trunk tilt (e.g. `tracker.trunk_tilt(rig, keypoints)`); default
     computed here from the projected pelvis -> neck vector; pass zeros for upright crops.
+    The side is at least BODY_FRACTION x margin x body_length imaged at the pelvis' depth.
     Returns centre (C, 2), side (C,), rotation (C,), usable (C,) bool (False: the body is not
     in front of the camera or its crop lies entirely outside the image).
     """
@@ -146,6 +164,17 @@ def crops_from_skeleton(
     uv, front = rig.project(kp)  # (C, 25, 2), (C, 25)
     uv = np.where(front[..., None] & np.isfinite(kp).all(axis=1)[None, :, None], uv, np.nan)  # type: ignore[index]  # numpy stub: all(axis=1) is an array
     center, side, rot = crops_from_keypoints_2d(uv, rotation, margin)
+    # The 2D extent shrinks with the pose (lying along a camera's line of sight, crouching), but
+    # BlazePose expects the person at a pose-independent scale (MediaPipe's crop: 2.5 x hips to
+    # head-top): a crop fitted to a foreshortened body was half the detector's, and the hips came
+    # out 20-70 px off with presence ~0. So the side is at least BODY_FRACTION x `margin` x the
+    # body's length (legs + trunk + neck to nose, pose-independent) imaged at the pelvis' depth.
+    size = body_length(kp)
+    depth = rig.to_camera_frames(kp[INDEX["pelvis"]][None])[:, 0, 2]  # (C,)
+    focal = np.array([c.K[0, 0] for c in rig.cameras])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        least = np.where((depth > 0) & np.isfinite(size), BODY_FRACTION * margin * size * focal / depth, 0.0)
+    side = np.where(np.isfinite(side), np.maximum(side, least), side)
     wh = np.array([[c.width, c.height] for c in rig.cameras], dtype=np.float64)
     half = np.where(np.isfinite(side), side, 0.0)[:, None] * 0.7072  # circumradius of the square
     overlaps = np.all((center + half > 0) & (center - half < wh), axis=1)

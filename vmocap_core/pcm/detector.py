@@ -28,6 +28,7 @@ INPUT = 224
 STRIDES = (8, 16, 32, 32, 32)
 ANCHORS_PER_LAYER = 2
 CROP_SCALE = 1.25  # MediaPipe's ROI enlargement around 2 * |kp1 - kp0|
+TILE_FRACTION = 2.0 / 3.0  # tile side / shorter image side of the zoomed pass (detect_zoomed)
 
 
 def ssd_anchors(size: int = INPUT, strides: Sequence[int] = STRIDES, per_layer: int = ANCHORS_PER_LAYER) -> np.ndarray:
@@ -82,6 +83,22 @@ def nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarr
     return np.array(keep, dtype=np.intp)
 
 
+def tiles(width: int, height: int, fraction: float = TILE_FRACTION) -> np.ndarray:
+    """(K, 4) square tiles x0, y0, x1, y1 covering a width x height image, side `fraction` of
+    the shorter image side, overlapping by half a tile (a person up to half a tile tall lies
+    wholly inside one of them)."""
+    side = max(int(round(min(width, height) * fraction)), 1)
+    step = side / 2
+
+    def starts(extent: int) -> np.ndarray:
+        n = int(np.ceil(max(extent - side, 0) / step)) + 1
+        return np.round(np.linspace(0, max(extent - side, 0), n)).astype(np.int64)
+
+    y0, x0 = np.meshgrid(starts(height), starts(width), indexing="ij")
+    x0, y0 = x0.ravel(), y0.ravel()
+    return np.stack([x0, y0, x0 + side, y0 + side], axis=1)
+
+
 class PoseDetector:
     """pose_detection.onnx: `detect(images)` -> per image, detections sorted by score."""
 
@@ -94,12 +111,17 @@ class PoseDetector:
         self.iou_threshold = float(iou_threshold)
         self.anchors = ssd_anchors()
 
-    def sample(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Letterboxed (N, 224, 224, 3) uint8 BGR batch and the (N, 2, 3) image -> input affines."""
+    def sample(self, images: Sequence[np.ndarray], regions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Letterboxed (N, 224, 224, 3) uint8 BGR batch and the (N, 2, 3) image -> input affines.
+        regions (N, 4) integer x0, y0, x1, y1: the part of each image letterboxed (default: all)."""
         import cv2
 
         checked = [check_image(im, i) for i, im in enumerate(images)]
-        A = np.array([letterbox_affine(im.shape[1], im.shape[0], INPUT, INPUT) for im in checked])
+        if regions is None:
+            regions = np.array([[0, 0, im.shape[1], im.shape[0]] for im in checked])
+        regions = np.asarray(regions, dtype=np.int64).reshape(len(checked), 4)
+        A = np.array([letterbox_affine(int(x1 - x0), int(y1 - y0), INPUT, INPUT) for x0, y0, x1, y1 in regions])
+        A[:, :, 2] -= np.einsum("nij,nj->ni", A[:, :, :2], regions[:, :2].astype(np.float64))  # region origin
         batch = np.empty((len(checked), INPUT, INPUT, 3), dtype=np.uint8)
         for k, im in enumerate(checked):
             cv2.warpAffine(im, A[k], (INPUT, INPUT), dst=batch[k], flags=cv2.INTER_LINEAR,
@@ -111,11 +133,12 @@ class PoseDetector:
         batch, A = self.sample(images)
         return np.ascontiguousarray(batch[..., ::-1].astype(np.float32) * np.float32(2.0 / 255.0) - np.float32(1.0)), A
 
-    def detect(self, images: Sequence[np.ndarray]) -> list[list[Detection]]:
-        """Per image (H, W, 3) uint8 BGR / (H, W) mono: people found, best first (maybe none)."""
+    def detect(self, images: Sequence[np.ndarray], regions: np.ndarray | None = None) -> list[list[Detection]]:
+        """Per image (H, W, 3) uint8 BGR / (H, W) mono: people found, best first (maybe none).
+        regions (N, 4): look only in this part of each image (x0, y0, x1, y1; see sample)."""
         if len(images) == 0:
             return []
-        x, A = self.sample(images)
+        x, A = self.sample(images, regions)
         raw, logits = self.runner.run(["Identity", "Identity_1"], x)
         if raw.shape[1:] != (len(self.anchors), 12):
             raise ModelError(f"{self.path}: output shape {raw.shape}, expected (N, {len(self.anchors)}, 12)")
@@ -134,4 +157,33 @@ class PoseDetector:
             boxes = img_pts[:, :2].reshape(-1, 4)
             keep = nms(boxes, scores[k, cand], self.iou_threshold) if cand.size else np.empty(0, np.intp)
             out.append([Detection(float(scores[k, cand[i]]), boxes[i], img_pts[i, 2:]) for i in keep])
+        return out
+
+    def detect_zoomed(self, images: Sequence[np.ndarray], near: Sequence[np.ndarray | None],
+                      fraction: float = TILE_FRACTION) -> list[list[Detection]]:
+        """A second, zoomed look, one batch: per image, square regions of side `fraction` of the
+        shorter image side, i.e. twice the whole-image pass's resolution on a 4:3 image. Where
+        `near[k]` (2,) is a point (a person found there by the whole-image pass) one region
+        centred on it (kept inside the image); where it is None overlapping tiles covering the
+        image (tiles: 6 on 4:3). Per image the detections merged by NMS, best first."""
+        checked = [check_image(im, i) for i, im in enumerate(images)]
+        regions = []
+        for im, p in zip(checked, near):
+            h, w = im.shape[:2]
+            if p is None:
+                regions.append(tiles(w, h, fraction))
+                continue
+            side = max(int(round(min(w, h) * fraction)), 1)
+            x0 = int(np.clip(np.round(p[0] - side / 2), 0, max(w - side, 0)))
+            y0 = int(np.clip(np.round(p[1] - side / 2), 0, max(h - side, 0)))
+            regions.append(np.array([[x0, y0, x0 + side, y0 + side]]))
+        owner = np.repeat(np.arange(len(checked)), [len(r) for r in regions])
+        dets = self.detect([checked[k] for k in owner], np.concatenate(regions)) if checked else []
+        out: list[list[Detection]] = []
+        for k in range(len(checked)):
+            found = [d for i in np.flatnonzero(owner == k) for d in dets[i]]
+            if found:
+                found = [found[i] for i in nms(np.array([d.box for d in found]), np.array([d.score for d in found]),
+                                                self.iou_threshold)]
+            out.append(found)
         return out

@@ -1,8 +1,8 @@
 """One call per frame set: images (+ the current skeleton) -> PcmViews, the BlazePose way.
 
-Initialization (no skeleton): the detector runs on every image and the best person per camera
-gives MediaPipe's crop. Tracking: crops come from the skeleton projected into each camera,
-rotated by the trunk tilt (paper III-B, `rotation` mode), and the detector is not run.
+Initialization (no skeleton): the detector runs on every image (again on zoomed tiles where it
+finds nobody or only a small person) and the best person per camera gives MediaPipe's crop.
+Tracking: crops come from the skeleton projected into each camera, rotated by the trunk tilt (paper III-B, `rotation` mode), and the detector is not run.
 Cameras where the body is not visible (or the detector finds nobody) get no view; when no
 camera has one, the result has zero views (MarkerStage sees "nothing observed").
 """
@@ -19,10 +19,12 @@ from ..errors import ModelError
 from ..keypoints import KEYPOINTS
 from .blazepose import DEFAULT_ROTATION, MIN_TILT, BlazePoseLandmark, rotated_crops
 from .crops import Crops, crops_from_skeleton
-from .detector import PoseDetector
+from .detector import TILE_FRACTION, PoseDetector, nms
 from .model import DEFAULT_THREADS
 from .runner import DEFAULT_PARALLEL
 from .views import PcmViews
+
+ZOOM_BELOW = TILE_FRACTION  # detector crop side / shorter image side below which the tiles run too
 
 
 class BlazePosePcm:
@@ -79,6 +81,18 @@ class BlazePosePcm:
         found: list[list] = [[] for _ in images]
         for c, dets in zip(have, self.detector.detect([images[c] for c in have])):
             found[c] = dets
+        # A person far from the camera is a few dozen pixels tall in the detector's 224 px input:
+        # missed, or found with the hips tens of pixels off (and then a loose crop). Look again
+        # at twice the resolution: in tiles over the image where a view found nobody, in one
+        # region around the person where it found only one smaller than that region (one extra
+        # run, not six: initialization stays cheap), and keep the best of both passes.
+        again = [c for c in have if not found[c] or found[c][0].crop()[1] < ZOOM_BELOW * min(images[c].shape[:2])]
+        near = [found[c][0].keypoints[0] if found[c] else None for c in again]
+        for c, dets in zip(again, self.detector.detect_zoomed([images[c] for c in again], near)):
+            both = found[c] + dets
+            if both:
+                keep = nms(np.array([d.box for d in both]), np.array([d.score for d in both]), self.detector.iou_threshold)
+                found[c] = [both[i] for i in keep]
         if seed is not None:
             hip, front = self.rig.project(np.asarray(seed, dtype=np.float64).reshape(3))  # (C, 2), (C,)
             for c, dets in enumerate(found):
