@@ -70,6 +70,34 @@ def test_identification_phase_improves_link_lengths():
     assert err[0.5] < 0.7 * err[0.0], err
 
 
+def test_identification_lasts_the_same_capture_time_when_frame_sets_are_skipped():
+    """A graph that falls behind processes every other frame set: the identification phase
+    still ends after identify_seconds of capture time (not after twice as long), with the
+    link-length accuracy as at the full rate."""
+    from vmocap_core.keypoints import INDEX
+    from vmocap_core.method.skeleton import BONES
+
+    m = punch()
+    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
+    src = SyntheticPcmSource(rig, m.positions[:120], m.present, seed=3, fps=60.0)
+    bones = [(a, b) for a, b in BONES.values() if m.present[INDEX[a]] and m.present[INDEX[b]]]
+    first, lengths = {}, {}
+    for step in (1, 2):
+        tracker = Pipeline(rig, PipelineConfig.of(fps=60.0, identify_seconds=0.5))
+        for t in range(0, 120, step):
+            r = tracker.step(src.render(t, tracker.tilt())).skeleton
+            if r.status == "identifying" and step not in first:
+                first[step] = t
+            if r.status == "tracking":
+                lengths[step] = np.array([np.linalg.norm(r.keypoints[INDEX[a]] - r.keypoints[INDEX[b]]) for a, b in bones])
+                assert 29 <= t - first[step] < 29 + step, (step, first[step], t)  # 0.5 s at 60 Hz
+                break
+    true = np.array([np.median(np.linalg.norm(m.positions[:, INDEX[a]] - m.positions[:, INDEX[b]], axis=-1))
+                     for a, b in bones])
+    err = {step: np.abs(v - true).mean() for step, v in lengths.items()}
+    assert err[2] < 0.015 and err[1] < 0.015, err
+
+
 def test_keypoint_seen_by_one_camera_gets_weight_zero():
     m = punch()
     rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))

@@ -35,6 +35,7 @@ class SkeletonStage:
         self.skeleton: Skeleton | None = None
         self._buffer: deque[np.ndarray] = deque(maxlen=self.config.init_frames)
         self._identify: list[np.ndarray] | None = None  # markers of the identification phase
+        self._identify_start_ns = 0  # capture stamp of its first frame set
         self._q_raw: np.ndarray | None = None
         self._q_out: np.ndarray | None = None
         self._filter = make_filter(self.config)
@@ -161,16 +162,20 @@ class SkeletonStage:
         self._q_raw = fit.q.copy()
         if cfg.identify_frames > 0:
             self._identify = []
+            self._identify_start_ns = markers.stamp_ns
             return self._identifying(markers, fit.keypoints)
         return self._start_tracking(markers, sk, fit)
 
     def _identifying(self, markers: Markers, raw: np.ndarray) -> TrackResult:
-        """Identification phase: collect the virtual markers; once there are enough, identify
-        the skeleton on all of them and start tracking (the provisional one stays otherwise)."""
+        """Identification phase: collect the virtual markers for identify_seconds of capture
+        time (identify_frames at the nominal rate; fewer when frame sets are skipped, so a graph
+        that falls behind starts its output as late as one that keeps up), then identify the
+        skeleton on all of them and start tracking (the provisional one stays otherwise)."""
         cfg = self.config
         assert self._identify is not None  # started by the first fit
         self._identify.append(np.where((markers.weights > 0)[:, None], markers.positions, np.nan))
-        if len(self._identify) >= cfg.identify_frames:
+        span_frames = (markers.stamp_ns - self._identify_start_ns) * 1e-9 * cfg.fps + 1
+        if len(self._identify) >= cfg.identify_frames or span_frames >= cfg.identify_frames - 0.5:
             frames = np.array(self._identify)
             self._identify = None
             fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, self._q_raw)
