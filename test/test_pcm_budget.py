@@ -29,9 +29,10 @@ def crops() -> np.ndarray:
 
 
 def _run(crops: np.ndarray, precision: str, **kw) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    name = "pose_landmark_full" + ("_int8" if precision == "int8" else "")
-    if precision == "int8":  # the kernels the self-check found correct on this CPU
-        kw.setdefault("session_config", selfcheck.verdict("full").session_config)
+    check = selfcheck.verdict("full")
+    name = "pose_landmark_full" + (check.int8_build if precision == "int8" else "")
+    if precision == "int8":  # the build and kernels the self-check found correct on this CPU
+        kw.setdefault("session_config", check.session_config)
     m = BlazePoseLandmark(fetch.model_path(name), threads=1, precision=precision, **kw)
     side = m.input_size[0]
     x = crops if side == crops.shape[1] else np.stack([cv2.resize(c, (side, side), interpolation=cv2.INTER_AREA) for c in crops])

@@ -19,9 +19,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from onnx import numpy_helper
 
 from vmocap_core.errors import ModelError
-from vmocap_core.pcm import fetch, int8_equalize, int8_prepare, quantize
+from vmocap_core.pcm import fetch, int8_equalize, int8_prepare, quantize, selfcheck
 from vmocap_core.pcm.blazepose import BlazePoseLandmark, resolve_precision
 from vmocap_core.pcm.crops import Crops
 from vmocap_core.pcm.detector import PoseDetector
@@ -62,9 +63,16 @@ def test_default_precision_and_override(monkeypatch) -> None:
         resolve_precision("full", "int4")
 
 
-def test_int8_heatmaps_match_float_on_real_images(models, images) -> None:
-    det, flt, q = models
-    assert flt.path.name == "pose_landmark_full.onnx" and q.path.name == "pose_landmark_full_int8.onnx"
+@pytest.mark.parametrize("build", ["_int8", "_int8w7"])
+def test_int8_heatmaps_match_float_on_real_images(models, images, build: str) -> None:
+    """Both int8 builds on kernels that compute them exactly on every x86 CPU: the 8-bit one on
+    the native kernels where the self-check passed them, else on uint8 x uint8; the 7-bit one on
+    the native kernels (no saturation with 7-bit weights)."""
+    det, flt, _ = models
+    check = selfcheck.verdict("full")
+    config = {} if build == "_int8w7" or check.int8_kernels == "u8s8" else selfcheck.INT8_KERNELS["u8u8"][1]
+    q = BlazePoseLandmark(fetch.model_path(f"pose_landmark_full{build}"), precision="int8", session_config=config)
+    assert flt.path.name == "pose_landmark_full.onnx"
     found = det.detect(images)
     cams, rects = [], []
     for c, dets in enumerate(found):
@@ -91,11 +99,23 @@ def test_int8_heatmaps_match_float_on_real_images(models, images) -> None:
     assert np.array_equal(a.valid, b.valid), "the same views and keypoints are usable"
 
 
-def test_int8_build_is_deterministic(models, tmp_path: Path) -> None:
-    _, flt, q = models
-    quantize.build(flt.path, tmp_path / "again.onnx")
+@pytest.mark.parametrize("name", sorted(fetch.INT8))
+def test_int8_build_is_deterministic(models, tmp_path: Path, name: str) -> None:
+    _, flt, _ = models
+    source, bits = fetch.INT8[name]
+    quantize.build(flt.path.with_name(f"{source}.onnx"), tmp_path / "again.onnx", weight_bits=bits)
     digest = lambda p: hashlib.sha256(Path(p).read_bytes()).hexdigest()  # noqa: E731
-    assert digest(tmp_path / "again.onnx") == digest(q.path)
+    assert digest(tmp_path / "again.onnx") == digest(fetch.model_path(name))
+
+
+def test_seven_bit_weights_stay_on_their_grid(models) -> None:
+    """The 7-bit build's quantized weights lie within +-64, so a uint8 x int8 pair sum stays in 16 bits."""
+    import onnx
+
+    m = onnx.load(str(fetch.model_path("pose_landmark_full_int8w7")))
+    w = [numpy_helper.to_array(t) for t in m.graph.initializer if t.data_type == onnx.TensorProto.INT8]
+    assert len(w) > 40 and max(int(np.abs(a.astype(np.int16)).max()) for a in w) <= 64
+    assert 2 * 255 * 64 < 2**15 - 1
 
 
 def test_build_refuses_a_calibration_for_another_model(models, tmp_path: Path) -> None:

