@@ -18,19 +18,19 @@ import pytest
 import yaml
 from graph_helpers import REPO, domain_env, synthetic_bag, vmocap, write_config
 
-FAULTS = ["truncated_bag", "corrupted_bag", "person_leaves"]
+FAULTS = ["truncated_bag", "corrupted_bag", "person_leaves", "heatmaps_nan"]
 
 
 def test_bench_faults_subset_survived_and_diagnosed(tmp_path: Path) -> None:
     env = domain_env(41)
     run = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "bench", "faults", "--json", "--modes", "default",
                           "--only", *FAULTS, "--workdir", str(tmp_path)], env=env, cwd=REPO,
-                         capture_output=True, text=True, timeout=180)
+                         capture_output=True, text=True, timeout=240)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     out = json.loads(run.stdout.strip().splitlines()[-1])
     names = set(out["faults"])
     assert names == {"truncated_bag:process", "truncated_bag:play", "corrupted_bag:process", "corrupted_bag:play",
-                     "person_leaves:default"}, names
+                     "person_leaves:default", "heatmaps_nan:default"}, names
     assert out["tried"] == len(names)
     assert out["survived"] == sum(r["survived"] for r in out["faults"].values())
     for name, r in out["faults"].items():

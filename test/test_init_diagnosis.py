@@ -150,3 +150,22 @@ def test_corrupted_heatmaps_are_counted_per_camera() -> None:
     clean = PcmViews(maps=np.clip(np.nan_to_num(maps), 0, 1), image_to_map=np.zeros((2, 2, 3)), camera=np.array([0, 3]),
                      keypoints=np.arange(3), valid=valid, presence=np.ones(2), stamp_ns=0)
     assert clean.corrupted() == {}
+
+
+def test_blind_camera_is_the_one_without_any_heatmap_while_others_see() -> None:
+    from vmocap_core.method.camera_check import blind_cameras
+    from vmocap_core.pcm.views import PcmViews
+
+    V, J = 5, 3  # cameras 0, 1, 2 (camera 2 has two views)
+    camera = np.array([0, 1, 2, 2, 3])
+    valid = np.ones((V, J), bool)
+
+    def views(valid: np.ndarray) -> PcmViews:
+        return PcmViews(np.zeros((V, J, 4, 4)), np.zeros((V, 2, 3)), camera, np.arange(J), valid, np.ones(V))
+
+    assert blind_cameras(views(valid)) == set()
+    valid[1] = False  # camera 1: every channel absent (NaN heatmaps, or a covered lens)
+    valid[2] = False  # camera 2: one of its two views still sees
+    valid[4, 1:] = False  # camera 3: one keypoint is enough
+    assert blind_cameras(views(valid)) == {1}
+    assert blind_cameras(views(np.zeros((V, J), bool))) == set()  # nobody anywhere: the person left, not a camera

@@ -73,6 +73,17 @@ UNIFORM_STD = 2.0  # grey levels: a sampled image flatter than this shows nothin
 SAMPLE_STEP = 16  # every 16th pixel of every 16th row: ~0.1 ms on a 1920x1080 image
 
 
+def blind_cameras(pcm: PcmViews) -> set[int]:
+    """Camera indices whose views in this frame set carry no usable heatmap channel (all absent:
+    the PCM message's "no information", or dropped as invalid) while another camera's views carry
+    some. One such frame set is normal (a person at the image edge); a camera that stays blind
+    while the others track is covered, turned away, or its CNN is failing."""
+    cam = np.asarray(pcm.camera, dtype=np.intp)
+    seeing = np.asarray(pcm.valid, bool).any(axis=1) if cam.size else np.zeros(0, bool)
+    seen_by = {int(c) for c in cam[seeing]}
+    return {int(c) for c in np.unique(cam)} - seen_by if seen_by else set()
+
+
 def image_problem(image: np.ndarray, width: int, height: int) -> str:
     """Why a camera image cannot go to the CNN ("" when it can): a size other than the one the
     rig was calibrated at (the CNN's crops and the rays would be computed with the wrong

@@ -11,7 +11,7 @@ import numpy as np
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.errors import VmocapError
-from vmocap_core.method.camera_check import OddCamera, camera_residuals
+from vmocap_core.method.camera_check import OddCamera, blind_cameras, camera_residuals
 from vmocap_core.method.markers import MarkerStage
 from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO, markers_message
 from vmocap_core.pcm.assembly import PcmAssembler, channel_keypoints
@@ -20,7 +20,8 @@ from ..transport import Transport
 from .base import InitWatch, VmocapNode
 
 CAMERA_CHECK_EVERY = 10  # frame sets between per-camera residual and heatmap checks (~0.3 ms each)
-HEATMAP_WARN_S = 5.0  # a corrupted-heatmap WARN stays this long after the last corrupted frame set
+HEATMAP_WARN_S = 5.0  # a corrupted-heatmap or blind-camera WARN stays this long after the last observation
+BLIND_WARN_S = 1.0  # a camera without any heatmap this long while the others track: WARN
 
 
 class MarkersNode(VmocapNode):
@@ -46,6 +47,8 @@ class MarkersNode(VmocapNode):
         self.presence: dict[str, float] = {}  # CNN presence per camera, last triangulated frame set
         self.cameras = OddCamera()  # per-camera reprojection residuals while tracking
         self._heatmaps_bad_at = float("-inf")
+        self._blind_since: dict[int, float] = {}  # camera index -> when it was first seen blind while tracking
+        self._blind_warned_at = float("-inf")
         # markers and feedback are transient-local: a frame processed before the other node's
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
         self.pub = self.publisher(CLOUD, self.topics.markers, depth=p["queue_depth"], latched=True)
@@ -82,6 +85,7 @@ class MarkersNode(VmocapNode):
                 self._check_heatmaps(pcm)
                 if markers.kind == "lattice":
                     self._check_cameras(pcm, markers.positions)
+                self._check_blind(pcm, markers.kind == "lattice")
 
     def _check_heatmaps(self, pcm: Any) -> None:
         """WARN (for HEATMAP_WARN_S) when heatmaps arrive with values the lattice search has to
@@ -94,6 +98,22 @@ class MarkersNode(VmocapNode):
             self._heatmaps_bad_at = now
         elif now - self._heatmaps_bad_at > HEATMAP_WARN_S:
             self.problems.pop("heatmaps", None)
+
+    def _check_blind(self, pcm: Any, tracking: bool) -> None:
+        """WARN naming a camera that has given no heatmap for BLIND_WARN_S while the others
+        track the person (a covered or turned camera, or a CNN failing for it, which the
+        tracker otherwise survives silently on the remaining views)."""
+        now = time.monotonic()
+        blind = blind_cameras(pcm) if tracking else set()
+        self._blind_since = {c: self._blind_since.get(c, now) for c in blind}
+        long_blind = sorted(c for c, t in self._blind_since.items() if now - t >= BLIND_WARN_S)
+        if long_blind:
+            names = ", ".join(f"{self.rig[c].name} ({now - self._blind_since[c]:.1f} s)" for c in long_blind)
+            self.problems["blind"] = (f"no heatmap from {names} while the other cameras track the person: covered, "
+                                      "turned away, or its CNN failing")
+            self._blind_warned_at = now
+        elif now - self._blind_warned_at > HEATMAP_WARN_S:
+            self.problems.pop("blind", None)
 
     def _check_cameras(self, pcm: Any, positions: np.ndarray) -> None:
         """After the markers went out: per-camera residuals, and a WARN naming a camera that
