@@ -102,6 +102,11 @@ def damage(src: Path, dst: Path, how: str, at: float = 0.6, seed: int = 0) -> Pa
     return dst
 
 
+def launch_mode(mode: str) -> str:
+    """The vmocap_launch mode of a benchmark mode ("default": the shipped process groups)."""
+    return "processes" if mode == "default" else mode
+
+
 def write_config(path: Path, rig_path: Path, kps: list[str], nodes: list[str], mode: str, output: Path,
                  groups: list[list[str]] | None = None, extra: dict | None = None, launch: dict | None = None) -> Path:
     cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())

@@ -84,6 +84,21 @@ def blind_cameras(pcm: PcmViews) -> set[int]:
     return {int(c) for c in np.unique(cam)} - seen_by if seen_by else set()
 
 
+class BlindCameras:
+    """How long each camera has been blind (blind_cameras) while the subject is tracked."""
+
+    def __init__(self, warn_after_s: float = 1.0) -> None:
+        self.warn_after_s = warn_after_s
+        self.since: dict[int, float] = {}  # camera index -> time it was first seen blind
+
+    def update(self, pcm: PcmViews, tracking: bool, now: float) -> dict[int, float]:
+        """Camera index -> seconds blind, for the cameras blind for at least warn_after_s (a
+        camera that sees again, or a frame set without tracking, resets its clock)."""
+        blind = blind_cameras(pcm) if tracking else set()
+        self.since = {c: self.since.get(c, now) for c in blind}
+        return {c: now - t for c, t in sorted(self.since.items()) if now - t >= self.warn_after_s}
+
+
 def image_problem(image: np.ndarray, width: int, height: int) -> str:
     """Why a camera image cannot go to the CNN ("" when it can): a size other than the one the
     rig was calibrated at (the CNN's crops and the rays would be computed with the wrong

@@ -11,7 +11,7 @@ import numpy as np
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.errors import VmocapError
-from vmocap_core.method.camera_check import OddCamera, blind_cameras, camera_residuals
+from vmocap_core.method.camera_check import BlindCameras, OddCamera, camera_residuals
 from vmocap_core.method.markers import MarkerStage
 from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO, markers_message
 from vmocap_core.pcm.assembly import PcmAssembler, channel_keypoints
@@ -47,7 +47,7 @@ class MarkersNode(VmocapNode):
         self.presence: dict[str, float] = {}  # CNN presence per camera, last triangulated frame set
         self.cameras = OddCamera()  # per-camera reprojection residuals while tracking
         self._heatmaps_bad_at = float("-inf")
-        self._blind_since: dict[int, float] = {}  # camera index -> when it was first seen blind while tracking
+        self.blind = BlindCameras(BLIND_WARN_S)  # cameras without any heatmap while tracking
         self._blind_warned_at = float("-inf")
         # markers and feedback are transient-local: a frame processed before the other node's
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
@@ -104,11 +104,9 @@ class MarkersNode(VmocapNode):
         track the person (a covered or turned camera, or a CNN failing for it, which the
         tracker otherwise survives silently on the remaining views)."""
         now = time.monotonic()
-        blind = blind_cameras(pcm) if tracking else set()
-        self._blind_since = {c: self._blind_since.get(c, now) for c in blind}
-        long_blind = sorted(c for c, t in self._blind_since.items() if now - t >= BLIND_WARN_S)
+        long_blind = self.blind.update(pcm, tracking, now)
         if long_blind:
-            names = ", ".join(f"{self.rig[c].name} ({now - self._blind_since[c]:.1f} s)" for c in long_blind)
+            names = ", ".join(f"{self.rig[c].name} ({s:.1f} s)" for c, s in long_blind.items())
             self.problems["blind"] = (f"no heatmap from {names} while the other cameras track the person: covered, "
                                       "turned away, or its CNN failing")
             self._blind_warned_at = now
