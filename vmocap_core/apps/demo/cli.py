@@ -29,7 +29,7 @@ import numpy as np
 from ...paths import REPO
 from .data import _count_frame_sets, _video_frames, load_qualisys_rig, log, video_paths, video_sizes, videos_to_bag
 from .report import render_overlays, write_report
-from .runs import TRACKER_SETTINGS, recording_from_graph, run_graph, run_pipeline
+from .runs import TRACKER_SETTINGS, live_rate, recording_from_graph, run_graph, run_pipeline
 
 
 # ------------------------------------------------------------------------------ CLI
@@ -43,7 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mode", choices=("graph", "in-process"), default="graph",
                         help="graph: the ROS 2 node graph (vmocap launch) playing the bag (default); "
                              "in-process: the same stages in this process on the compressed bag (no DDS, faster)")
-    parser.add_argument("--graph-rate", type=float, default=0.05, help="bag playback rate in graph mode (x real time)")
+    parser.add_argument("--graph-rate", type=float, default=None,
+                        help="bag playback rate in graph mode (x real time); default 1 (live speed) where the CPU's "
+                             "measured CNN time allows it, else slower (the report says which)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
@@ -73,10 +75,12 @@ def run(args: argparse.Namespace) -> int:
         log(f"{n} frame sets -> {args.bag}")
     t0 = time.perf_counter()
     if args.mode == "graph":
-        log(f"node graph on {args.bag} at {args.graph_rate} x real time")
-        recorded = run_graph(args.bag, args.out / "rig.yaml", rig, args.out, n, args.graph_rate)
+        rate, why = (args.graph_rate, "--graph-rate") if args.graph_rate else live_rate(args.threads)
+        log(f"node graph on {args.bag} at {rate} x real time ({why})")
+        recorded = run_graph(args.bag, args.out / "rig.yaml", rig, args.out, n, rate)
         rec = recording_from_graph(recorded, rig, n)
-        mode = "ROS 2 node graph (vmocap launch: camera from bag, CNN PCM, markers, skeleton, recorder)"
+        mode = (f"ROS 2 node graph (vmocap launch: camera, CNN PCM, markers, skeleton in one process, recorder apart), "
+                f"bag played at {rate} x real time ({why})")
     else:
         rec = run_pipeline(args.bag, rig, args.out / "outputs.mcap", n, args.threads)
         mode = "in-process pipeline (the graph's stage classes, no DDS)"

@@ -73,13 +73,34 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
 
 
 # ------------------------------------------------------------------------------ node graph
+# Share of the 60 Hz frame period the CNN may take for the demo to play at live speed: the rest
+# goes to decoding four 1088x1920 JPEGs, the tracker and the transport on the same cores.
+CNN_SHARE = 0.5
+
+
+def live_rate(threads: int = 2, views: int = 4) -> tuple[float, str]:
+    """The demo's playback rate on this CPU: 1 (live speed) when the self-check's CNN time for a
+    frame set (`views` crops on `threads` threads) fits in CNN_SHARE of the frame period, else
+    slowed in proportion, so that a slow CPU reports accuracy, not dropped frame sets."""
+    from ...pcm import selfcheck
+
+    check = selfcheck.verdict("full")
+    ms = views * check.ms_per_crop[check.precision] / max(threads, 1)
+    rate = min(1.0, CNN_SHARE * 1e3 / FPS / ms)
+    return round(rate, 2), f"CNN {ms:.1f} ms per {views}-view frame set ({check.precision}, {threads} threads)"
+
+
+HOT_PATH = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]  # one process, as config/graph.yaml
+
+
 def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int, rate: float = 0.05) -> Path:
     """The ROS 2 node graph (camera from the bag: JPEG CompressedImage decoded in the camera
-    node, or raw Image; CNN PCM node, markers, skeleton, recorder) as `vmocap launch`
-    processes; returns the recorded MCAP (outputs + PCMs).
+    node, or raw Image; CNN PCM node, markers, skeleton, recorder) as `vmocap launch` runs it
+    by default: camera, CNN and tracker in one process (images never cross a process), the
+    recorder apart; returns the recorded MCAP (outputs + PCMs).
 
-    The bag is played at `rate` x real time so the CNN on this CPU keeps up (frames the PCM
-    node cannot take are dropped by design: freshness over completeness)."""
+    The bag is played at `rate` x real time (1 = live speed; frames the PCM node cannot take
+    are dropped by design: freshness over completeness)."""
     import os
     import signal
     import subprocess
@@ -107,13 +128,13 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
         "vmocap_skeleton": {"ros__parameters": stages["vmocap_skeleton"]},
         "vmocap_recorder": {"ros__parameters": {"output": str(output), "topics": record, "compression": "zstd"}},
         "vmocap_launch": {"mode": "processes", "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml"),
-                          "nodes": ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]},
+                          "nodes": [*HOT_PATH, "vmocap_recorder"], "groups": [HOT_PATH]},
     }
     cfg_path = out_dir / "graph.yaml"
     cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     launch = [sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg_path), "--nodes"]
-    back = ["vmocap_pcm", "vmocap_markers", "vmocap_skeleton", "vmocap_recorder"]
+    back = ["vmocap_recorder"]
     procs: list[subprocess.Popen] = []
 
     def stop(proc: subprocess.Popen) -> None:
@@ -125,20 +146,20 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
                 proc.kill()
                 proc.wait()
 
-    log_main, log_cam = out_dir / "graph.log", out_dir / "graph_camera.log"
-    with open(log_main, "w") as lf, open(log_cam, "w") as lc:
+    log_rec, log_hot = out_dir / "graph_recorder.log", out_dir / "graph.log"
+    with open(log_rec, "w") as lr, open(log_hot, "w") as lh:
         try:
-            # The camera starts only once the other nodes are up (else the first frames, the
-            # ones that initialize the tracker, would go to a PCM node still loading its model).
-            procs.append(subprocess.Popen(launch + back, stdout=lf, stderr=subprocess.STDOUT, env=env, cwd=REPO))
+            # The hot path starts once the recorder is up (else the first outputs would go
+            # unrecorded); in its process the camera plays once the PCM node subscribes.
+            procs.append(subprocess.Popen(launch + back, stdout=lr, stderr=subprocess.STDOUT, env=env, cwd=REPO))
             deadline = time.monotonic() + 180
             while time.monotonic() < deadline and procs[0].poll() is None:
-                if all(f"READY {n}" in log_main.read_text() for n in back):
+                if all(f"READY {n}" in log_rec.read_text() for n in back):
                     break
                 time.sleep(0.5)
             else:
-                raise VmocapError(f"the node graph did not start; see {log_main}")
-            procs.append(subprocess.Popen(launch + ["vmocap_camera"], stdout=lc, stderr=subprocess.STDOUT, env=env, cwd=REPO))
+                raise VmocapError(f"the recorder did not start; see {log_rec}")
+            procs.append(subprocess.Popen(launch + HOT_PATH, stdout=lh, stderr=subprocess.STDOUT, env=env, cwd=REPO))
             seconds = int(n_frames / FPS / rate + 15)  # playback + the last frames through the graph
             for _ in tqdm(range(seconds), desc="node graph", unit="s", file=sys.stderr):
                 if any(p.poll() is not None for p in procs):
@@ -148,7 +169,7 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
             for proc in reversed(procs):
                 stop(proc)
     if not output.exists():
-        raise VmocapError(f"the node graph wrote no {output}; see {out_dir / 'graph.log'}")
+        raise VmocapError(f"the node graph wrote no {output}; see {log_hot} and {log_rec}")
     return output
 
 
