@@ -97,3 +97,35 @@ def test_shelf_and_panoptic_import(shared_data):
     assert pan[0].width == 1920 and pan[0].has_distortion
     # centimetres -> metres: Panoptic cameras sit a few metres from the dome centre.
     assert 1.0 < np.linalg.norm(pan[0].center) < 6.0
+
+
+@pytest.mark.parametrize("r", [2, 4])
+def test_binned_camera_sees_where_a_reduced_jpeg_puts_a_point(r):
+    """A white 8x8-aligned square in a JPEG decoded reduced r times lands where the binned camera
+    projects the point that the full camera projects onto the square's centre."""
+    from vmocap_core.cameras.bag import decode_compressed
+
+    cam = make_rig([[-0.2, 0.05, 0.001, -0.002, 0.01]])[0]
+    pts = np.random.default_rng(1).uniform([-0.5, -0.5, 0.5], [0.5, 0.5, 1.5], (50, 3))
+    uv, _ = cam.project(pts)
+    uv_b, _ = cam.binned(r).project(pts)
+    assert np.abs(uv_b - (uv - (r - 1) / 2) / r).max() < 1e-9  # binned pixel i centres on full r*i + (r-1)/2
+    assert (cam.binned(r).width, cam.binned(r).height) == (-(-1024 // r), -(-768 // r))
+    img = np.zeros((768, 1024, 3), np.uint8)
+    img[320:336, 480:496] = 255  # centre at full pixel (487.5, 327.5)
+    ok, jpg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    small = decode_compressed({"data": jpg.tobytes(), "format": "jpeg"}, binning=r)[..., 0].astype(float)
+    assert small.shape == (768 // r, 1024 // r)
+    ys, xs = np.mgrid[: small.shape[0], : small.shape[1]]
+    centre = np.array([(xs * small).sum(), (ys * small).sum()]) / small.sum()
+    assert np.abs(centre - (np.array([487.5, 327.5]) - (r - 1) / 2) / r).max() < 0.05
+
+
+def test_binning_must_be_a_reduction_libjpeg_offers():
+    from vmocap_core.cameras.bag import decode_compressed
+    from vmocap_core.errors import SourceError
+
+    with pytest.raises(SourceError, match="binning must be one of"):
+        decode_compressed({"data": b"\xff\xd8", "format": "jpeg"}, binning=3)
+    with pytest.raises(ValueError, match="binning must be >= 1"):
+        make_rig([[0] * 5])[0].binned(0)

@@ -120,3 +120,31 @@ def test_demo_on_the_node_graph(tmp_path: Path) -> None:
     assert tracking.sum() >= 4, rec["status"]
     assert np.nanmedian(reprojection_errors(rig, rec)[tracking]) < 25.0
     assert set(rec["node_timing"]) >= {"vmocap_pcm", "vmocap_markers", "vmocap_skeleton"}
+
+
+@needs_demo
+@pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
+def test_process_on_reduced_jpegs_tracks_as_on_full_ones(tmp_path: Path) -> None:
+    """`vmocap process --binning 2`: JPEGs decoded at half size through the rig binned to match
+    track the same frames, within a few centimetres of the full-size decode."""
+    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes, videos_to_bag
+    from vmocap_core.apps.process import process_bag
+    from vmocap_core.bag import BagReader
+    from vmocap_core.bag import messages as M
+    from vmocap_core.method.config import PipelineConfig
+
+    videos = video_paths(DEMO)
+    rig = load_qualisys_rig(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    bag = tmp_path / "demo.mcap"
+    assert videos_to_bag(videos, rig, bag, max_frames=16) == 16
+    offline = PipelineConfig.from_dict(None).replace(offline=True)  # identified on the whole (short) clip
+    keypoints = {}
+    for b in (1, 2):
+        stats = process_bag(bag, tmp_path / f"b{b}.mcap", rig, config=offline, progress=False, binning=b)
+        assert stats["frames"] == 16 and stats["tracking"] >= 4 and stats["binning"] == b
+        assert 0 < stats["realtime_factor"] and abs(stats["recording_s"] - 16 / 60) < 1e-3
+        with BagReader(tmp_path / f"b{b}.mcap") as r:
+            clouds = (M.cloud_keypoints(m.decode())[0] for m in r.messages(["/vmocap/keypoints"]))
+            keypoints[b] = np.array([p for p in clouds if p is not None])
+    assert keypoints[1].shape == keypoints[2].shape
+    assert np.nanmedian(np.linalg.norm(keypoints[1] - keypoints[2], axis=-1)) < 0.03

@@ -67,6 +67,19 @@ class Camera:
         uv, front = Rig([self]).project(points)
         return uv[0], front[0]
 
+    def binned(self, factor: int) -> "Camera":
+        """This camera as seen in its images reduced `factor` times (REP 104 binning; JPEG DCT
+        scaling): binned pixel i averages full pixels factor*i ... factor*i + factor - 1, so its
+        centre is at full pixel factor*i + (factor - 1)/2; the size rounds up as libjpeg's does.
+        Distortion acts on normalized coordinates and is unchanged."""
+        r = int(factor)
+        if r < 1:
+            raise ValueError(f"camera {self.name}: binning must be >= 1, got {factor}")
+        K = self.K.copy()
+        K[:2, :2] /= r
+        K[:2, 2] = (K[:2, 2] - (r - 1) / 2) / r
+        return Camera(self.name, K, self.dist, self.R, self.t, -(-self.width // r), -(-self.height // r))
+
     def undistort_pixels(self, uv: np.ndarray) -> np.ndarray:
         """Pixels (..., 2) -> normalized undistorted image coordinates (..., 2)."""
         import cv2
@@ -125,6 +138,10 @@ class Rig:
 
     def subset(self, names: Iterable[str]) -> "Rig":
         return Rig([self[n] for n in names])
+
+    def binned(self, factor: int) -> "Rig":
+        """Every camera binned `factor` times (Camera.binned)."""
+        return Rig([c.binned(factor) for c in self.cameras])
 
     def to_camera_frames(self, points: np.ndarray) -> np.ndarray:
         """World points (..., 3) -> camera-frame points (C, ..., 3)."""
