@@ -7,6 +7,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +23,12 @@ def test_play_clock_offset_and_record_sigterm(tmp_path: Path) -> None:
     env = domain_env(11)
     out = tmp_path / "rec.mcap"
     rec = vmocap(["record", "-o", str(out), "/vmocap/cam0/camera_info", "/clock"], env)
+    start_at = time.time() + 4.0  # --start-at: nothing is sent before that wall-clock time
     try:
         play = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "play", str(bag), "--rate", "0", "--start-offset", "0.3",
                                "--topics", "/vmocap/cam0/camera_info", "--expect", "/vmocap/cam0/camera_info", "/clock",
-                               "--wait-subscribers", "30"], env=env, capture_output=True, text=True, timeout=60)
+                               "--wait-subscribers", "30", "--start-at", str(start_at)],
+                              env=env, capture_output=True, text=True, timeout=60)
         assert play.returncode == 0, play.stdout + play.stderr
         assert wait_for(lambda: Path(str(out) + ".partial").exists(), 5)
     finally:
@@ -34,11 +37,13 @@ def test_play_clock_offset_and_record_sigterm(tmp_path: Path) -> None:
     assert out.exists() and not Path(str(out) + ".partial").exists()
     with BagReader(out) as r:
         infos = [M.stamp_ns(m.decode()) for m in r.messages(["/vmocap/cam0/camera_info"])]
+        received = [m.log_time_ns for m in r.messages(["/vmocap/cam0/camera_info"])]
         clocks = [M.stamp_ns(m.decode()["clock"]) for m in r.messages(["/clock"])]
     t0 = 1_000_000_000_000
     expected = [t0 + int(round(k * 1e9 / 30)) for k in range(20) if k * 1e9 / 30 >= 0.3e9]
     assert sorted(infos) == expected  # nothing before the offset, nothing lost after it
     assert min(clocks) >= t0 + 0.3e9 and max(clocks) == expected[-1]
+    assert min(received) >= start_at * 1e9
 
 
 def test_camera_node_replays_bag_and_launcher_sigterm_flushes(tmp_path: Path) -> None:

@@ -29,6 +29,7 @@ GRAPH_FAULTS = ["launcher_sigint", "launcher_sigterm", "recorder_sigkill", "node
 # one process: killing a node kills the graph (that is recorder_sigkill), and nothing restarts it
 PROCESSES_ONLY = {"node_killed", "node_restarted", "recorder_restarted"}
 PCM_TOPICS = ("heatmaps", "camera_info")
+PLAYERS_START_S = 8.0  # from the graph's READY to the players' common start (their start-up and discovery: 2-4 s)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -104,10 +105,14 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
     pause = (0, 0)
     try:
         H.wait_ready(launch, nodes)
+        # camera_pause's two players start in step: a player ahead of the other by more than
+        # silent_after makes the other's frames late for good, and then no frame set goes out
+        start_at = time.time() + PLAYERS_START_S
         for feed in feeds:
             topics = [f"/vmocap/pcm/{c}/{k}" for c in feed for k in PCM_TOPICS]
             players.append(H.Proc.start(H.vmocap_cmd("play", str(src), "--no-clock", "--quiet", "--topics", *topics,
-                                                     "--expect", *topics, "--wait-subscribers", "60"), env))
+                                                     "--expect", *topics, "--wait-subscribers", "60",
+                                                     "--start-at", f"{start_at:.3f}"), env))
         if name == "camera_pause":  # once tracking, cam3's frames withheld for 2.5 s, then sent again
             probe.recording = False
             probe.spin_for(0.5)  # drain what an earlier run left queued

@@ -28,6 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="wait up to S seconds for subscribers of the topics before playing")
     parser.add_argument("--expect", nargs="+", default=None, metavar="TOPIC",
                         help="wait (up to --wait-subscribers) until these topics have a subscriber")
+    parser.add_argument("--start-at", type=float, default=0.0, metavar="UNIX_TIME",
+                        help="after the subscriber wait, start playing at this wall-clock time (seconds since the "
+                             "epoch): players of one recording's cameras started apart then play in step")
     parser.add_argument("--recover", action="store_true", help="play a truncated bag up to the damage")
     parser.add_argument("--quiet", action="store_true")
 
@@ -79,6 +82,8 @@ def play(args: argparse.Namespace, stop=None) -> dict:
                 time.sleep(0.2)  # matched: let the reverse direction settle too
                 break
             time.sleep(0.05)
+        while not stop and time.time() < args.start_at:
+            time.sleep(min(0.01, args.start_at - time.time()))
         counts["wait_s"] = time.monotonic() - t_begin
         start = reader.start_ns + int(args.start_offset * 1e9)
         end = start + int(args.duration * 1e9) if args.duration > 0 else None
