@@ -112,7 +112,10 @@ def test_short_clip_offline_and_through_the_node_graph(rig, tmp_path):
         assert r["mpjpe_mm"] < 80.0, (run, r)
         assert r["tracked_pct"] > 80, (run, r)
         assert 0 < r["link_length_error_mm"] < 60, (run, r)
-    assert row[f"graph:{config}"]["frame_sets_out"] >= 20  # of 45: a loaded machine drops some (falling behind)
+    # The graph tracks from the frame set the offline run does (a graph falling behind while it
+    # initializes starts later). Not the count of messages out: the first ones, before tracking,
+    # reach this test's subscriber or not depending on how fast DDS discovery matches it.
+    assert row[f"graph:{config}"]["init_frames"] <= row[config]["init_frames"] + 6, (row[config], row[f"graph:{config}"])
     assert (args.out / "walk.png").exists()
 
 
