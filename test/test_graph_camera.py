@@ -154,3 +154,31 @@ def test_camera_node_plays_a_compressed_bag_restamped_in_a_loop(tmp_path: Path, 
             assert np.array_equal(M.image_array(d), images[(cam, bag_stamps[(first + k) % len(bag_stamps)])])
     common = set(M.stamp_ns(d) for d in by_cam["cam1"]) & set(M.stamp_ns(d) for d in by_cam["cam2"])
     assert len(common) >= min(len(by_cam["cam1"]), len(by_cam["cam2"])) - 2  # one instant per frame set on all cameras
+
+
+def test_camera_waits_for_the_wait_topics_too(tmp_path: Path) -> None:
+    """A recorded source plays once its images have a subscriber *and* every `wait_topics`
+    topic has one: here nobody listens to the waited topic, so it plays only when
+    wait_subscribers runs out, and says so; the images alone would have started it at once."""
+    rig = small_rig()
+    bag = tmp_path / "c.mcap"
+    compressed_bag(bag, rig, 4)
+    from vmocap_core.cameras.rig_file import save_rig
+
+    rig_path = tmp_path / "rig.yaml"
+    save_rig(rig, rig_path)
+    cfg = write_config(tmp_path / "g.yaml", rig_path, [], ["vmocap_camera", "vmocap_recorder"], mode="single_process",
+                       output=tmp_path / "out.mcap",
+                       extra={"vmocap_camera": {"uri": str(bag), "wait_subscribers": 3.0, "wait_topics": ["/nobody/listens"]},
+                              "vmocap_recorder": {"topics": ["/vmocap/cam1/image_raw"]}})
+    launch = vmocap(["launch", str(cfg)], domain_env(33))
+    try:
+        assert wait_ready(launch, ["vmocap_camera", "vmocap_recorder"]), stop(launch)
+        t_ready = time.monotonic()
+        while "playing" not in "".join(launch._lines) and time.monotonic() < t_ready + 30:
+            time.sleep(0.05)
+        waited = time.monotonic() - t_ready
+    finally:
+        log = stop(launch, signal.SIGINT)
+    assert "playing (no subscriber yet)" in log, log
+    assert waited > 1.5, (waited, log)  # the images' subscriber alone starts it within ~0.3 s

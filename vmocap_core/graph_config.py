@@ -68,6 +68,9 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("start_offset", 0.0, "skip this many seconds of a recording", 0.0, 1e6),
         Param("wait_subscribers", 5.0, "recorded sources: before the first frame, wait up to this long (s) until "
               "every image topic has a subscriber (frames sent before the PCM node matched are lost)", 0.0, 600.0),
+        Param("wait_topics", [""], "recorded sources: also wait (up to wait_subscribers) until each of these topics "
+              "has a subscriber, e.g. the outputs a recorder in another process records (frames played before it "
+              "matched give outputs it never gets)"),
         Param("restamp", False, "recorded sources: stamp each frame with the wall-clock time it is published at "
               "(as a live camera stamps its capture time; loops keep counting forward)"),
         Param("reconnect_s", 1.0, "live cameras (aravis, v4l2): after a disconnection, try to reopen the camera "

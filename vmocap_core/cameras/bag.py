@@ -51,6 +51,8 @@ class BagFrameSource(FrameSource):
         if self.topic not in self._reader.topics and self._reader.topics.get(alt) == COMPRESSED:
             self.topic = alt
         self.compressed = self._reader.topics.get(self.topic) == COMPRESSED
+        if self.compressed:  # each camera decodes in a thread of its own (vmocap_camera)
+            single_threaded_opencv()
         if self.topic not in self._reader.topics:
             topics = sorted(self._reader.topics)
             self.close()

@@ -53,6 +53,7 @@ class CameraNode(VmocapNode):
             self._threads.append((th, src))
         for th, _ in self._threads:
             th.start()
+        self._wait_topics = [t for t in self.p["wait_topics"] if t]
         self._wait_end = time.monotonic() + self.p["wait_subscribers"]
         self._matched_timer = self.create_timer(0.05, self._check_matched)
         self._check_matched()
@@ -60,13 +61,14 @@ class CameraNode(VmocapNode):
     def _check_matched(self) -> None:
         """Recorded sources start 0.2 s after an image topic has a subscriber (one of our nodes
         in this process or a matched DDS reader; the 0.2 s let a subscriber's other topics
-        match too), at most wait_subscribers seconds after start-up: frames published before
-        the PCM node has matched would be lost."""
+        match too) and every `wait_topics` topic has one, at most wait_subscribers seconds after
+        start-up: frames published before the PCM node (or a recorder elsewhere) has matched
+        would be lost."""
         if self._matched.is_set():
             return
         now = time.monotonic()
-        if self._first_match is None and any(self.count_subscribers(t) + len(self.transport.bus.subscribers.get(t, ()))
-                                             for t in self._image_topics):
+        images = any(self.count_subscribers(t) + len(self.transport.bus.subscribers.get(t, ())) for t in self._image_topics)
+        if self._first_match is None and images and all(self.count_subscribers(t) for t in self._wait_topics):
             self._first_match = now
         if (self._first_match is not None and now >= self._first_match + 0.2) or now >= self._wait_end:
             self._matched.set()

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         log(f"{n} frame sets -> {args.bag}")
     t0 = time.perf_counter()
     if args.mode == "graph":
-        rate, why = (args.graph_rate, "--graph-rate") if args.graph_rate else live_rate()
+        rate, why = (args.graph_rate, "--graph-rate") if args.graph_rate else live_rate(args.bag, rig)
         log(f"node graph on {args.bag} at {rate} x real time ({why})")
         recorded = run_graph(args.bag, args.out / "rig.yaml", rig, args.out, n, rate)
         rec = recording_from_graph(recorded, rig, n)

@@ -73,21 +73,37 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
 
 
 # ------------------------------------------------------------------------------ node graph
-# Share of the 60 Hz frame period the CNN may take for the demo to play at live speed: the rest
-# goes to decoding four 1088x1920 JPEGs, the tracker and the transport on the same cores.
-CNN_SHARE = 0.5
+# Share of the CPU the demo's graph may plan on; the rest goes to what the estimate leaves out
+# (the detector while initializing, the heatmaps serialized for the recorder, the threads'
+# contention). Measured on 2 Zen 5 cores: planned at 0.75 (0.72x real time) the PCM node's queue
+# of 50 overflowed (84-92 of 100 frame sets tracked), at 0.35x none was lost (96/100, 2 runs).
+CPU_SHARE = 0.35
+DECODE_SAMPLE = 5  # frame sets decoded to time the JPEG decoding
+TRACKER_MS = 5.0  # markers, skeleton, transport and recorder per frame set (CPU ms; bench graph: ~3-5)
 
 
-def live_rate(threads: int = 2, views: int = 4) -> tuple[float, str]:
-    """The demo's playback rate on this CPU: 1 (live speed) when the self-check's CNN time for a
-    frame set (`views` crops on `threads` threads) fits in CNN_SHARE of the frame period, else
-    slowed in proportion, so that a slow CPU reports accuracy, not dropped frame sets."""
+def live_rate(bag: Path, rig: Rig, views: int = 4) -> tuple[float, str]:
+    """The demo's playback rate on this CPU: 1 (live speed) if the CPU time a frame set needs
+    (decoding its JPEGs, timed here on the bag's first frame sets; the CNN on `views` crops, from
+    the self-check; the tracker) fits in CPU_SHARE of the cores over a 60 Hz frame period, else
+    slowed in proportion: a slow CPU reports accuracy, not dropped frame sets."""
+    import os
+
     from ...pcm import selfcheck
+    from .data import bag_frame_sets
 
     check = selfcheck.verdict("full")
-    ms = views * check.ms_per_crop[check.precision] / max(threads, 1)
-    rate = min(1.0, CNN_SHARE * 1e3 / FPS / ms)
-    return round(rate, 2), f"CNN {ms:.1f} ms per {views}-view frame set ({check.precision}, {threads} threads)"
+    cnn = views * check.ms_per_crop[check.precision]
+    t0, n = time.process_time(), 0
+    for n, _ in enumerate(bag_frame_sets(bag, rig), 1):
+        if n == DECODE_SAMPLE:
+            break
+    decode = (time.process_time() - t0) * 1e3 / max(n, 1)
+    need = decode + cnn + TRACKER_MS
+    cores = len(os.sched_getaffinity(0))
+    rate = min(1.0, CPU_SHARE * cores * 1e3 / FPS / need)
+    return round(rate, 2), (f"{need:.0f} ms of CPU per frame set: JPEG decoding {decode:.0f}, CNN {cnn:.0f} "
+                            f"({check.precision}), tracker ~{TRACKER_MS:.0f}; {cores} cores")
 
 
 HOT_PATH = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]  # one process, as config/graph.yaml
@@ -119,13 +135,15 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
         "/**": {"ros__parameters": {"rig": str(rig_yaml), "cameras": [""], "namespace": topics.ns,
                                     "pcm_keypoints": [""], "use_sim_time": False, **stages["/**"]}},
         "vmocap_camera": {"ros__parameters": {"source": "bag", "uri": str(bag), "rate": rate, "loop": False,
-                                              "start_offset": 0.0}},
+                                              "start_offset": 0.0, "wait_topics": record}},
         "vmocap_pcm": {"ros__parameters": {"source": "model", "model": "blazepose", "min_cameras": 2,
                                            "silent_after_ms": 5000.0, "use_feedback": True, "queue_depth": 50}},
+        # a recording, not a live feed: every frame set is queued rather than dropped (the
+        # identification's IK holds the skeleton node for a few frame periods)
         "vmocap_markers": {"ros__parameters": {"min_cameras": 2, "silent_after_ms": 5000.0,
-                                               "feedback_timeout_ms": 2000.0, "views": [""],
+                                               "feedback_timeout_ms": 2000.0, "views": [""], "queue_depth": 50,
                                                **stages["vmocap_markers"]}},
-        "vmocap_skeleton": {"ros__parameters": stages["vmocap_skeleton"]},
+        "vmocap_skeleton": {"ros__parameters": {"queue_depth": 50, **stages["vmocap_skeleton"]}},
         "vmocap_recorder": {"ros__parameters": {"output": str(output), "topics": record, "compression": "zstd"}},
         "vmocap_launch": {"mode": "processes", "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml"),
                           "nodes": [*HOT_PATH, "vmocap_recorder"], "groups": [HOT_PATH]},
