@@ -104,7 +104,7 @@ def test_demo_on_the_node_graph(tmp_path: Path) -> None:
     pytest.importorskip("rclpy")
     from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes, videos_to_bag
     from vmocap_core.apps.demo.report import reprojection_errors
-    from vmocap_core.apps.demo.runs import recording_from_graph, run_graph
+    from vmocap_core.apps.demo.runs import live_rate, recording_from_graph, run_graph
     from vmocap_core.cameras.rig_file import save_rig
 
     videos = video_paths(DEMO)
@@ -112,6 +112,8 @@ def test_demo_on_the_node_graph(tmp_path: Path) -> None:
     save_rig(rig, tmp_path / "rig.yaml")
     bag = tmp_path / "demo.mcap"  # JPEG CompressedImage, as `vmocap demo` writes: the camera node decodes
     assert videos_to_bag(videos, rig, bag, max_frames=16) == 16
+    rate, why = live_rate(bag, rig)  # what `vmocap demo` plays at: decoding timed on this bag, <= live speed
+    assert 0.0 < rate <= 1.0 and "JPEG decoding" in why, (rate, why)
     recorded = run_graph(bag, tmp_path / "rig.yaml", rig, tmp_path, 16, rate=0.05)
     rec = recording_from_graph(recorded, rig, 16)
     tracking = np.array([s == "tracking" for s in rec["status"]])
