@@ -44,8 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="graph: the ROS 2 node graph (vmocap launch) playing the bag (default); "
                              "in-process: the same stages in this process on the compressed bag (no DDS, faster)")
     parser.add_argument("--graph-rate", type=float, default=None,
-                        help="bag playback rate in graph mode (x real time); default 1 (live speed) where the CPU's "
-                             "measured CNN time allows it, else slower (the report says which)")
+                        help="bag playback rate in graph mode (x real time); default: the rate this CPU keeps up "
+                             "with, from its JPEG decoding and CNN times (at most 1; the report says which)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 

@@ -115,8 +115,8 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
     by default: camera, CNN and tracker in one process (images never cross a process), the
     recorder apart; returns the recorded MCAP (outputs + PCMs).
 
-    The bag is played at `rate` x real time (1 = live speed; frames the PCM node cannot take
-    are dropped by design: freshness over completeness)."""
+    The bag is played at `rate` x real time (1 = live speed, see live_rate); every node queues
+    up to 50 frame sets, and what a node cannot take beyond that is dropped."""
     import os
     import signal
     import subprocess
@@ -138,8 +138,8 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
                                               "start_offset": 0.0, "wait_topics": record}},
         "vmocap_pcm": {"ros__parameters": {"source": "model", "model": "blazepose", "min_cameras": 2,
                                            "silent_after_ms": 5000.0, "use_feedback": True, "queue_depth": 50}},
-        # a recording, not a live feed: every frame set is queued rather than dropped (the
-        # identification's IK holds the skeleton node for a few frame periods)
+        # a recording, not a live feed: every node queues frame sets (up to 50) rather than
+        # keeping only the newest
         "vmocap_markers": {"ros__parameters": {"min_cameras": 2, "silent_after_ms": 5000.0,
                                                "feedback_timeout_ms": 2000.0, "views": [""], "queue_depth": 50,
                                                **stages["vmocap_markers"]}},
