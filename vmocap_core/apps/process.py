@@ -165,11 +165,11 @@ def _image_frame_sets(reader: BagReader, rig: Rig, topics: Topics, cams: list[st
         # cv2 releases the GIL, so it overlaps the CNN of the frame set before instead of adding to it.
         pending: deque[tuple[str, int, Future]] = deque()
         single_threaded_opencv()
+        jpeg = functools.partial(decode_compressed, binning=binning)
         with ThreadPoolExecutor(DECODE_THREADS, thread_name_prefix="vmocap-decode") as pool:
             for m in reader.messages(list(want)):
                 msg = m.decode()
-                decode = functools.partial(decode_compressed, binning=binning) if m.topic in compressed else M.image_array
-                pending.append((want[m.topic], M.stamp_ns(msg), pool.submit(decode, msg)))
+                pending.append((want[m.topic], M.stamp_ns(msg), pool.submit(jpeg if m.topic in compressed else M.image_array, msg)))
                 if len(pending) > DECODE_AHEAD:
                     cam, stamp, image = pending.popleft()
                     yield from image_sets(sync.add(cam, stamp, image.result()))

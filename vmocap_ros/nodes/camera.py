@@ -53,7 +53,6 @@ class CameraNode(VmocapNode):
             self._threads.append((th, src))
         for th, _ in self._threads:
             th.start()
-        self._wait_topics = [t for t in self.p["wait_topics"] if t]
         self._wait_end = time.monotonic() + self.p["wait_subscribers"]
         self._matched_timer = self.create_timer(0.05, self._check_matched)
         self._check_matched()
@@ -68,7 +67,7 @@ class CameraNode(VmocapNode):
             return
         now = time.monotonic()
         images = any(self.count_subscribers(t) + len(self.transport.bus.subscribers.get(t, ())) for t in self._image_topics)
-        if self._first_match is None and images and all(self.count_subscribers(t) for t in self._wait_topics):
+        if self._first_match is None and images and all(self.count_subscribers(t) for t in self.p["wait_topics"]):
             self._first_match = now
         if (self._first_match is not None and now >= self._first_match + 0.2) or now >= self._wait_end:
             self._matched.set()

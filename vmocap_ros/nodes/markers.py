@@ -46,9 +46,7 @@ class MarkersNode(VmocapNode):
         self.init_watch = InitWatch(p["init_warn_s"], self.stage.config.init_max_reprojection_px, self.rig.names)
         self.presence: dict[str, float] = {}  # CNN presence per camera, last triangulated frame set
         self.cameras = OddCamera()  # per-camera reprojection residuals while tracking
-        self._heatmaps_bad_at = float("-inf")
         self.blind = BlindCameras(BLIND_WARN_S)  # cameras without any heatmap while tracking
-        self._blind_warned_at = float("-inf")
         # markers and feedback are transient-local: a frame processed before the other node's
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
         self.pub = self.publisher(CLOUD, self.topics.markers, depth=p["queue_depth"], latched=True)
@@ -91,27 +89,20 @@ class MarkersNode(VmocapNode):
         """WARN (for HEATMAP_WARN_S) when heatmaps arrive with values the lattice search has to
         clean up (NaN, Inf, negative, above 1): a broken CNN or transport must not pass silently."""
         bad = pcm.corrupted()
-        now = time.monotonic()
         if bad:
             names = ", ".join(f"{self.rig[c].name} ({n} values)" for c, n in sorted(bad.items()))
-            self.problems["heatmaps"] = f"heatmaps not finite or outside [0, 1] from {names}: cleaned, affected keypoints dropped"
-            self._heatmaps_bad_at = now
-        elif now - self._heatmaps_bad_at > HEATMAP_WARN_S:
-            self.problems.pop("heatmaps", None)
+            self.warn_for("heatmaps", f"heatmaps not finite or outside [0, 1] from {names}: cleaned, affected keypoints "
+                          "dropped", HEATMAP_WARN_S)
 
     def _check_blind(self, pcm: Any, tracking: bool) -> None:
         """WARN naming a camera that has given no heatmap for BLIND_WARN_S while the others
         track the person (a covered or turned camera, or a CNN failing for it, which the
         tracker otherwise survives silently on the remaining views)."""
-        now = time.monotonic()
-        long_blind = self.blind.update(pcm, tracking, now)
+        long_blind = self.blind.update(pcm, tracking, time.monotonic())
         if long_blind:
             names = ", ".join(f"{self.rig[c].name} ({s:.1f} s)" for c, s in long_blind.items())
-            self.problems["blind"] = (f"no heatmap from {names} while the other cameras track the person: covered, "
-                                      "turned away, or its CNN failing")
-            self._blind_warned_at = now
-        elif now - self._blind_warned_at > HEATMAP_WARN_S:
-            self.problems.pop("blind", None)
+            self.warn_for("blind", f"no heatmap from {names} while the other cameras track the person: covered, "
+                          "turned away, or its CNN failing", HEATMAP_WARN_S)
 
     def _check_cameras(self, pcm: Any, positions: np.ndarray) -> None:
         """After the markers went out: per-camera residuals, and a WARN naming a camera that
