@@ -121,11 +121,34 @@ def test_binned_camera_sees_where_a_reduced_jpeg_puts_a_point(r):
     assert np.abs(centre - (np.array([487.5, 327.5]) - (r - 1) / 2) / r).max() < 0.05
 
 
+@pytest.mark.parametrize("r", [2, 4])
+def test_bin_image_is_the_block_mean_the_binned_camera_describes(r):
+    """A raw image reduced r times (what a camera node publishes with binning r) averages r x r
+    blocks: a bright square's centre lands where Camera.binned says, as PNG's reduced decoding
+    does; sizes round up as libjpeg's."""
+    from vmocap_core.cameras.bag import bin_image, decode_compressed
+
+    img = np.zeros((768, 1024, 3), np.uint8)
+    img[321:335, 481:497] = 255  # centre at full pixel (488.5, 327.5)
+    small = bin_image(img, r)
+    assert small.shape == (768 // r, 1024 // r, 3)
+    ok, png = cv2.imencode(".png", img)
+    assert np.array_equal(small, decode_compressed({"data": png.tobytes(), "format": "png"}, binning=r))
+    g = small[..., 0].astype(float)
+    ys, xs = np.mgrid[: g.shape[0], : g.shape[1]]
+    centre = np.array([(xs * g).sum(), (ys * g).sum()]) / g.sum()
+    assert np.abs(centre - (np.array([488.5, 327.5]) - (r - 1) / 2) / r).max() < 0.1
+    assert bin_image(img[:767, :1023], r).shape[:2] == (-(-767 // r), -(-1023 // r))
+    assert bin_image(img, 1) is img
+
+
 def test_binning_must_be_a_reduction_libjpeg_offers():
-    from vmocap_core.cameras.bag import decode_compressed
+    from vmocap_core.cameras.bag import bin_image, decode_compressed
     from vmocap_core.errors import SourceError
 
     with pytest.raises(SourceError, match="binning must be one of"):
         decode_compressed({"data": b"\xff\xd8", "format": "jpeg"}, binning=3)
+    with pytest.raises(SourceError, match="binning must be one of"):
+        bin_image(np.zeros((4, 4, 3), np.uint8), 3)
     with pytest.raises(ValueError, match="binning must be >= 1"):
         make_rig([[0] * 5])[0].binned(0)

@@ -112,10 +112,14 @@ def test_demo_on_the_node_graph(tmp_path: Path) -> None:
     save_rig(rig, tmp_path / "rig.yaml")
     bag = tmp_path / "demo.mcap"  # JPEG CompressedImage, as `vmocap demo` writes: the camera node decodes
     assert videos_to_bag(videos, rig, bag, max_frames=16) == 16
-    rate, why = live_rate(bag, rig)  # what `vmocap demo` plays at: decoding timed on this bag, <= live speed
+    rate, why = live_rate(bag, rig, binning=2)  # what `vmocap demo` plays at: decoding timed on this bag, <= live speed
     assert 0.0 < rate <= 1.0 and "JPEG decoding" in why, (rate, why)
-    recorded = run_graph(bag, tmp_path / "rig.yaml", rig, tmp_path, 16, rate=0.05)
+    # binning 2: the camera node publishes 960x544 images, the PCM node crops from them and
+    # gives heatmaps and 2D keypoints in full-resolution pixels (a wrong affine would be off by
+    # hundreds of pixels below)
+    recorded = run_graph(bag, tmp_path / "rig.yaml", rig, tmp_path, 16, rate=0.05, binning=2)
     rec = recording_from_graph(recorded, rig, 16)
+    assert (rec["n_views"] == 4).sum() >= 12, rec["n_views"]  # each camera's keypoints topic recorded
     tracking = np.array([s == "tracking" for s in rec["status"]])
     # The first frames can be lost while DDS matches the camera with the PCM node; the rest
     # must initialize (5 agreeing frames) and track the walker.
@@ -127,7 +131,7 @@ def test_demo_on_the_node_graph(tmp_path: Path) -> None:
 @needs_demo
 @pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
 def test_process_on_reduced_jpegs_tracks_as_on_full_ones(tmp_path: Path) -> None:
-    """`vmocap process --binning 2`: JPEGs decoded at half size through the rig binned to match
+    """`vmocap process --binning 2`: JPEGs decoded at half size, the CNN's crops cut from them,
     track the same frames, within a few centimetres of the full-size decode."""
     from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes, videos_to_bag
     from vmocap_core.apps.process import process_bag

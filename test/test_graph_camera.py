@@ -182,3 +182,57 @@ def test_camera_waits_for_the_wait_topics_too(tmp_path: Path) -> None:
         log = stop(launch, signal.SIGINT)
     assert "playing (no subscriber yet)" in log, log
     assert waited > 1.5, (waited, log)  # the images' subscriber alone starts it within ~0.3 s
+
+
+def test_camera_node_publishes_binned_images_with_their_camera_info(tmp_path: Path) -> None:
+    """binning 2: a compressed camera (decoded reduced) and a raw one (block-averaged) both go
+    out at half size, with a CameraInfo that keeps the calibration's size and K and says
+    binning 2 (REP 104)."""
+    from vmocap_core.cameras.bag import bin_image
+    from vmocap_core.cameras.rig_file import save_rig
+
+    rig = small_rig()
+    bag = tmp_path / "c.mcap"
+    images = {}
+    with BagWriter(bag) as w:  # cam1 raw Image, cam2 PNG CompressedImage
+        for k in range(3):
+            t = T0 + int(round(k * 1e9 / 30))
+            for cam in ("cam1", "cam2"):
+                img = np.random.default_rng(k).integers(0, 255, (rig[cam].height, rig[cam].width, 3), dtype=np.uint8)
+                images[(cam, t)] = img
+                if cam == "cam1":
+                    w.write("/vmocap/cam1/image_raw", "sensor_msgs/msg/Image", M.image_msg(img, t, cam), t)
+                else:
+                    w.write("/vmocap/cam2/image_raw/compressed", COMPRESSED,
+                            {"header": M.header(t, cam), "format": "png", "data": cv2.imencode(".png", img)[1].tobytes()}, t)
+    rig_path = tmp_path / "rig.yaml"
+    save_rig(rig.subset(["cam1", "cam2"]), rig_path)
+    out = tmp_path / "out.mcap"
+    topics = ["/vmocap/cam1/image_raw", "/vmocap/cam2/image_raw", "/vmocap/cam1/camera_info", "/vmocap/cam2/camera_info"]
+    cfg = write_config(tmp_path / "g.yaml", rig_path, [], ["vmocap_camera", "vmocap_recorder"], mode="single_process",
+                       output=out, extra={"/**": {"binning": 2},
+                                          "vmocap_camera": {"uri": str(bag), "rate": 0.0, "wait_subscribers": 60.0},
+                                          "vmocap_recorder": {"topics": topics}})
+    launch = vmocap(["launch", str(cfg)], domain_env(34))
+    try:
+        assert wait_ready(launch, ["vmocap_camera", "vmocap_recorder"]), stop(launch)
+        time.sleep(3.0)
+    finally:
+        log = stop(launch, signal.SIGINT)
+    assert launch.returncode == 0, log
+    seen = {"image": 0, "info": 0}
+    with BagReader(out) as r:
+        for m in r.messages(topics):
+            d = m.decode()
+            cam = d["header"]["frame_id"]
+            if m.topic.endswith("image_raw"):
+                assert (d["width"], d["height"]) == (rig[cam].width // 2, rig[cam].height // 2)
+                assert np.array_equal(M.image_array(d), bin_image(images[(cam, M.stamp_ns(d))], 2)), cam
+                seen["image"] += 1
+            else:
+                assert (d["binning_x"], d["binning_y"]) == (2, 2)
+                assert M.camera_info_mismatch(d, rig[cam], binning=2) is None
+                assert "binning 2x2" in M.camera_info_mismatch(d, rig[cam])
+                seen["info"] += 1
+    assert seen == {"image": 6, "info": 6}, (seen, log)
+    assert "frames of" not in log  # the size check knows the binned size

@@ -56,6 +56,9 @@ COMMON = [
     Param("pcm_keypoints", [""], "KEYPOINTS names of the PCM channels, in channel order; empty: all 25"),
     Param("use_sim_time", False, "take time from /clock (set when playing a bag)"),
     Param("fps", 30.0, "the cameras' frame rate (Hz): the filter's and the motion prior's time step", 1.0, 1000.0),
+    Param("binning", 1, "camera images reduced this many times, 1, 2, 4 or 8 (REP 104): vmocap_camera publishes them so "
+          "(JPEGs decoded directly at that size; CameraInfo binning_x/y) and vmocap_pcm cuts its crops from them; the rig "
+          "stays at full resolution. For subjects spanning more than binning x 256 px: less decoding and copying", 1, 8),
 ]
 
 NODE_PARAMS: dict[str, list[Param]] = {
@@ -231,6 +234,10 @@ class Topics:
 
     def pcm_info(self, view: str) -> str:
         return f"{self.ns}/pcm/{view}/camera_info"
+
+    def pcm_keypoints(self, cam: str) -> str:
+        """A camera's 2D keypoints (the PCM centroids in its image), published on demand."""
+        return f"{self.ns}/pcm/{cam}/keypoints"
 
     @property
     def markers(self) -> str:

@@ -60,7 +60,7 @@ def process_bag(
     images with the CNN `model`, or the given PCM `provider`); write the graph's outputs to
     out_path (log time = capture stamp). Returns counts and the time per frame set.
     binning: compressed camera images are decoded reduced this many times (1, 2, 4, 8) and the
-    CNN sees them through the rig binned to match (Camera.binned): for subjects whose crops span
+    CNN cuts its crops from them (ModelPcmProvider's binning): for subjects whose crops span
     more than binning x the CNN's 256 px, the same crops for a fraction of the decoding."""
     from tqdm import tqdm
 
@@ -84,11 +84,10 @@ def process_bag(
             if len(cams) < 2:
                 raise BagError(f"{in_path}: neither PCM topics under {topics.ns}/pcm/ nor images "
                                f"{topics.image('CAM')} of at least 2 rig cameras")
-            seen = rig.binned(binning) if binning > 1 else rig
-            pipe = Pipeline(seen, live_cfg, provider or _model_provider(model, seen))
+            pipe = Pipeline(rig, live_cfg, provider or _model_provider(model, rig, binning))
             stats["pcm"] = pipe.pcm.name  # type: ignore[union-attr]
             stats["binning"] = binning
-            frames, total, sync_stats = _image_frame_sets(reader, seen, topics, cams, max(tolerance_ns, 8_000_000),
+            frames, total, sync_stats = _image_frame_sets(reader, rig, topics, cams, max(tolerance_ns, 8_000_000),
                                                           min_views, binning)
         with BagWriter(out_path, compression="zstd") as writer:
             stamps: list[int] = []
@@ -181,10 +180,10 @@ def _image_frame_sets(reader: BagReader, rig: Rig, topics: Topics, cams: list[st
     return gen(), min(reader.message_counts.get(t, 0) for t in want), lambda: sync.stats().as_dict()
 
 
-def _model_provider(model: str, rig: Rig) -> Any:
+def _model_provider(model: str, rig: Rig, binning: int = 1) -> Any:
     from ..pcm.providers import make_model_provider
 
-    return make_model_provider(model, rig)
+    return make_model_provider(model, rig, binning=binning)
 
 
 def _write_frame(writer: BagWriter, topics: Topics, res: FrameResult, stats: dict[str, Any],

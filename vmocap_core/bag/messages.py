@@ -120,8 +120,10 @@ def image_array(msg: dict) -> np.ndarray:
     return arr
 
 
-def camera_info_msg(camera: Camera, ns: int, K: np.ndarray | None = None, size: tuple[int, int] | None = None) -> dict:
-    """CameraInfo of a rig camera (or, with K/size, of a heatmap seen as a camera)."""
+def camera_info_msg(camera: Camera, ns: int, K: np.ndarray | None = None, size: tuple[int, int] | None = None,
+                    binning: int = 1) -> dict:
+    """CameraInfo of a rig camera (or, with K/size, of a heatmap seen as a camera); binning > 1:
+    its images come reduced that many times (REP 104: size and K stay the calibration's)."""
     rational = bool(camera.dist[5:].any())
     K = camera.K if K is None else np.asarray(K, dtype=np.float64)
     w, h = (camera.width, camera.height) if size is None else size
@@ -136,11 +138,16 @@ def camera_info_msg(camera: Camera, ns: int, K: np.ndarray | None = None, size: 
         "k": K.ravel(),
         "r": np.eye(3).ravel(),
         "p": P.ravel(),
+        "binning_x": binning if binning > 1 else 0,
+        "binning_y": binning if binning > 1 else 0,
     }
 
 
-def camera_info_mismatch(msg: dict, camera: Camera, rtol: float = 1e-6) -> str | None:
-    """Why a received CameraInfo disagrees with the rig (None when it agrees)."""
+def camera_info_mismatch(msg: dict, camera: Camera, rtol: float = 1e-6, binning: int = 1) -> str | None:
+    """Why a received CameraInfo disagrees with the rig and the expected binning (None when it agrees)."""
+    bx, by = max(int(msg.get("binning_x") or 1), 1), max(int(msg.get("binning_y") or 1), 1)  # REP 104: 0 means 1
+    if (bx, by) != (binning, binning):
+        return f"{camera.name}: CameraInfo says binning {bx}x{by}, the graph's binning is {binning}"
     if (msg["width"], msg["height"]) != (camera.width, camera.height):
         return f"{camera.name}: CameraInfo is {msg['width']}x{msg['height']}, rig says {camera.width}x{camera.height}"
     K = np.asarray(msg["k"], dtype=np.float64).reshape(3, 3)
@@ -252,7 +259,8 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
 
 # ------------------------------------------------------------------------------- clouds
 def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | None = None, kind: str = "none",
-                   residual_px: np.ndarray | None = None, cameras: np.ndarray | None = None) -> dict:
+                   residual_px: np.ndarray | None = None, cameras: np.ndarray | None = None,
+                   frame_id: str = WORLD_FRAME) -> dict:
     """PointCloud2 of the 25 KEYPOINTS (positions None: an empty cloud, e.g. 'lost'); with
     `residual_px` and `cameras` the virtual markers' layout (MARKERS_DTYPE)."""
     markers = residual_px is not None
@@ -270,7 +278,7 @@ def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | N
             pts["residual_px"] = np.asarray(residual_px, dtype=np.float64)
             pts["cameras"] = 0 if cameras is None else np.asarray(cameras, dtype=np.uint32)
     return {
-        "header": header(ns, WORLD_FRAME),
+        "header": header(ns, frame_id),
         "height": 1,
         "width": len(pts),
         "fields": fields,
@@ -303,6 +311,22 @@ def cloud_keypoints(msg: dict) -> tuple[np.ndarray | None, np.ndarray, str]:
     P[ids] = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
     S[ids] = pts["score"]
     return P, S, MARKER_KINDS[int(pts["kind"][0])]
+
+
+def image_keypoints_msg(ns: int, camera: str, uv: np.ndarray, w: np.ndarray) -> dict:
+    """One camera's 2D keypoints (the PCM centroids of II-C, as triangulation uses them) as a
+    PointCloud2 of the 25 KEYPOINTS in frame `camera`: x, y = pixel of the full-resolution image,
+    z = 0, score = heatmap peak (0, with NaN x y, where the camera does not see the keypoint)."""
+    uv = np.where(np.asarray(w)[:, None] > 0, uv, np.nan)
+    return keypoint_cloud(ns, np.concatenate([uv, np.zeros((len(uv), 1))], axis=1), w, frame_id=camera)
+
+
+def image_keypoints(msg: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of `image_keypoints_msg`: (25, 2) pixels and (25,) scores."""
+    P, S, _ = cloud_keypoints(msg)
+    if P is None:
+        return np.full((len(KEYPOINTS), 2), np.nan), S
+    return P[:, :2], S
 
 
 def cloud_marker_extras(msg: dict) -> tuple[np.ndarray, np.ndarray]:

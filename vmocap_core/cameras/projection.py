@@ -20,6 +20,13 @@ MIN_DEPTH = 1e-6  # points closer than this in front of the optical centre count
 Z_UP = np.array([0.0, 0.0, 1.0])  # world up (default argument of look_at)
 
 
+def binning_affine(factor: int) -> np.ndarray:
+    """3x3 map from full-resolution pixels to pixels of the image binned `factor` times (REP 104;
+    JPEG DCT scaling): binned pixel i centres on full pixel factor*i + (factor - 1)/2."""
+    r = float(factor)
+    return np.array([[1.0 / r, 0.0, -(r - 1) / (2 * r)], [0.0, 1.0 / r, -(r - 1) / (2 * r)], [0.0, 0.0, 1.0]])
+
+
 @dataclass
 class Camera:
     """One calibrated pinhole camera with OpenCV lens distortion."""
@@ -72,13 +79,10 @@ class Camera:
         scaling): binned pixel i averages full pixels factor*i ... factor*i + factor - 1, so its
         centre is at full pixel factor*i + (factor - 1)/2; the size rounds up as libjpeg's does.
         Distortion acts on normalized coordinates and is unchanged."""
-        r = int(factor)
-        if r < 1:
+        if int(factor) < 1:
             raise ValueError(f"camera {self.name}: binning must be >= 1, got {factor}")
-        K = self.K.copy()
-        K[:2, :2] /= r
-        K[:2, 2] = (K[:2, 2] - (r - 1) / 2) / r
-        return Camera(self.name, K, self.dist, self.R, self.t, -(-self.width // r), -(-self.height // r))
+        r = int(factor)
+        return Camera(self.name, binning_affine(r) @ self.K, self.dist, self.R, self.t, -(-self.width // r), -(-self.height // r))
 
     def undistort_pixels(self, uv: np.ndarray) -> np.ndarray:
         """Pixels (..., 2) -> normalized undistorted image coordinates (..., 2)."""

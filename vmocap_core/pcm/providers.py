@@ -79,16 +79,24 @@ class SyntheticPcmProvider:
 
 class ModelPcmProvider:
     """The CNN (vmocap_core.pcm.pipeline.BlazePosePcm): detector crops until a skeleton is fed
-    back, then crops around the projected skeleton, rotated by the trunk tilt."""
+    back, then crops around the projected skeleton, rotated by the trunk tilt.
 
-    def __init__(self, rig: Rig, model: str = "", rotation: str = "all", threads: int = 2) -> None:
+    binning > 1: the images come reduced that many times (REP 104 binning, e.g. JPEGs decoded
+    at reduced size: projection.Camera.binned); crops are cut from them, and the views' affines
+    are returned for full-resolution pixels, so everything downstream keeps the rig as it is."""
+
+    def __init__(self, rig: Rig, model: str = "", rotation: str = "all", threads: int = 2, binning: int = 1) -> None:
+        from ..cameras.projection import binning_affine
         from .pipeline import BlazePosePcm
 
         variant = "lite" if model.endswith("lite") else "full"
         self.rig = rig
-        self.pcm = BlazePosePcm(rig, rotation=rotation, threads=threads, variant=variant)
+        self.binning = int(binning)
+        self.seen = rig.binned(self.binning) if self.binning > 1 else rig  # the cameras the images come from
+        self._to_binned = binning_affine(self.binning)
+        self.pcm = BlazePosePcm(self.seen, rotation=rotation, threads=threads, variant=variant)
         lm = self.pcm.landmark
-        self.name = f"blazepose-{variant} {lm.precision} (rotation {rotation})"
+        self.name = f"blazepose-{variant} {lm.precision} (rotation {rotation})" + (f", binning {self.binning}" if self.binning > 1 else "")
         self.precision, self.precision_reason = lm.precision, lm.precision_reason
 
     def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
@@ -96,8 +104,11 @@ class ModelPcmProvider:
         for c, img in zip(cameras, images):
             full[int(c)] = img
         usable = feedback is not None and np.isfinite(feedback[[0, 1]]).all()
-        return self.pcm.infer(full, keypoints=feedback if usable else None, stamp_ns=stamp_ns)
+        views = self.pcm.infer(full, keypoints=feedback if usable else None, stamp_ns=stamp_ns)
+        if self.binning > 1:  # binned pixel -> map, composed with full pixel -> binned pixel
+            views.image_to_map = views.image_to_map @ self._to_binned
+        return views
 
 
-def make_model_provider(model: str, rig: Rig, rotation: str = "all", threads: int = 2) -> ModelPcmProvider:
-    return ModelPcmProvider(rig, model, rotation, threads)
+def make_model_provider(model: str, rig: Rig, rotation: str = "all", threads: int = 2, binning: int = 1) -> ModelPcmProvider:
+    return ModelPcmProvider(rig, model, rotation, threads, binning)

@@ -1,5 +1,6 @@
 """vmocap_camera: camera ingest. Frames of a FrameSource per camera (bag, video, Aravis, V4L2)
--> NS/CAM/image_raw + NS/CAM/camera_info, recorded frames sent at their due time."""
+-> NS/CAM/image_raw + NS/CAM/camera_info, recorded frames sent at their due time, images
+reduced `binning` times when the graph's binning says so."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from typing import Any
 
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
+from vmocap_core.cameras.bag import bin_image, check_binning
 from vmocap_core.cameras.clock import LoopedStamps, PlaybackClock
 from vmocap_core.errors import VmocapError
 from vmocap_core.outputs.messages import IMAGE, INFO
@@ -28,6 +30,8 @@ class CameraNode(VmocapNode):
         super().__init__(name, config, overrides, transport)
         if self.rig is None:
             raise VmocapError("vmocap_camera needs a rig")
+        self.binning = self.p["binning"]
+        check_binning(self.binning)
         self._stop = threading.Event()
         self._playback = PlaybackClock(self.p["rate"], self.p["restamp"])
         self._image_topics: list[str] = []
@@ -79,7 +83,8 @@ class CameraNode(VmocapNode):
         if kind == "bag":
             from vmocap_core.cameras.bag import BagFrameSource
 
-            return BagFrameSource(uri, camera, topic=self.topics.image(camera), start_offset_s=self.p["start_offset"], loop=self.p["loop"])
+            return BagFrameSource(uri, camera, topic=self.topics.image(camera), start_offset_s=self.p["start_offset"],
+                                  loop=self.p["loop"], binning=self.binning)
         import importlib
 
         try:
@@ -92,6 +97,7 @@ class CameraNode(VmocapNode):
         stamps = LoopedStamps()
         slot = threading.Semaphore(1)  # one frame of this camera waits for its time, the next is read meanwhile
         last_due: float | None = None
+        seen = cam.binned(self.binning)  # the size its images are published at
         prev_due: float | None = None  # due time of the frame read before (sent or not)
         while not self._stop.is_set():
             try:
@@ -114,17 +120,21 @@ class CameraNode(VmocapNode):
                 continue
             self.last_frame[cam.name] = time.monotonic()
             h, w = frame.image.shape[:2]
-            if (w, h) != (cam.width, cam.height):  # published as it is; vmocap_pcm does not use it
+            if self.binning > 1 and (w, h) == (cam.width, cam.height):  # a source of full frames (live cameras)
+                frame.image = bin_image(frame.image, self.binning)
+                h, w = frame.image.shape[:2]
+            if (w, h) != (seen.width, seen.height):  # published as it is; vmocap_pcm does not use it
                 self.wrong_size[cam.name] += 1
                 self.warn_for(f"size:{cam.name}", f"{cam.name}: frames of {w}x{h}, the rig is calibrated at "
-                              f"{cam.width}x{cam.height} ({self.wrong_size[cam.name]} frames)")
+                              f"{cam.width}x{cam.height}" + (f" (binning {self.binning}: {seen.width}x{seen.height})" if self.binning > 1 else "")
+                              + f" ({self.wrong_size[cam.name]} frames)")
             if not getattr(src, "live", False) and not self._matched.is_set():
                 while not self._matched.wait(0.05):
                     if self._stop.is_set():
                         return
             stamp, due = self._playback.schedule(stamps(frame.stamp_ns), time.monotonic(), time.time_ns())
             # the message refers to the frame's pixels (sources never reuse a frame's array)
-            img, info = M.image_msg(frame.image, stamp, cam.name, copy=False), M.camera_info_msg(cam, stamp)
+            img, info = M.image_msg(frame.image, stamp, cam.name, copy=False), M.camera_info_msg(cam, stamp, binning=self.binning)
             if due is None:
                 if self._playback.restamp:
                     img["header"] = info["header"] = M.header(time.time_ns(), cam.name)

@@ -12,11 +12,13 @@ import numpy as np
 
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
+from vmocap_core.cameras.bag import check_binning
 from vmocap_core.cameras.sync import ApproximateSync
 from vmocap_core.errors import VmocapError
 from vmocap_core.method.camera_check import image_problem
 from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO
 from vmocap_core.pcm.assembly import channel_keypoints
+from vmocap_core.pcm.peaks import camera_keypoints
 from vmocap_core.pcm.views import blank_views
 
 from ..transport import Output, Transport
@@ -32,6 +34,8 @@ class PcmNode(VmocapNode):
         if self.rig is None:
             raise VmocapError("vmocap_pcm needs a rig")
         p = self.p
+        check_binning(p["binning"])
+        self.seen = self.rig.binned(p["binning"])  # the cameras as their images come (REP 104 binning)
         names = self.rig.names
         self.sync: ApproximateSync[np.ndarray] = ApproximateSync(
             names, int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
@@ -48,6 +52,7 @@ class PcmNode(VmocapNode):
         # first messages while discovery matches them); extra views (CAM_1...) come on demand
         for name in names:
             self._pubs[name] = (self.publisher(IMAGE, self.topics.pcm(name)), self.publisher(INFO, self.topics.pcm_info(name)))
+        self._kp_pubs = {name: self.publisher(CLOUD, self.topics.pcm_keypoints(name)) for name in names}
         self.frames = 0
         self.sets: deque = deque()
         self.counts = {"queue_dropped": 0, "feedback_timeouts": 0}
@@ -70,7 +75,7 @@ class PcmNode(VmocapNode):
             return BagPcmProvider(model, self.rig, channel_keypoints(self.p["pcm_keypoints"]), self.p["namespace"])
         from vmocap_core.pcm.providers import make_model_provider  # the CNN
 
-        provider = make_model_provider(model, self.rig, self.p["rotation"], self.p["threads"])
+        provider = make_model_provider(model, self.rig, self.p["rotation"], self.p["threads"], self.p["binning"])
         from vmocap_core.pcm import selfcheck
 
         check = selfcheck.last_verdict()
@@ -84,11 +89,12 @@ class PcmNode(VmocapNode):
 
     def _on_info(self, cam: str, msg: dict) -> None:
         # a camera sends the same CameraInfo every frame: compare with the rig only when it changed
-        seen = (msg["width"], msg["height"], msg["distortion_model"], np.asarray(msg["k"]).tobytes(), np.asarray(msg["d"]).tobytes())
+        seen = (msg["width"], msg["height"], msg.get("binning_x"), msg["distortion_model"], np.asarray(msg["k"]).tobytes(),
+                np.asarray(msg["d"]).tobytes())
         if self._info_seen.get(cam) == seen:
             return
         self._info_seen[cam] = seen
-        problem = M.camera_info_mismatch(msg, self.rig[cam])
+        problem = M.camera_info_mismatch(msg, self.rig[cam], binning=self.p["binning"])
         if problem and cam not in self.info_mismatch:
             self.get_logger().warning(problem + " (the rig is used)")
         if problem:
@@ -180,6 +186,7 @@ class PcmNode(VmocapNode):
                 pi(img)
             else:
                 pi.send((img, None))  # to our nodes only
+        self._publish_keypoints(pcm, fs.items, fs.stamp_ns)
         if pcm.n_views == 0 and self.awaiting is not None:
             self.awaiting = None  # nothing published: no skeleton will answer this frame
         self.problems.pop("inference", None)
@@ -188,6 +195,17 @@ class PcmNode(VmocapNode):
         self.record_age(fs.stamp_ns)
         self.busy = False
         self._pump()
+
+    def _publish_keypoints(self, pcm: Any, cams: Any, stamp_ns: int) -> None:
+        """Each camera's 2D keypoints, for whoever subscribes (a viewer, a recording that needs
+        the detections but not the 1.7 MB of heatmaps per frame set)."""
+        wanted = [n for n in cams if self._kp_pubs[n].wanted()]
+        if not wanted:
+            return
+        uv, w = camera_keypoints(pcm, len(self.rig))
+        for n in wanted:
+            c = self.rig.names.index(n)
+            self._kp_pubs[n](M.image_keypoints_msg(stamp_ns, n, uv[c], w[c]))
 
     def close(self) -> None:
         if self.worker is not None:
@@ -198,7 +216,7 @@ class PcmNode(VmocapNode):
         """False (and a WARN naming the camera, held WARN_HOLD_S) for an image the CNN must not
         get: another size than the rig's calibration, or no contrast (all black / white). The
         camera then has no view in this frame set, as a camera without a frame; the others go on."""
-        c = self.rig[cam]
+        c = self.seen[cam]
         problem = image_problem(image, c.width, c.height)
         if not problem:
             return True

@@ -9,8 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ...cameras.bag import bin_image, decode_compressed
 from ...cameras.projection import Camera, Rig
-from ...errors import RigFileError, VmocapError
+from ...errors import RigFileError, SourceError, VmocapError
 
 FPS = 60.0
 
@@ -137,11 +138,9 @@ def videos_to_bag(videos: dict[str, Path], rig: Rig, bag: Path, max_frames: int 
     return written
 
 
-def bag_frame_sets(bag: Path, rig: Rig):
+def bag_frame_sets(bag: Path, rig: Rig, binning: int = 1):
     """(stamp_ns, images in rig order) of the bag's camera images (JPEG CompressedImage, or raw
-    Image), by stamp."""
-    import cv2
-
+    Image), by stamp; reduced `binning` times (cameras.bag.decode_compressed / bin_image)."""
     from ...bag import BagReader
     from ...bag import messages as M
     from ...graph_config import Topics
@@ -160,11 +159,12 @@ def bag_frame_sets(bag: Path, rig: Rig):
             msg = m.decode()
             ns = M.stamp_ns(msg)
             if m.topic.endswith("/compressed"):
-                img = cv2.imdecode(np.frombuffer(bytes(msg["data"]), np.uint8), cv2.IMREAD_COLOR)
-                if img is None:
-                    raise VmocapError(f"{bag}: undecodable image on {m.topic} at {ns} ns")
+                try:
+                    img = decode_compressed(msg, binning)
+                except SourceError as exc:
+                    raise VmocapError(f"{bag}: undecodable image on {m.topic} at {ns} ns ({exc})") from None
             else:
-                img = M.image_array(msg)
+                img = bin_image(M.image_array(msg), binning)
             pending.setdefault(ns, {})[want[m.topic]] = img
             if len(pending[ns]) == len(rig):
                 imgs = pending.pop(ns)

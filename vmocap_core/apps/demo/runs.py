@@ -24,9 +24,10 @@ TRACKER_SETTINGS = {"fps": FPS, "filter_kind": "butterworth", "filter_cutoff_hz"
 
 # ------------------------------------------------------------------------------ pipeline
 def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int = 2,
-                 settings: dict[str, Any] | None = None) -> dict:
+                 settings: dict[str, Any] | None = None, binning: int = 1) -> dict:
     """The pipeline on the bag's images with the real CNN; records everything the report needs.
-    `settings`: the method's tunables (default TRACKER_SETTINGS)."""
+    `settings`: the method's tunables (default TRACKER_SETTINGS); `binning`: images decoded
+    reduced that many times (ModelPcmProvider's binning)."""
     from tqdm import tqdm
 
     from ...bag import BagWriter
@@ -40,12 +41,12 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
 
     topics = Topics()
     pipe = Pipeline(rig, PipelineConfig.from_dict(TRACKER_SETTINGS if settings is None else settings),
-                    ModelPcmProvider(rig, threads=threads))
+                    ModelPcmProvider(rig, threads=threads, binning=binning))
     subject = SubjectOutputs(rig)
     rec: dict[str, list] = {k: [] for k in ("stamp", "status", "keypoints", "raw", "markers", "uv", "w", "score", "weights",
                                              "t_decode", "t_pcm", "t_markers", "t_skeleton", "n_views", "links")}
     cameras = np.arange(len(rig))
-    it = bag_frame_sets(bag, rig)
+    it = bag_frame_sets(bag, rig, binning)
     with BagWriter(out_bag, compression="zstd") as writer:
         bar = tqdm(total=n_frames, desc="pipeline", unit="frame", file=sys.stderr)
         while True:
@@ -82,7 +83,7 @@ DECODE_SAMPLE = 5  # frame sets decoded to time the JPEG decoding
 TRACKER_MS = 5.0  # markers, skeleton, transport and recorder per frame set (CPU ms; bench graph: ~3-5)
 
 
-def live_rate(bag: Path, rig: Rig, views: int = 4) -> tuple[float, str]:
+def live_rate(bag: Path, rig: Rig, views: int = 4, binning: int = 1) -> tuple[float, str]:
     """The demo's playback rate on this CPU: 1 (live speed) if the CPU time a frame set needs
     (decoding its JPEGs, timed here on the bag's first frame sets; the CNN on `views` crops, from
     the self-check; the tracker) fits in CPU_SHARE of the cores over a 60 Hz frame period, else
@@ -95,7 +96,7 @@ def live_rate(bag: Path, rig: Rig, views: int = 4) -> tuple[float, str]:
     check = selfcheck.verdict("full")
     cnn = views * check.ms_per_crop[check.precision]
     t0, n = time.process_time(), 0
-    for n, _ in enumerate(bag_frame_sets(bag, rig), 1):
+    for n, _ in enumerate(bag_frame_sets(bag, rig, binning), 1):
         if n == DECODE_SAMPLE:
             break
     decode = (time.process_time() - t0) * 1e3 / max(n, 1)
@@ -109,11 +110,12 @@ def live_rate(bag: Path, rig: Rig, views: int = 4) -> tuple[float, str]:
 HOT_PATH = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]  # one process, as config/graph.yaml
 
 
-def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int, rate: float = 0.05) -> Path:
+def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int, rate: float = 0.05,
+              binning: int = 1) -> Path:
     """The ROS 2 node graph (camera from the bag: JPEG CompressedImage decoded in the camera
     node, or raw Image; CNN PCM node, markers, skeleton, recorder) as `vmocap launch` runs it
     by default: camera, CNN and tracker in one process (images never cross a process), the
-    recorder apart; returns the recorded MCAP (outputs + PCMs).
+    recorder apart; returns the recorded MCAP (outputs + each camera's 2D keypoints).
 
     The bag is played at `rate` x real time (1 = live speed, see live_rate); every node queues
     up to 50 frame sets, and what a node cannot take beyond that is dropped."""
@@ -128,12 +130,13 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
 
     topics = Topics()
     record = [topics.keypoints, topics.joint_states, topics.markers, topics.skeleton, Topics.diagnostics]
-    record += [topics.pcm(c.name) for c in rig] + [topics.pcm_info(c.name) for c in rig]
+    # the report needs each camera's 2D detections, not the heatmaps (1.7 MB a frame set at 60 Hz)
+    record += [topics.pcm_keypoints(c.name) for c in rig]
     output = out_dir / "graph_outputs.mcap"
     stages = stage_sections(TRACKER_SETTINGS)
     cfg = {
         "/**": {"ros__parameters": {"rig": str(rig_yaml), "cameras": [""], "namespace": topics.ns,
-                                    "pcm_keypoints": [""], "use_sim_time": False, **stages["/**"]}},
+                                    "pcm_keypoints": [""], "use_sim_time": False, "binning": binning, **stages["/**"]}},
         "vmocap_camera": {"ros__parameters": {"source": "bag", "uri": str(bag), "rate": rate, "loop": False,
                                               "start_offset": 0.0, "wait_topics": record}},
         "vmocap_pcm": {"ros__parameters": {"source": "model", "model": "blazepose", "min_cameras": 2,
@@ -196,8 +199,6 @@ def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
     from ...bag import BagReader
     from ...bag import messages as M
     from ...graph_config import Topics
-    from ...pcm.assembly import PcmAssembler, channel_keypoints
-    from ...pcm.peaks import camera_keypoints
     topics = Topics()
     stamps = np.array([int(round(f * 1e9 / FPS)) for f in range(n_frames)], dtype=np.int64)
     index = {int(s): f for f, s in enumerate(stamps)}
@@ -208,16 +209,7 @@ def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
            "score": np.zeros(n_frames), "weights": np.zeros((n_frames, J)), "n_views": np.zeros(n_frames, int)}
     for k in ("t_decode", "t_pcm", "t_markers", "t_skeleton"):
         rec[k] = np.full(n_frames, np.nan)  # per-stage timing: `vmocap bench graph` measures the graph
-    asm = PcmAssembler(rig, rig.names, channel_keypoints([]), tolerance_ns=1_000_000, min_views=1)
-    pcm_topics = {topics.pcm(c.name): (c.name, "image") for c in rig} | {topics.pcm_info(c.name): (c.name, "info") for c in rig}
-
-    def take(pcms) -> None:
-        for pcm in pcms:
-            f = index.get(int(pcm.stamp_ns))
-            if f is not None:
-                rec["uv"][f], rec["w"][f] = camera_keypoints(pcm, C)
-                rec["n_views"][f] = pcm.n_views
-
+    detections = {topics.pcm_keypoints(c.name): i for i, c in enumerate(rig)}
     node_timing: dict[str, dict[str, float]] = {}
     with BagReader(path) as reader:
         for m in reader.messages():
@@ -229,14 +221,14 @@ def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
                         node_timing[st["name"]] = {"median_ms": float(kv["proc_ms_p50"]), "p95_ms": float(kv["proc_ms_p95"]),
                                                    "frames": float(kv.get("proc_ms_n", "nan"))}
                 continue
-            if m.topic in pcm_topics:
-                view, kind = pcm_topics[m.topic]
-                take(asm.add_image(view, msg) if kind == "image" else asm.add_info(view, msg))
-                continue
             f = index.get(M.stamp_ns(msg)) if isinstance(msg, dict) and "header" in msg else None
             if f is None:
                 continue
-            if m.topic == topics.keypoints:
+            if m.topic in detections:
+                c = detections[m.topic]
+                rec["uv"][f, c], rec["w"][f, c] = M.image_keypoints(msg)
+                rec["n_views"][f] += 1
+            elif m.topic == topics.keypoints:
                 P, S, _ = M.cloud_keypoints(msg)
                 rec["status"][f] = "tracking" if P is not None else "initializing"
                 if P is not None:
@@ -247,7 +239,6 @@ def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
                 if P is not None:
                     rec["markers"][f] = P
                 rec["weights"][f] = S
-        take(asm.flush())
     rec["node_timing"] = node_timing
     seen = rec["n_views"] > 0
     rec["score"] = np.where(seen, rec["weights"].sum(axis=1) / np.maximum(rec["n_views"], 1) / J, 0.0)
