@@ -108,6 +108,16 @@ class BlazePosePcm:
         cams = np.flatnonzero(usable)
         return rotated_crops(cams, centre[cams], side[cams], rot[cams], self.rotation, self.min_tilt)
 
+    def warm_up(self) -> None:
+        """Load the detector and run both networks once on blank images: their first run
+        allocates and picks kernels (~55 ms here), which a live graph's first frame set
+        should not wait for."""
+        blank = [np.zeros((c.height, c.width, 3), np.uint8) for c in self.rig]
+        self.detector.detect(blank)
+        n = len(self.rig)
+        centre = np.array([[c.width / 2, c.height / 2] for c in self.rig])
+        self.landmark.infer(blank, Crops(np.arange(n), centre, np.array([min(c.width, c.height) / 2 for c in self.rig]), np.zeros(n)))
+
     def infer(
         self,
         images: Sequence[np.ndarray],

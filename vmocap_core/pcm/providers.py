@@ -99,6 +99,9 @@ class ModelPcmProvider:
         self.name = f"blazepose-{variant} {lm.precision} (rotation {rotation})" + (f", binning {self.binning}" if self.binning > 1 else "")
         self.precision, self.precision_reason = lm.precision, lm.precision_reason
 
+    def warm_up(self) -> None:
+        self.pcm.warm_up()
+
     def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
         full: list[np.ndarray | None] = [None] * len(self.rig)
         for c, img in zip(cameras, images):

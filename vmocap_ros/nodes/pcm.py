@@ -76,6 +76,7 @@ class PcmNode(VmocapNode):
         from vmocap_core.pcm.providers import make_model_provider  # the CNN
 
         provider = make_model_provider(model, self.rig, self.p["rotation"], self.p["threads"], self.p["binning"])
+        provider.warm_up()  # before READY: the first frame set would wait for it
         from vmocap_core.pcm import selfcheck
 
         check = selfcheck.last_verdict()
