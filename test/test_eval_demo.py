@@ -154,3 +154,29 @@ def test_process_on_reduced_jpegs_tracks_as_on_full_ones(tmp_path: Path) -> None
             keypoints[b] = np.array([p for p in clouds if p is not None])
     assert keypoints[1].shape == keypoints[2].shape
     assert np.nanmedian(np.linalg.norm(keypoints[1] - keypoints[2], axis=-1)) < 0.03
+
+    # What a graph with binning 2 records: raw half-size images with CameraInfo binning 2.
+    # `vmocap process` recognizes them (the same images as --binning 2 decodes: the same result);
+    # without their CameraInfo the size does not match the rig: a clear error, not wrong markers.
+    from vmocap_core.bag import BagWriter
+    from vmocap_core.cameras.bag import decode_compressed
+    from vmocap_core.errors import BagError
+
+    for info in (True, False):
+        binned = tmp_path / f"binned_{info}.mcap"
+        with BagReader(bag) as r, BagWriter(binned) as w:
+            for m in r.messages([t for t in r.topics if t.endswith("/compressed")]):
+                d = m.decode()
+                cam, t = d["header"]["frame_id"], M.stamp_ns(d)
+                w.write(m.topic.removesuffix("/compressed"), "sensor_msgs/msg/Image", M.image_msg(decode_compressed(d, 2), t, cam), t)
+                if info:
+                    w.write(f"/vmocap/{cam}/camera_info", "sensor_msgs/msg/CameraInfo", M.camera_info_msg(rig[cam], t, binning=2), t)
+        if not info:
+            with pytest.raises(BagError, match="another rig, or a binning"):
+                process_bag(binned, tmp_path / "x.mcap", rig, config=offline, progress=False)
+            continue
+        stats = process_bag(binned, tmp_path / "rb.mcap", rig, config=offline, progress=False)
+        assert (stats["binning"], stats["recorded_binning"], sum(stats["bad_images"].values())) == (2, 2, 0)
+        with BagReader(tmp_path / "rb.mcap") as r:
+            clouds = (M.cloud_keypoints(m.decode())[0] for m in r.messages(["/vmocap/keypoints"]))
+            assert np.allclose(np.array([p for p in clouds if p is not None]), keypoints[2], equal_nan=True, atol=1e-6)

@@ -23,11 +23,12 @@ import numpy as np
 
 from ..bag import BagReader, BagWriter
 from ..bag import messages as M
-from ..cameras.bag import decode_compressed, single_threaded_opencv
+from ..cameras.bag import REDUCED, decode_compressed, single_threaded_opencv
 from ..cameras.projection import Rig
 from ..cameras.sync import ApproximateSync
 from ..errors import BagError, HeatmapError
 from ..graph_config import Topics
+from ..method.camera_check import image_problem
 from ..method.config import PipelineConfig
 from ..method.pipeline import FrameResult, ImageSet, Pipeline
 from ..outputs.messages import CLOUD, DIAG, markers_message, subject_message, write_results
@@ -84,11 +85,18 @@ def process_bag(
             if len(cams) < 2:
                 raise BagError(f"{in_path}: neither PCM topics under {topics.ns}/pcm/ nor images "
                                f"{topics.image('CAM')} of at least 2 rig cameras")
-            pipe = Pipeline(rig, live_cfg, provider or _model_provider(model, rig, binning))
+            # images a binning graph recorded come reduced already (their CameraInfo says so)
+            recorded = _recorded_binning(reader, topics, cams)
+            seen = recorded * binning
+            if seen not in REDUCED:
+                raise BagError(f"{in_path}: images recorded with binning {recorded}, reduced {binning} times more: "
+                               f"{seen} is not one of {sorted(REDUCED)}")
+            pipe = Pipeline(rig, live_cfg, provider or _model_provider(model, rig, seen))
             stats["pcm"] = pipe.pcm.name  # type: ignore[union-attr]
-            stats["binning"] = binning
+            stats["binning"], stats["recorded_binning"] = seen, recorded
+            stats["bad_images"] = {c: 0 for c in cams}
             frames, total, sync_stats = _image_frame_sets(reader, rig, topics, cams, max(tolerance_ns, 8_000_000),
-                                                          min_views, binning)
+                                                          min_views, binning, recorded, stats["bad_images"])
         with BagWriter(out_path, compression="zstd") as writer:
             stamps: list[int] = []
             start = time.perf_counter()  # the model is loaded: from here on it is the recording's own cost
@@ -144,20 +152,55 @@ def _pcm_frame_sets(reader: BagReader, rig: Rig, topics: Topics, views: list[str
     return gen(), total, sync_stats
 
 
+def _recorded_binning(reader: BagReader, topics: Topics, cams: list[str]) -> int:
+    """The binning the cameras' images were recorded with: their first CameraInfo's binning_x
+    (REP 104; 0 or no CameraInfo: 1). Cameras that disagree are an error."""
+    found: dict[str, int] = {}
+    infos = [t for t in (topics.camera_info(c) for c in cams) if t in reader.topics]
+    for m in reader.messages(infos):
+        msg = m.decode()
+        found.setdefault(msg["header"]["frame_id"] or m.topic, max(int(msg.get("binning_x") or 1), 1))
+        if len(found) == len(infos):
+            break
+    if len(set(found.values())) > 1:
+        raise BagError(f"the cameras' CameraInfo give different binnings: {found}")
+    return next(iter(found.values()), 1)
+
+
 def _image_frame_sets(reader: BagReader, rig: Rig, topics: Topics, cams: list[str], tolerance_ns: int,
-                      min_views: int, binning: int = 1) -> tuple[Iterator[ImageSet], int, Any]:
+                      min_views: int, binning: int = 1, recorded: int = 1,
+                      bad: dict[str, int] | None = None) -> tuple[Iterator[ImageSet], int, Any]:
     """The bag's camera images (raw or compressed, the latter decoded reduced `binning` times)
-    as synchronized ImageSets (as vmocap_pcm synchronizes its subscriptions)."""
+    as synchronized ImageSets (as vmocap_pcm synchronizes its subscriptions). Images recorded
+    `recorded` times binned are taken as they are. An image of another size than the rig's (so
+    binned) or without contrast is left out of its set and counted in `bad`, as vmocap_pcm does;
+    when a camera's first image has the wrong size, the rig or the binning is wrong: BagError."""
     sync: ApproximateSync[np.ndarray] = ApproximateSync(cams, tolerance_ns, min_cameras=min_views)
     want = {str(_image_topic(reader, topics, c)): c for c in cams}  # every camera has one (process_bag)
     compressed = {t for t in want if t.endswith("/compressed")}
     if binning > 1 and len(compressed) < len(want):
         raise BagError(f"binning {binning} applies to compressed images; raw images on {sorted(set(want) - compressed)}")
+    seen = rig.binned(recorded * binning)
+    bad = {} if bad is None else bad
+    checked: set[str] = set()
+
+    def usable(cam: str, image: np.ndarray) -> bool:
+        c = seen[cam]
+        if cam not in checked and image.shape[1::-1] != (c.width, c.height):
+            raise BagError(f"{cam}: images of {image.shape[1]}x{image.shape[0]}, the rig's camera is {c.width}x{c.height}"
+                           + (f" binned {recorded * binning} times" if recorded * binning > 1 else "")
+                           + ": another rig, or a binning the bag's CameraInfo does not say (--binning)")
+        checked.add(cam)
+        problem = image_problem(image, c.width, c.height)
+        if problem:
+            bad[cam] = bad.get(cam, 0) + 1
+        return not problem
 
     def image_sets(sets: list) -> Iterator[ImageSet]:
         for fs in sets:
-            names = [c for c in rig.names if c in fs.items]
-            yield ImageSet(fs.stamp_ns, [fs.items[c] for c in names], np.array([rig.names.index(c) for c in names]))
+            names = [c for c in rig.names if c in fs.items and usable(c, fs.items[c])]
+            if names:  # fewer than min_views: the tracker reports the frame set as it is
+                yield ImageSet(fs.stamp_ns, [fs.items[c] for c in names], np.array([rig.names.index(c) for c in names]))
 
     def gen() -> Iterator[ImageSet]:
         # JPEG decoding (~4 ms per 1088x1920 image) runs in threads, DECODE_AHEAD images ahead:
@@ -250,8 +293,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "RTS smoother, second IK (vmocap_skeleton.offline)")
     parser.add_argument("--plots", type=Path, default=None, help="write joint-angle and keypoint-speed plots (PNG) here")
     parser.add_argument("--binning", type=int, choices=(1, 2, 4, 8), default=1,
-                        help="decode compressed images reduced this many times (JPEG DCT scaling, much cheaper) "
-                             "with the rig binned to match; for crops larger than binning x 256 px")
+                        help="decode compressed images reduced this many times (JPEG DCT scaling, much cheaper) and "
+                             "cut the CNN's crops from them; for crops larger than binning x 256 px. Images recorded "
+                             "binned (CameraInfo binning_x) are recognized without it")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -278,6 +322,9 @@ def run(args: argparse.Namespace) -> int:
         min_views=p["min_cameras"], recover=args.recover, progress=not args.no_progress, binning=args.binning,
         model=cfg.node_params("vmocap_pcm")["model"] if cfg.node_params("vmocap_pcm")["source"] == "model" else "blazepose",
     )
+    bad = {c: n for c, n in stats.get("bad_images", {}).items() if n}
+    if bad:
+        print(f"vmocap process: WARNING: images left out (wrong size or no contrast), per camera: {bad}", file=sys.stderr)
     if args.json:
         print(json.dumps(stats))
     else:
