@@ -153,3 +153,24 @@ def test_process_image_bag_runs_the_cnn(tmp_path: Path) -> None:
     assert stats["frames"] == 5 and stats["pcm"].startswith("blazepose") and stats["sync"]["complete"] == 5
     with BagReader(tmp_path / "o.mcap") as r:
         assert r.message_counts["/vmocap/keypoints"] == 5
+    # an all-black image and one of another size mid-stream are left out of their frame sets
+    # and counted; a rig whose size no image has stops it, naming the camera
+    from vmocap_core.bag import BagWriter
+    from vmocap_core.errors import BagError
+
+    odd = tmp_path / "odd.mcap"
+    with BagReader(bag) as r, BagWriter(odd) as w:
+        for m in r.messages():
+            d = m.decode()
+            if m.type == "sensor_msgs/msg/Image":
+                k = round((M.stamp_ns(d) - r.start_ns) * 30 / 1e9)
+                cam = d["header"]["frame_id"]
+                if (cam, k) == (rig.names[1], 2):
+                    d = M.image_msg(np.zeros_like(M.image_array(d)), M.stamp_ns(d), cam)
+                elif (cam, k) == (rig.names[2], 3):
+                    d = M.image_msg(M.image_array(d)[:60], M.stamp_ns(d), cam)
+            w.write(m.topic, m.type, d, m.log_time_ns)
+    stats = process_bag(odd, tmp_path / "o2.mcap", rig, config={"fps": 30.0}, progress=False)
+    assert stats["frames"] == 5 and stats["bad_images"] == {rig.names[0]: 0, rig.names[1]: 1, rig.names[2]: 1, rig.names[3]: 0}
+    with pytest.raises(BagError, match=f"{rig.names[0]}: images of 160x120, the rig's camera is 320x240"):
+        process_bag(bag, tmp_path / "o3.mcap", benchmark_rig(width=320, height=240), config={"fps": 30.0}, progress=False)
