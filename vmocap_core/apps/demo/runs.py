@@ -75,10 +75,10 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
 
 # ------------------------------------------------------------------------------ node graph
 # Share of the CPU the demo's graph may plan on; the rest goes to what the estimate leaves out
-# (the detector while initializing, the heatmaps serialized for the recorder, the threads'
-# contention). Measured on 2 Zen 5 cores: planned at 0.75 (0.72x real time) the PCM node's queue
-# of 50 overflowed (84-92 of 100 frame sets tracked), at 0.35x none was lost (96/100, 2 runs).
-CPU_SHARE = 0.35
+# (the detector while initializing, the decoder and the CNN slowing each other, the graph's own
+# work). Measured on 2 Zen 5 cores (35 ms estimated per frame set): at 0.6x and 0.8x real time
+# 96/100 tracked (2 runs each), at 0.9x 88-96, at 1x 89-95.
+CPU_SHARE = 0.6
 DECODE_SAMPLE = 5  # frame sets decoded to time the JPEG decoding
 TRACKER_MS = 5.0  # markers, skeleton, transport and recorder per frame set (CPU ms; bench graph: ~3-5)
 
