@@ -236,3 +236,36 @@ def test_camera_node_publishes_binned_images_with_their_camera_info(tmp_path: Pa
                 seen["info"] += 1
     assert seen == {"image": 6, "info": 6}, (seen, log)
     assert "frames of" not in log  # the size check knows the binned size
+
+
+def test_camera_whose_recording_breaks_turns_diagnostics_error(tmp_path: Path) -> None:
+    """A recording damaged in the middle: the camera node publishes what comes before the damage,
+    then its cameras' threads end, and /diagnostics says ERROR (level 2) with the reason: the
+    node no longer does its job, unlike a skipped frame (WARN)."""
+    from vmocap_core.cameras.rig_file import save_rig
+    from vmocap_ros.fault_harness import damage
+
+    rig = small_rig()
+    bag = tmp_path / "c.mcap"
+    compressed_bag(bag, rig, 40)
+    broken = damage(bag, tmp_path / "broken.mcap", "corrupted", at=0.5)
+    rig_path = tmp_path / "rig.yaml"
+    save_rig(rig, rig_path)
+    out = tmp_path / "out.mcap"
+    cfg = write_config(tmp_path / "g.yaml", rig_path, [], ["vmocap_camera", "vmocap_recorder"], mode="single_process",
+                       output=out, extra={"vmocap_camera": {"uri": str(broken), "rate": 0.0, "wait_subscribers": 60.0},
+                                          "vmocap_recorder": {"topics": ["/vmocap/cam1/image_raw", "/diagnostics"]}})
+    launch = vmocap(["launch", str(cfg)], domain_env(35))
+    try:
+        assert wait_ready(launch, ["vmocap_camera", "vmocap_recorder"]), stop(launch)
+        time.sleep(4.0)
+    finally:
+        log = stop(launch, signal.SIGINT)
+    assert launch.returncode == 0, log
+    with BagReader(out) as r:
+        images = r.message_counts.get("/vmocap/cam1/image_raw", 0)
+        status = [s for m in r.messages(["/diagnostics"]) for s in m.decode()["status"] if s["name"] == "vmocap_camera"]
+    assert 0 < images < 40, images
+    last = status[-1]
+    level = last["level"][0] if isinstance(last["level"], (bytes, bytearray)) else int(last["level"])
+    assert level == 2 and "broken.mcap" in last["message"], last["message"]

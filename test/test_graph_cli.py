@@ -128,6 +128,39 @@ def test_silent_camera_graph_continues_and_reports(tmp_path: Path) -> None:
     assert n_kp == 30, log
     last = {v["key"]: v["value"] for v in status[-1]["values"]}
     assert "cam3" in last["silent"] and last["frames"] == "30"
+    level = status[-1]["level"][0] if isinstance(status[-1]["level"], (bytes, bytearray)) else int(status[-1]["level"])
+    assert level == 1 and "silent view: cam3" in status[-1]["message"], status[-1]["message"]
+
+
+def test_markers_falling_behind_warn_and_say_how_many_were_dropped(tmp_path: Path) -> None:
+    """Heatmaps played 10x faster than vmocap_markers takes them with a queue of 1: it drops
+    frame sets (freshness over completeness) and its /diagnostics turn WARN saying so."""
+    bag = tmp_path / "in.mcap"
+    rig, rig_path, kps = synthetic_bag(bag, frames=60)
+    out = tmp_path / "out.mcap"
+    cfg = write_config(tmp_path / "g.yaml", rig_path, kps, ["vmocap_markers", "vmocap_skeleton", "vmocap_recorder"],
+                       mode="single_process", output=out,
+                       extra={"vmocap_markers": {"queue_depth": 1, "feedback_timeout_ms": 5000.0}})
+    env = domain_env(14)
+    launch = vmocap(["launch", str(cfg)], env)
+    topics = [f"/vmocap/pcm/{c}/{k}" for c in ("cam0", "cam1", "cam2", "cam3") for k in ("heatmaps", "camera_info")]
+    try:
+        assert wait_for(lambda: Path(str(out) + ".partial").exists() or launch.poll() is not None, 60.0)
+        time.sleep(1.0)
+        play = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "play", str(bag), "--topics", *topics, "--rate", "10",
+                               "--expect", *topics, "--wait-subscribers", "60"], env=env, capture_output=True, text=True, timeout=90)
+        assert play.returncode == 0, play.stdout + play.stderr
+        time.sleep(2.5)  # at least one diagnostics period after the drops (the WARN is held 5 s)
+    finally:
+        log = stop(launch)
+    assert launch.returncode == 0, log
+    with BagReader(out) as r:
+        status = [s for m in r.messages(["/diagnostics"]) for s in m.decode()["status"] if s["name"] == "vmocap_markers"]
+    last = {v["key"]: v["value"] for v in status[-1]["values"]}
+    dropped = int(last["queue_dropped"])
+    assert dropped > 0, last
+    warned = [s["message"] for s in status if "falling behind" in s["message"]]
+    assert warned and f"({dropped} in all" in warned[-1], [s["message"] for s in status]
 
 
 def test_process_image_bag_runs_the_cnn(tmp_path: Path) -> None:

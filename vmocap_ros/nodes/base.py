@@ -81,7 +81,9 @@ class VmocapNode(Node):
         self._frames_done = 0  # frame sets processed, for the achieved rate in the diagnostics
         self._late_before: dict[str, int] = {}
         self._rate_mark = (time.monotonic(), 0)
-        self.problems: dict[str, str] = {}
+        self.problems: dict[str, str] = {}  # WARN: the node works, with a problem the message names
+        self.errors: dict[str, str] = {}  # ERROR: a part of the node has stopped doing its job
+        self._dropped_before = 0
         self._held: dict[str, float] = {}  # problem key -> monotonic time its WARN ends (warn_for)
         self._pending_subs: list = []
         self._dds_pubs: dict[str, Any] = {}  # topic -> rclpy publisher, for matched-subscriber counts
@@ -143,6 +145,24 @@ class VmocapNode(Node):
         else:
             self.problems.pop("late", None)
 
+    def watch_silent(self, silent: list[str] | tuple[str, ...], what: str = "camera") -> None:
+        """WARN naming the cameras (views) the synchronizer calls silent: nothing from them for
+        silent_after_ms of the others' stamps, so frame sets go on without them."""
+        if silent:
+            self.problems["silent"] = (f"silent {what}{'s' if len(silent) > 1 else ''}: {', '.join(silent)} (nothing for "
+                                       f"{self.p['silent_after_ms']:.0f} ms while the others deliver; going on without)")
+        else:
+            self.problems.pop("silent", None)
+
+    def watch_dropped(self, dropped: int, what: str = "frame sets") -> None:
+        """WARN (held WARN_HOLD_S) when the node dropped input in the last diagnostics period: it
+        falls behind its input (the achieved rate is rate_hz)."""
+        grown, self._dropped_before = dropped - self._dropped_before, dropped
+        if grown > 0:
+            p50 = self.proc.summary().get("p50", "n/a")
+            self.warn_for("falling_behind", f"falling behind: {grown} {what} dropped in the last second ({dropped} in all; "
+                                            f"processing p50 {p50} ms per frame set)")
+
     def warn_for(self, key: str, text: str, hold_s: float = WARN_HOLD_S) -> None:
         """A WARN of a passing fault (a bad frame, a short disconnection): kept on /diagnostics
         for `hold_s` after its last occurrence, so a 1 Hz status cannot miss it, then cleared."""
@@ -177,9 +197,9 @@ class VmocapNode(Node):
         # matched DDS subscribers per output: volatile outputs published before a subscriber
         # matched are gone, so whoever records or controls can check it is connected
         values.update({f"subscribers:{t}": str(pub.get_subscription_count()) for t, pub in self._dds_pubs.items()})
-        problems = dict(self.problems)  # camera threads add to it meanwhile
-        level = 1 if problems else 0
-        message = "; ".join(sorted(problems.values()))[:500] or "ok"
+        problems, errors = dict(self.problems), dict(self.errors)  # camera threads add to them meanwhile
+        level = 2 if errors else 1 if problems else 0
+        message = "; ".join([*sorted(errors.values()), *sorted(problems.values())])[:500] or "ok"
         self._diag.publish(cdr.encode(DIAG, M.diagnostics_msg(time.time_ns(), [(level, self.get_name(), message, values)])))
 
     def close(self) -> None:

@@ -108,7 +108,7 @@ class CameraNode(VmocapNode):
                         self.last_frame[cam.name] = time.monotonic()
                         continue
                     return
-                self.problems[f"camera:{cam.name}"] = str(exc)
+                self.errors[f"camera:{cam.name}"] = str(exc)  # this camera's thread ends: ERROR
                 self.get_logger().error(str(exc))
                 return
             bad = getattr(src, "bad_frames", 0)
@@ -185,7 +185,8 @@ class CameraNode(VmocapNode):
             self.warn_for(f"reconnected:{cam}", msg)
             return True
         self.get_logger().error(f"{cam}: given up after {attempts} reconnection attempts")
-        self.problems[f"camera:{cam}"] = f"{cam}: disconnected, given up after {attempts} attempts ({error})"
+        self.problems.pop(f"camera:{cam}", None)
+        self.errors[f"camera:{cam}"] = f"{cam}: disconnected, given up after {attempts} attempts ({error})"
         return False
 
     def _send_due(self, cam: str, prepared: tuple, pub_img: Output, pub_info: Output, slot: threading.Semaphore,
@@ -208,6 +209,7 @@ class CameraNode(VmocapNode):
             quiet = now - self.last_frame[cam]
             if quiet > STALL_S and f"camera:{cam}" not in self.problems:  # connected, but nothing comes
                 self.warn_for(f"stalled:{cam}", f"{cam}: no frame for {quiet:.1f} s (connected)")
+        self.watch_dropped(sum(self.late_dropped.values()), "frames (a period late)")
         return {"published": self.published, "late_dropped": self.late_dropped, "wrong_size": self.wrong_size,
                 "disconnects": self.disconnects, "reconnects": self.reconnects}
 

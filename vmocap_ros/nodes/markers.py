@@ -135,6 +135,8 @@ class MarkersNode(VmocapNode):
     def status(self) -> dict[str, Any]:
         st = self.asm.sync.stats()
         self.watch_late(st.late)
+        self.watch_silent(st.silent, "view")
+        self.watch_dropped(self.counts["queue_dropped"])
         return dict(self.counts, queued=len(self.queue), sync=st.as_dict(), silent=list(st.silent),
                     rejected_frame_sets=self.asm.bad_views, presence={k: round(v, 3) for k, v in self.presence.items()},
                     **{f"residual_px:{k}": round(v, 1) for k, v in self.cameras.medians().items()})

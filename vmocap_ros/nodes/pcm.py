@@ -166,8 +166,8 @@ class PcmNode(VmocapNode):
     def _failed(self, exc: Exception) -> None:
         self.busy = False
         self.awaiting = None
-        self.problems["inference"] = f"PCM inference failed: {exc}"
-        self.get_logger().error(self.problems["inference"])
+        self.errors["inference"] = f"PCM inference failed: {exc}"
+        self.get_logger().error(self.errors["inference"])
         self._pump()
 
     def _publish(self, fs: Any, data: bool, pcm: Any, msgs: list, seconds: float) -> None:
@@ -190,7 +190,7 @@ class PcmNode(VmocapNode):
         self._publish_keypoints(pcm, fs.items, fs.stamp_ns)
         if pcm.n_views == 0 and self.awaiting is not None:
             self.awaiting = None  # nothing published: no skeleton will answer this frame
-        self.problems.pop("inference", None)
+        self.errors.pop("inference", None)
         self.frames += 1
         self.proc.add(1e3 * (seconds + time.perf_counter() - t0))
         self.record_age(fs.stamp_ns)
@@ -228,6 +228,8 @@ class PcmNode(VmocapNode):
     def status(self) -> dict[str, Any]:
         st = self.sync.stats()
         self.watch_late(st.late)
+        self.watch_silent(st.silent)
+        self.watch_dropped(self.counts["queue_dropped"])
         return dict(self.counts, frames=self.frames, bad_images=self.bad_images, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
                     queued=len(self.sets), precision=getattr(self.provider, "precision", "n/a"),
                     precision_reason=getattr(self.provider, "precision_reason", "n/a"))
