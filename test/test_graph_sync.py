@@ -140,3 +140,14 @@ def test_a_camera_whose_stamps_lag_is_reported_not_silently_ignored():
     late = dict(sync.stats().late)
     assert all("cam1" not in fs.items for fs in sets[30:])
     assert set(lagging(before, late)) == {"cam1"} and lagging(late, late) == {}
+
+
+def test_frames_missing_counts_skipped_periods_only():
+    from vmocap_core.cameras.sync import frames_missing
+
+    period = int(1e9 / 30)
+    assert frames_missing(None, 5 * period, 30.0) == 0  # the first frame set
+    assert frames_missing(0, period, 30.0) == 0
+    assert frames_missing(0, 4 * period, 30.0) == 3
+    assert frames_missing(0, int(1.4 * period), 30.0) == 0  # jitter, or cameras a little slower than fps
+    assert frames_missing(4 * period, period, 30.0) == 0  # a looped recording starts again

@@ -231,3 +231,11 @@ def lagging(before: dict[str, int], now: dict[str, int], threshold: int = LATE_W
     their frames keep arriving after their frame set was emitted, so they are never used (a
     clock or stamps behind the others by more than the tolerance, or a source that stalls)."""
     return {n: c - before.get(n, 0) for n, c in now.items() if c - before.get(n, 0) >= threshold}
+
+
+def frames_missing(prev_ns: int | None, stamp_ns: int, fps: float) -> int:
+    """Frame periods skipped between two consecutive frame sets' capture stamps at `fps`: 0 when
+    they are one period apart (up to 1.5), none for the first set or a stamp going back (a loop)."""
+    if prev_ns is None or stamp_ns <= prev_ns:
+        return 0
+    return max(0, int(round((stamp_ns - prev_ns) * fps / 1e9)) - 1)

@@ -154,13 +154,13 @@ class VmocapNode(Node):
         else:
             self.problems.pop("silent", None)
 
-    def watch_dropped(self, dropped: int, what: str = "frame sets") -> None:
-        """WARN (held WARN_HOLD_S) when the node dropped input in the last diagnostics period: it
-        falls behind its input (the achieved rate is rate_hz)."""
+    def watch_dropped(self, dropped: int, what: str = "frame sets dropped") -> None:
+        """WARN (held WARN_HOLD_S) when the node lost input in the last diagnostics period: it
+        (or a stage before it) falls behind (the achieved rate is rate_hz)."""
         grown, self._dropped_before = dropped - self._dropped_before, dropped
         if grown > 0:
             p50 = self.proc.summary().get("p50", "n/a")
-            self.warn_for("falling_behind", f"falling behind: {grown} {what} dropped in the last second ({dropped} in all; "
+            self.warn_for("falling_behind", f"falling behind: {grown} {what} in the last second ({dropped} in all; "
                                             f"processing p50 {p50} ms per frame set)")
 
     def warn_for(self, key: str, text: str, hold_s: float = WARN_HOLD_S) -> None:

@@ -209,7 +209,7 @@ class CameraNode(VmocapNode):
             quiet = now - self.last_frame[cam]
             if quiet > STALL_S and f"camera:{cam}" not in self.problems:  # connected, but nothing comes
                 self.warn_for(f"stalled:{cam}", f"{cam}: no frame for {quiet:.1f} s (connected)")
-        self.watch_dropped(sum(self.late_dropped.values()), "frames (a period late)")
+        self.watch_dropped(sum(self.late_dropped.values()), "frames dropped (a period late)")
         return {"published": self.published, "late_dropped": self.late_dropped, "wrong_size": self.wrong_size,
                 "disconnects": self.disconnects, "reconnects": self.reconnects}
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
+from vmocap_core.cameras.sync import frames_missing
 from vmocap_core.errors import VmocapError
 from vmocap_core.method.camera_check import BlindCameras, OddCamera, camera_residuals
 from vmocap_core.method.markers import MarkerStage
@@ -42,7 +43,8 @@ class MarkersNode(VmocapNode):
         self.awaiting: int | None = None
         self.awaiting_since = 0.0
         self.timeout = p["feedback_timeout_ms"] / 1e3
-        self.counts = {"frames": 0, "queue_dropped": 0, "feedback_timeouts": 0}
+        self.counts = {"frames": 0, "queue_dropped": 0, "missing": 0, "feedback_timeouts": 0}
+        self._last_stamp: int | None = None
         self.init_watch = InitWatch(p["init_warn_s"], self.stage.config.init_max_reprojection_px, self.rig.names)
         self.presence: dict[str, float] = {}  # CNN presence per camera, last triangulated frame set
         self.cameras = OddCamera()  # per-camera reprojection residuals while tracking
@@ -69,6 +71,9 @@ class MarkersNode(VmocapNode):
         while self.queue and (self.awaiting is None or self.timeout == 0):
             pcm = self.queue.popleft()
             t0 = time.perf_counter()
+            # frame sets lost anywhere before the tracker (DDS queues, the PCM node, a camera)
+            self.counts["missing"] += frames_missing(self._last_stamp, pcm.stamp_ns, self.p["fps"])
+            self._last_stamp = pcm.stamp_ns
             markers = self.stage.step(pcm)
             self.init_watch.update(self, "tracking" if markers.kind == "lattice" else "initializing", markers)
             if markers.presence:
@@ -136,7 +141,8 @@ class MarkersNode(VmocapNode):
         st = self.asm.sync.stats()
         self.watch_late(st.late)
         self.watch_silent(st.silent, "view")
-        self.watch_dropped(self.counts["queue_dropped"])
+        # `missing` includes the frame sets dropped from our own queue
+        self.watch_dropped(self.counts["missing"], f"frame sets dropped or missing (stamps further apart than 1/{self.p['fps']:g} s)")
         return dict(self.counts, queued=len(self.queue), sync=st.as_dict(), silent=list(st.silent),
                     rejected_frame_sets=self.asm.bad_views, presence={k: round(v, 3) for k, v in self.presence.items()},
                     **{f"residual_px:{k}": round(v, 1) for k, v in self.cameras.medians().items()})
