@@ -68,6 +68,82 @@ class OddCamera:
         return None
 
 
+# A camera moved along a few centimetres is mostly absorbed by the markers (the residuals above
+# stay at the views' noise), but its epipolar geometry with each other camera is off by a
+# constant: per camera pair, the mean *signed* distance of one camera's 2D keypoints from the
+# epipolar lines of the other's averages the noise away and keeps that offset.
+# Thresholds: with the real CNN on rendered clips (exact calibration, 1024x768) one camera's
+# pairs reached 3.3 mrad (a person getting up from the floor), so 6; a 5-degree turn gives ~46.
+EPI_MIN_MRAD = 6.0  # a camera is off when the mean |offset| of its pairs exceeds this (radians x 1e3) ...
+EPI_RATIO = 3.0  # ... and this many times that of the pairs without it
+EPI_MIN_SAMPLES = 200  # keypoint pairs per camera pair in the window before any verdict
+
+
+def _skew(t: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
+class EpipolarCheck:
+    """Rolling per-pair signed epipolar offsets of the cameras' confident 2D keypoints (PCM
+    centroids) and the camera whose pairs are off while the others agree, if any."""
+
+    def __init__(self, rig: Rig, window: int = 100) -> None:
+        self.rig = rig
+        C = len(rig)
+        self.pairs = np.array([(i, j) for i in range(C) for j in range(i + 1, C)], dtype=np.intp).reshape(-1, 2)
+        # essential matrices x_j^T E x_i = 0 on normalized coordinates (X_j = R X_i + t)
+        E = []
+        for i, j in self.pairs:
+            R = rig[j].R @ rig[i].R.T
+            E.append(_skew(rig[j].t - R @ rig[i].t) @ R)
+        self.E = np.array(E).reshape(-1, 3, 3)
+        self.sums: deque[np.ndarray] = deque(maxlen=window)
+        self.counts: deque[np.ndarray] = deque(maxlen=window)
+
+    def add(self, pcm: PcmViews) -> None:
+        """One frame set's keypoints (a frame set with the subject tracked: one person)."""
+        from ..pcm.peaks import camera_keypoints
+
+        if len(self.pairs) == 0:
+            return
+        uv, w = camera_keypoints(pcm, len(self.rig))  # (C, J, 2), (C, J)
+        conf = w >= MIN_PEAK
+        x = np.ones(uv.shape[:2] + (3,))
+        for c in range(len(self.rig)):  # cv2 undistorts one camera at a time
+            if conf[c].any():
+                x[c, conf[c], :2] = self.rig[c].undistort_pixels(uv[c, conf[c]])
+        I, J = self.pairs[:, 0], self.pairs[:, 1]
+        lines = np.einsum("pab,pkb->pka", self.E, x[I])  # (P, K, 3): epipolar lines in camera j
+        d = (x[J] * lines).sum(axis=-1) / np.maximum(np.linalg.norm(lines[..., :2], axis=-1), 1e-12)
+        ok = conf[I] & conf[J] & np.isfinite(d)
+        self.sums.append(np.where(ok, d, 0.0).sum(axis=1))
+        self.counts.append(ok.sum(axis=1))
+
+    def offsets_mrad(self) -> np.ndarray | None:
+        """(P,) mean signed offset per pair in milliradians, None before EPI_MIN_SAMPLES each."""
+        if not self.counts:
+            return None
+        n = np.sum(self.counts, axis=0)
+        if len(n) == 0 or n.min() < EPI_MIN_SAMPLES:
+            return None
+        return 1e3 * np.sum(self.sums, axis=0) / n
+
+    def odd(self) -> tuple[str, float, float] | None:
+        """(camera, mean |offset| of its pairs in mrad, that of the other pairs) when one camera's
+        pairs are off and the others agree; needs 3 cameras."""
+        m = self.offsets_mrad()
+        if m is None or len(self.rig) < 3:
+            return None
+        m = np.abs(m)
+        mine = (self.pairs[:, :, None] == np.arange(len(self.rig))).any(axis=1)  # (P, C)
+        per = (m[:, None] * mine).sum(axis=0) / mine.sum(axis=0)
+        c = int(np.argmax(per))
+        others = float(m[~mine[:, c]].mean())
+        if per[c] >= EPI_MIN_MRAD and per[c] >= EPI_RATIO * max(others, 0.3):
+            return self.rig[c].name, float(per[c]), others
+        return None
+
+
 # ------------------------------------------------------------------ images a camera delivers
 UNIFORM_STD = 2.0  # grey levels: a sampled image flatter than this shows nothing (lens cap, dark, saturated)
 SAMPLE_STEP = 16  # every 16th pixel of every 16th row: ~0.1 ms on a 1920x1080 image

@@ -12,7 +12,7 @@ from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.sync import frames_missing
 from vmocap_core.errors import VmocapError
-from vmocap_core.method.camera_check import BlindCameras, OddCamera, camera_residuals
+from vmocap_core.method.camera_check import BlindCameras, EpipolarCheck, OddCamera, camera_residuals
 from vmocap_core.method.markers import MarkerStage
 from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO, markers_message
 from vmocap_core.pcm.assembly import PcmAssembler, channel_keypoints
@@ -21,6 +21,7 @@ from ..transport import Transport
 from .base import InitWatch, VmocapNode
 
 CAMERA_CHECK_EVERY = 10  # frame sets between per-camera residual and heatmap checks (~0.3 ms each)
+EPIPOLAR_EVERY = 3  # frame sets between epipolar samples (~0.3 ms each; enough samples in a few seconds)
 HEATMAP_WARN_S = 5.0  # a corrupted-heatmap or blind-camera WARN stays this long after the last observation
 BLIND_WARN_S = 1.0  # a camera without any heatmap this long while the others track: WARN
 
@@ -48,6 +49,7 @@ class MarkersNode(VmocapNode):
         self.init_watch = InitWatch(p["init_warn_s"], self.stage.config.init_max_reprojection_px, self.rig.names)
         self.presence: dict[str, float] = {}  # CNN presence per camera, last triangulated frame set
         self.cameras = OddCamera()  # per-camera reprojection residuals while tracking
+        self.epipolar = EpipolarCheck(self.rig)  # per-pair epipolar offsets while tracking
         self.blind = BlindCameras(BLIND_WARN_S)  # cameras without any heatmap while tracking
         # markers and feedback are transient-local: a frame processed before the other node's
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
@@ -84,6 +86,8 @@ class MarkersNode(VmocapNode):
             self.counts["frames"] += 1
             self.proc.add(1e3 * (time.perf_counter() - t0))
             self.record_age(pcm.stamp_ns)
+            if markers.kind == "lattice" and self.counts["frames"] % EPIPOLAR_EVERY == 0:
+                self._check_epipolar(pcm)
             if self.counts["frames"] % CAMERA_CHECK_EVERY == 0:
                 self._check_heatmaps(pcm)
                 if markers.kind == "lattice":
@@ -120,6 +124,20 @@ class MarkersNode(VmocapNode):
         name, px, others = odd
         self.problems["camera"] = (f"{name} disagrees with the other cameras: its heatmap peaks lie {px:.0f} px from the "
                                    f"markers' projections (the others {others:.0f} px): moved or turned since calibration?")
+
+    def _check_epipolar(self, pcm: Any) -> None:
+        """WARN naming a camera whose keypoints lie off the others' epipolar lines by a constant
+        (camera_check.EpipolarCheck): moved or turned since calibration, or a view the CNN biases."""
+        self.epipolar.add(pcm)
+        odd = self.epipolar.odd()
+        if odd is None:
+            self.problems.pop("epipolar", None)
+            return
+        name, mrad, others = odd
+        px = mrad * 1e-3 * float(self.rig[name].K[0, 0])
+        self.problems["epipolar"] = (f"{name} disagrees with the other cameras' epipolar geometry: its keypoints lie "
+                                     f"{mrad:.1f} mrad ({px:.0f} px) off their epipolar lines on average (the other pairs "
+                                     f"{others:.1f} mrad): moved or turned since calibration, or this view's keypoints biased?")
 
     def _on_feedback(self, msg: dict) -> None:
         t = M.stamp_ns(msg)
