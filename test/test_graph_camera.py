@@ -184,6 +184,24 @@ def test_camera_waits_for_the_wait_topics_too(tmp_path: Path) -> None:
     assert waited > 1.5, (waited, log)  # the images' subscriber alone starts it within ~0.3 s
 
 
+def play_and_record(tmp_path: Path, rig_path: Path, bag: Path, out: Path, topics: list[str], domain: int,
+                    seconds: float, common: dict | None = None) -> str:
+    """The camera node playing `bag` as fast as it can, a recorder taking `topics` for
+    `seconds`, in one process; returns the launcher's log (exit status checked)."""
+    cfg = write_config(tmp_path / "g.yaml", rig_path, [], ["vmocap_camera", "vmocap_recorder"], mode="single_process",
+                       output=out, extra={"/**": common or {},
+                                          "vmocap_camera": {"uri": str(bag), "rate": 0.0, "wait_subscribers": 60.0},
+                                          "vmocap_recorder": {"topics": topics}})
+    launch = vmocap(["launch", str(cfg)], domain_env(domain))
+    try:
+        assert wait_ready(launch, ["vmocap_camera", "vmocap_recorder"]), stop(launch)
+        time.sleep(seconds)
+    finally:
+        log = stop(launch, signal.SIGINT)
+    assert launch.returncode == 0, log
+    return log
+
+
 def test_camera_node_publishes_binned_images_with_their_camera_info(tmp_path: Path) -> None:
     """binning 2: a compressed camera (decoded reduced) and a raw one (block-averaged) both go
     out at half size, with a CameraInfo that keeps the calibration's size and K and says
@@ -209,17 +227,7 @@ def test_camera_node_publishes_binned_images_with_their_camera_info(tmp_path: Pa
     save_rig(rig.subset(["cam1", "cam2"]), rig_path)
     out = tmp_path / "out.mcap"
     topics = ["/vmocap/cam1/image_raw", "/vmocap/cam2/image_raw", "/vmocap/cam1/camera_info", "/vmocap/cam2/camera_info"]
-    cfg = write_config(tmp_path / "g.yaml", rig_path, [], ["vmocap_camera", "vmocap_recorder"], mode="single_process",
-                       output=out, extra={"/**": {"binning": 2},
-                                          "vmocap_camera": {"uri": str(bag), "rate": 0.0, "wait_subscribers": 60.0},
-                                          "vmocap_recorder": {"topics": topics}})
-    launch = vmocap(["launch", str(cfg)], domain_env(34))
-    try:
-        assert wait_ready(launch, ["vmocap_camera", "vmocap_recorder"]), stop(launch)
-        time.sleep(3.0)
-    finally:
-        log = stop(launch, signal.SIGINT)
-    assert launch.returncode == 0, log
+    log = play_and_record(tmp_path, rig_path, bag, out, topics, 34, 3.0, {"binning": 2})
     seen = {"image": 0, "info": 0}
     with BagReader(out) as r:
         for m in r.messages(topics):
@@ -252,16 +260,7 @@ def test_camera_whose_recording_breaks_turns_diagnostics_error(tmp_path: Path) -
     rig_path = tmp_path / "rig.yaml"
     save_rig(rig, rig_path)
     out = tmp_path / "out.mcap"
-    cfg = write_config(tmp_path / "g.yaml", rig_path, [], ["vmocap_camera", "vmocap_recorder"], mode="single_process",
-                       output=out, extra={"vmocap_camera": {"uri": str(broken), "rate": 0.0, "wait_subscribers": 60.0},
-                                          "vmocap_recorder": {"topics": ["/vmocap/cam1/image_raw", "/diagnostics"]}})
-    launch = vmocap(["launch", str(cfg)], domain_env(35))
-    try:
-        assert wait_ready(launch, ["vmocap_camera", "vmocap_recorder"]), stop(launch)
-        time.sleep(4.0)
-    finally:
-        log = stop(launch, signal.SIGINT)
-    assert launch.returncode == 0, log
+    play_and_record(tmp_path, rig_path, broken, out, ["/vmocap/cam1/image_raw", "/diagnostics"], 35, 4.0)
     with BagReader(out) as r:
         images = r.message_counts.get("/vmocap/cam1/image_raw", 0)
         status = [s for m in r.messages(["/diagnostics"]) for s in m.decode()["status"] if s["name"] == "vmocap_camera"]
