@@ -159,7 +159,7 @@ def _recorded_binning(reader: BagReader, topics: Topics, cams: list[str]) -> int
     infos = [t for t in (topics.camera_info(c) for c in cams) if t in reader.topics]
     for m in reader.messages(infos):
         msg = m.decode()
-        found.setdefault(msg["header"]["frame_id"] or m.topic, max(int(msg.get("binning_x") or 1), 1))
+        found.setdefault(msg["header"]["frame_id"] or m.topic, M.camera_info_binning(msg)[0])
         if len(found) == len(infos):
             break
     if len(set(found.values())) > 1:

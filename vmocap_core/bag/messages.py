@@ -143,9 +143,14 @@ def camera_info_msg(camera: Camera, ns: int, K: np.ndarray | None = None, size: 
     }
 
 
+def camera_info_binning(msg: dict) -> tuple[int, int]:
+    """(binning_x, binning_y) of a CameraInfo; REP 104: 0 means 1."""
+    return max(int(msg.get("binning_x") or 1), 1), max(int(msg.get("binning_y") or 1), 1)
+
+
 def camera_info_mismatch(msg: dict, camera: Camera, rtol: float = 1e-6, binning: int = 1) -> str | None:
     """Why a received CameraInfo disagrees with the rig and the expected binning (None when it agrees)."""
-    bx, by = max(int(msg.get("binning_x") or 1), 1), max(int(msg.get("binning_y") or 1), 1)  # REP 104: 0 means 1
+    bx, by = camera_info_binning(msg)
     if (bx, by) != (binning, binning):
         return f"{camera.name}: CameraInfo says binning {bx}x{by}, the graph's binning is {binning}"
     if (msg["width"], msg["height"]) != (camera.width, camera.height):

@@ -148,7 +148,7 @@ def bin_image(image: np.ndarray, binning: int) -> np.ndarray:
         return image
     h, w = image.shape[:2]
     H, W = -(-h // binning), -(-w // binning)
-    if (H * binning, W * binning) != (h, w):  # edge pixels repeated: the partial block's mean is kept
+    if (H * binning, W * binning) != (h, w):
         image = cv2.copyMakeBorder(image, 0, H * binning - h, 0, W * binning - w, cv2.BORDER_REPLICATE)
     # INTER_AREA at an integer factor is the exact block mean
     return cv2.resize(image, (W, H), interpolation=cv2.INTER_AREA)

@@ -14,6 +14,7 @@ from collections import deque
 import numpy as np
 
 from ..cameras.projection import Rig
+from ..pcm.peaks import camera_keypoints
 from ..pcm.views import PcmViews
 
 MIN_PEAK = 0.5  # confident keypoints only (the CNN's maps peak at ~0.5 on anything)
@@ -102,8 +103,6 @@ class EpipolarCheck:
 
     def add(self, pcm: PcmViews) -> None:
         """One frame set's keypoints (a frame set with the subject tracked: one person)."""
-        from ..pcm.peaks import camera_keypoints
-
         if len(self.pairs) == 0:
             return
         uv, w = camera_keypoints(pcm, len(self.rig))  # (C, J, 2), (C, J)

@@ -207,7 +207,8 @@ class CameraNode(VmocapNode):
         now = time.monotonic()
         for cam in self._live:
             quiet = now - self.last_frame[cam]
-            if quiet > STALL_S and f"camera:{cam}" not in self.problems:  # connected, but nothing comes
+            key = f"camera:{cam}"  # disconnected or given up: said already
+            if quiet > STALL_S and key not in self.problems and key not in self.errors:  # connected, but nothing comes
                 self.warn_for(f"stalled:{cam}", f"{cam}: no frame for {quiet:.1f} s (connected)")
         self.watch_dropped(sum(self.late_dropped.values()), "frames dropped (a period late)")
         return {"published": self.published, "late_dropped": self.late_dropped, "wrong_size": self.wrong_size,

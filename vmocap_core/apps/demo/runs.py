@@ -91,7 +91,6 @@ def live_rate(bag: Path, rig: Rig, views: int = 4, binning: int = 1) -> tuple[fl
     import os
 
     from ...pcm import selfcheck
-    from .data import bag_frame_sets
 
     check = selfcheck.verdict("full")
     cnn = views * check.ms_per_crop[check.precision]
