@@ -129,6 +129,9 @@ def test_thread_strategies_give_the_same_maps(models, messi) -> None:
     assert lm.runner.parallel == "views" and intra.runner.parallel == "intra"
     np.testing.assert_allclose(a.maps, b.maps, atol=1e-4)
     np.testing.assert_allclose(a.presence, b.presence, atol=1e-5)
+    # infer warps each thread's crops in that thread (Runner.run_built): the same as warping first
+    eager, _ = lm.decode(lm.run(lm.sample([messi], lm.views_from_crops(crops))))
+    np.testing.assert_array_equal(a.maps, eager)
     one = lm.infer([messi], Crops([0], [260, 170], [420], [0.0]))  # a single view: the intra-op session
     np.testing.assert_allclose(one.maps[0], a.maps[0], atol=1e-4)
     with pytest.raises(ModelError):

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..bag import BagReader, BagWriter
 from ..bag import messages as M
-from ..cameras.bag import REDUCED, decode_compressed, single_threaded_opencv
+from ..cameras.bag import REDUCED, decode_ahead_priority, decode_compressed, single_threaded_opencv
 from ..cameras.projection import Rig
 from ..cameras.sync import ApproximateSync
 from ..errors import BagError, HeatmapError
@@ -208,7 +208,8 @@ def _image_frame_sets(reader: BagReader, rig: Rig, topics: Topics, cams: list[st
         pending: deque[tuple[str, int, Future]] = deque()
         single_threaded_opencv()
         jpeg = functools.partial(decode_compressed, binning=binning)
-        with ThreadPoolExecutor(DECODE_THREADS, thread_name_prefix="vmocap-decode") as pool:
+        with ThreadPoolExecutor(DECODE_THREADS, thread_name_prefix="vmocap-decode",
+                                initializer=decode_ahead_priority) as pool:
             for m in reader.messages(list(want)):
                 msg = m.decode()
                 pending.append((want[m.topic], M.stamp_ns(msg), pool.submit(jpeg if m.topic in compressed else M.image_array, msg)))

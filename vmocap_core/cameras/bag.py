@@ -3,6 +3,7 @@ sensor_msgs/Image, or sensor_msgs/CompressedImage decoded to BGR)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Iterator
 
@@ -115,6 +116,21 @@ def single_threaded_opencv() -> None:
     import cv2
 
     cv2.setNumThreads(1)
+
+
+# Niceness of threads that decode images ahead of the CNN (offline): such decoding only fills
+# the cores while the CNN -> tracker chain waits; at equal priority it preempts a CNN thread and
+# the frame set's call waits for its slower half.
+DECODE_AHEAD_NICE = 10
+
+
+def decode_ahead_priority() -> None:
+    """Lower the calling thread's priority by DECODE_AHEAD_NICE (Linux: nice is per thread);
+    left as it is where the platform does not allow it."""
+    try:
+        os.nice(DECODE_AHEAD_NICE)
+    except OSError:
+        pass
 
 
 # cv2.imread flag per binning: JPEGs are decoded directly at the reduced size (DCT scaling,

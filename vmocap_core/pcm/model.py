@@ -13,7 +13,7 @@ from __future__ import annotations
 import abc
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -206,6 +206,11 @@ class PcmModel(abc.ABC):
 
     def sample(self, images: Sequence[np.ndarray], views: InputViews) -> np.ndarray:
         """(V, H, W, 3) uint8 BGR network-input crops: each view warped by its exact affine."""
+        warp = self._warper(images, views)
+        return warp(slice(0, len(views.camera)))
+
+    def _warper(self, images: Sequence[np.ndarray], views: InputViews) -> Callable[[slice], np.ndarray]:
+        """The checked images and a function that warps a slice of the views into their crops."""
         cam = np.asarray(views.camera, dtype=np.intp)
         if cam.size and (cam.min() < 0 or cam.max() >= len(images)):
             raise ModelError(f"view camera indices {cam.tolist()} out of range for {len(images)} images")
@@ -213,11 +218,16 @@ class PcmModel(abc.ABC):
         checked = {int(c): check_image(images[c], int(c)) for c in np.unique(cam)}
         w, h = self.input_size
         A = np.asarray(views.image_to_input, dtype=np.float64)
-        batch = np.empty((cam.size, h, w, 3), dtype=np.uint8)
-        for v in range(cam.size):  # one warp per view (C-speed); batching happens in the CNN call
-            cv2.warpAffine(checked[cam[v]], A[v], (w, h), dst=batch[v], flags=cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
-        return batch
+
+        def warp(part: slice) -> np.ndarray:
+            idx = range(cam.size)[part]
+            batch = np.empty((len(idx), h, w, 3), dtype=np.uint8)
+            for k, v in enumerate(idx):  # one warp per view (C-speed); batching happens in the CNN call
+                cv2.warpAffine(checked[cam[v]], A[v], (w, h), dst=batch[k], flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+            return batch
+
+        return warp
 
     def normalize(self, batch: np.ndarray) -> np.ndarray:
         """What the graph's uint8 input stage computes, in numpy: the float input of the
@@ -247,7 +257,9 @@ class PcmModel(abc.ABC):
             views = self.default_views(images)
         elif isinstance(views, Crops):
             views = self.views_from_crops(views)
-        maps, presence = self.decode(self.run(self.sample(images, views)))
+        if len(views.camera) == 0:
+            raise ModelError("no views to run")
+        maps, presence = self.decode(self.runner.run_built(self.output_names, len(views.camera), self._warper(images, views)))
         A = np.asarray(views.image_to_input, dtype=np.float64)
         image_to_map = compose_affine(self.input_to_map()[None], A)
         # Heatmaps look confident on anything; only the presence output (and these guards) flag

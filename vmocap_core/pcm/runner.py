@@ -12,7 +12,7 @@ Two strategies:
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import onnx
@@ -71,18 +71,25 @@ class Runner:
         return session.run(outputs, {self.input_name: x})
 
     def run(self, outputs: Sequence[str], x: np.ndarray) -> list[np.ndarray]:
+        return self.run_built(outputs, len(x), lambda part: x[part])
+
+    def run_built(self, outputs: Sequence[str], n: int, build: Callable[[slice], np.ndarray]) -> list[np.ndarray]:
+        """As `run` for a batch of n views of which `build(part)` makes the slice `part`, in the
+        thread that runs it: the crops' warps then run in parallel as well instead of before the
+        CNN in the caller's thread."""
         outputs = list(outputs)
-        n = len(x)
         if self.batched and (n == 1 or self._pool is None):  # one call
             if self._single is None:
                 self._single = make_session(self._model, self.threads, self.name, self.config)
-            return self._call(self._single, outputs, x)
+            return self._call(self._single, outputs, build(slice(0, n)))
         if self.batched:
-            chunks = np.array_split(x, min(self.threads, n))
+            bounds = np.linspace(0, n, min(self.threads, n) + 1).round().astype(int)
+            parts = [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
         else:
-            chunks = [x[i : i + 1] for i in range(n)]
-        if self._pool is not None:
-            parts = list(self._pool.map(lambda c: self._call(self.session, outputs, c), chunks))
-        else:
-            parts = [self._call(self.session, outputs, c) for c in chunks]
-        return [np.concatenate([p[k] for p in parts]) for k in range(len(outputs))]
+            parts = [slice(i, i + 1) for i in range(n)]
+
+        def call(part: slice) -> list[np.ndarray]:
+            return self._call(self.session, outputs, build(part))
+
+        results = list(self._pool.map(call, parts)) if self._pool is not None else [call(p) for p in parts]
+        return [np.concatenate([r[k] for r in results]) for k in range(len(outputs))]
