@@ -48,6 +48,11 @@ def listener():
             rclpy.spin_once(node, timeout_sec=0.1)
             return count[0]
 
+        def value(self, node_name: str, key: str) -> str | None:
+            """A value of a node's latest /diagnostics status."""
+            rclpy.spin_once(node, timeout_sec=0.1)
+            return status.get(node_name, {}).get(key)
+
         def subscribers(self, node_name: str, topic: str) -> int:
             """Matched subscribers of a node's output, as the node itself reports them."""
             rclpy.spin_once(node, timeout_sec=0.1)
@@ -58,9 +63,12 @@ def listener():
     rclpy.shutdown()
 
 
-@pytest.mark.parametrize("mode,tf_dds", [("processes", "auto"), ("single_process", "auto"), ("processes", "off")])
-def test_graph_equals_offline(tmp_path: Path, mode: str, tf_dds: str, listener) -> None:
-    """tf_dds off: /tf does not travel over DDS (as without tf2_msgs), the recorder derives it."""
+@pytest.mark.parametrize("mode,tf_dds,lag", [("processes", "auto", 0), ("single_process", "auto", 0), ("processes", "off", 0),
+                                             ("processes", "auto", 3)])
+def test_graph_equals_offline(tmp_path: Path, mode: str, tf_dds: str, lag: int, listener) -> None:
+    """tf_dds off: /tf does not travel over DDS (as without tf2_msgs), the recorder derives it.
+    lag: fixed-lag smoothing, whose output is `lag` frame sets older than the feedback the
+    markers node waits for (the feedback carries its own frame set's stamp)."""
     from vmocap_core.apps.process import joint_trajectory, process_bag
     env, counter = listener
     env = dict(env, VMOCAP_TF_DDS=tf_dds)
@@ -68,14 +76,14 @@ def test_graph_equals_offline(tmp_path: Path, mode: str, tf_dds: str, listener) 
     bag = tmp_path / "in.mcap"
     rig, rig_path, kps = synthetic_bag(bag, N)
     offline = tmp_path / "offline.mcap"
-    stats = process_bag(bag, offline, rig, config={"fps": 30.0}, keypoints=kps, progress=False)
+    stats = process_bag(bag, offline, rig, config={"fps": 30.0, "smoothing_lag_frames": lag}, keypoints=kps, progress=False)
     # 30 fps: ~3 frames to initialize, 15 identifying (no output, feedback on), then tracking
-    assert stats["frames"] == N and stats["tracking"] >= 10, stats
+    assert stats["frames"] == N and stats["tracking"] >= 10 - lag, stats
 
     out = tmp_path / "graph.mcap"
     cfg = write_config(tmp_path / "graph.yaml", rig_path, kps, ["vmocap_markers", "vmocap_skeleton", "vmocap_recorder"],
                        mode=mode, output=out, extra={"vmocap_markers": {"feedback_timeout_ms": 5000.0, "queue_depth": 100},
-                              "vmocap_skeleton": {"queue_depth": 100}})
+                              "vmocap_skeleton": {"queue_depth": 100, "smoothing_lag_frames": lag}})
     launch = vmocap(["launch", str(cfg)], env)
     try:
         # joint_states and keypoints are volatile: play only once the skeleton itself reports the
@@ -93,8 +101,12 @@ def test_graph_equals_offline(tmp_path: Path, mode: str, tf_dds: str, listener) 
              "--expect", *[f"/vmocap/pcm/{c}/{k}" for c in rig.names for k in ("heatmaps", "camera_info")]],
             env=env, capture_output=True, text=True, timeout=120)
         assert play.returncode == 0, play.stdout + play.stderr
-        # the pipeline lags the player: wait until every frame set came out
-        assert wait_for(lambda: counter.count() >= N, 30.0, 0.0), f"only {counter.count()} of {N} frame sets came out"
+        # the pipeline lags the player: wait until every frame set came out (with a lag, all but
+        # the last `lag`, which are still in the smoother's window)
+        assert wait_for(lambda: counter.count() >= N - lag, 30.0, 0.0), f"only {counter.count()} of {N} frame sets came out"
+        # each frame set got the feedback it waited for (a timeout re-initializes the tracker)
+        assert wait_for(lambda: counter.value("vmocap_markers", "feedback_timeouts") is not None, 5.0, 0.0)
+        assert counter.value("vmocap_markers", "feedback_timeouts") == "0", counter.value("vmocap_markers", "feedback")
     finally:
         log = stop(launch)
     assert launch.returncode == 0, log

@@ -49,6 +49,14 @@ class TrackResult:
     markers: np.ndarray  # (25, 3) virtual markers
     link_lengths: dict[str, float] = field(default_factory=dict)
     dims: BodyDimensions | None = None  # the subject's skeleton (tracking results only)
+    feedback_stamp_ns: int | None = None  # the frame set of raw_keypoints when not stamp_ns
+
+    @property
+    def feedback_stamp(self) -> int:
+        """The frame set whose first IK `raw_keypoints` is: stamp_ns, except in fixed-lag mode,
+        where the output (stamp_ns) is `smoothing_lag_frames` frame sets older than the feedback
+        that the next frame set's lattice search waits for."""
+        return self.stamp_ns if self.feedback_stamp_ns is None else self.feedback_stamp_ns
 
 
 def feedback_of(result: TrackResult) -> np.ndarray | None:

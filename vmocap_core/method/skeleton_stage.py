@@ -112,7 +112,8 @@ class SkeletonStage:
         t3 = time.perf_counter()
         self.timings = {"ik": t1 - t0, "filter": t2 - t1, "ik2": t3 - t2}
         return TrackResult(frame[0], "tracking", angles, self._joint_names,
-                           second.keypoints, first.keypoints, frame[1], frame[2], sk.dims.bone_lengths(), sk.dims)
+                           second.keypoints, first.keypoints, frame[1], frame[2], sk.dims.bone_lengths(), sk.dims,
+                           feedback_stamp_ns=markers.stamp_ns)
 
     def _smoothing(self, markers: Markers, raw: np.ndarray) -> TrackResult:
         """Fixed-lag window filling: feedback, no output yet."""

@@ -53,7 +53,7 @@ def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] |
     tracking = result.status == "tracking"
     want = wanted or (lambda topic: True)
     if want(topics.feedback):
-        yield topics.feedback, CLOUD, M.keypoint_cloud(t, feedback_of(result))
+        yield topics.feedback, CLOUD, M.keypoint_cloud(result.feedback_stamp, feedback_of(result))
     if subject is not None:
         yield from subject.start(topics, t)
         if tracking:
