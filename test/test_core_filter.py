@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vmocap_core.apps.metrics import bone_length_std, jitter, summarize, table_one
+from vmocap_core.apps.metrics import acceleration_error, bone_length_std, jitter, summarize, table_one
 from vmocap_core.errors import MotionFileError
 from vmocap_core.keypoints import INDEX
 from vmocap_core.method.iir import LowPassFilter
@@ -75,6 +75,14 @@ def test_bone_length_std_and_jitter():
     p = np.zeros((5, 1, 3))
     p[:, 0, 0] = 0.5 * 2.0 * (np.arange(5) / 10.0) ** 2  # constant 2 m/s^2 at 10 Hz
     assert jitter(p, 10.0) == pytest.approx(2.0)
+    # the acceleration error ignores what the truth does itself and a constant offset ...
+    assert acceleration_error(p + 0.05, p, 10.0) == pytest.approx(0.0)
+    # ... and counts a one-frame spike e as |e|, |-2e|, |e| (m/s^2 x fps^2) over the three triples it is in
+    q = p.copy()
+    q[2, 0, 1] += 0.01
+    assert acceleration_error(q, p, 10.0) == pytest.approx((1 + 2 + 1) / 3)
+    q[3] = np.nan  # triples with an unknown frame are left out: only frames 0-2 remain
+    assert acceleration_error(q, p, 10.0) == pytest.approx(1.0)
 
 
 def test_motion_files(tmp_path):

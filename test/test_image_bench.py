@@ -102,7 +102,7 @@ def test_short_clip_offline_and_through_the_node_graph(rig, tmp_path):
     config = f"rot-{precision}"
     args = argparse.Namespace(frames=60, seed=0, cache=tmp_path / "cache", out=tmp_path / "out", json=True,
                               configs=[config], no_synthetic=True, graph="first", graph_rate=rate,
-                              rig_file=tmp_path / "rig.yaml")
+                              rig_file=tmp_path / "rig.yaml", tracker={"fps": 60.0})
     save_rig(rig, args.rig_file)
     args.out.mkdir()
     row = images.run_clip(CLIP, rig, args)
@@ -112,12 +112,18 @@ def test_short_clip_offline_and_through_the_node_graph(rig, tmp_path):
         assert r["mpjpe_mm"] < 80.0, (run, r)
         assert r["tracked_pct"] > 80, (run, r)
         assert 0 < r["link_length_error_mm"] < 60, (run, r)
+        assert 0 < r["accel_error_m_s2"] < 200, (run, r)
     # The graph tracks from about the frame set the offline run does (standalone the same one, 33;
     # within the whole suite on a Zen 5 machine once 7 later; a graph falling behind while it
     # initializes starts much later). Not the count of messages out: the first ones, before
     # tracking, reach this test's subscriber or not depending on how fast DDS discovery matches it.
     assert row[f"graph:{config}"]["init_frames"] <= row[config]["init_frames"] + 12, (row[config], row[f"graph:{config}"])
     assert (args.out / "walk.png").exists()
+    # --offline: the same recording (cached), the whole-recording pass; the (live) graph is not run
+    args.tracker = {"fps": 60.0, "offline": True}
+    off = images.run_clip(CLIP, rig, args)
+    assert f"graph:{config}" not in off and np.isfinite(off[config]["mpjpe_mm"]), off
+    assert off[config]["accel_error_m_s2"] < row[config]["accel_error_m_s2"], (off[config], row[config])
 
 
 def test_detector_finds_a_small_person_in_every_view(tmp_path):

@@ -26,13 +26,17 @@ REPO = Path(__file__).resolve().parent.parent
 NODES = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]
 
 
-def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, fps: float, rate: float) -> Path:
+def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: dict, rate: float) -> Path:
+    """tracker: flat tracker settings (PipelineConfig keys, `fps` among them) for the nodes."""
+    from vmocap_core.graph_config import stage_sections
+
     cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
     cfg["/**"]["ros__parameters"].update(rig=str(rig_path), pcm_keypoints=[""])  # the CNN's 25 channels
     cfg["vmocap_camera"]["ros__parameters"].update(source="bag", uri=str(rec), rate=float(rate), loop=False,
                                                     restamp=False, wait_subscribers=120.0)
     cfg["vmocap_pcm"]["ros__parameters"].update(source="model", model="blazepose", rotation=rotation)
-    cfg["/**"]["ros__parameters"]["fps"] = float(fps)
+    for section, values in stage_sections(tracker).items():
+        cfg.setdefault(section, {}).setdefault("ros__parameters", {}).update(values)
     cfg["vmocap_launch"] = {"mode": "single_process", "nodes": NODES,
                             "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
     path = work / f"graph_{rec.stem}_{rotation}.yaml"
@@ -40,16 +44,18 @@ def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, fps: floa
     return path
 
 
-def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, precision: str, fps: float,
+def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, precision: str, tracker: dict,
               rate: float, work: Path, silent_s: float = 30.0) -> tuple[np.ndarray, dict]:
-    """Estimates (T, 25, 3) at `stamps` (NaN where none came out) and counts."""
+    """Estimates (T, 25, 3) at `stamps` (NaN where none came out) and counts; tracker: flat
+    tracker settings (PipelineConfig keys, `fps` among them)."""
     from vmocap_core.bag import cdr
     from vmocap_core.bag import messages as M
 
     from .common import init_rclpy, msg_class, prepare_env, qos
     from .run_node import make_executor
 
-    cfg = graph_config(work, rec, rig_path, rotation, fps, rate)
+    cfg = graph_config(work, rec, rig_path, rotation, tracker, rate)
+    fps = float(tracker["fps"])
     env = dict(os.environ)
     prepare_env(env)
     env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))

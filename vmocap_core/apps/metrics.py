@@ -52,10 +52,25 @@ def bone_length_std(keypoints: np.ndarray, bones: dict[str, tuple[str, str]]) ->
     return worst
 
 
+def _acceleration(keypoints: np.ndarray, fps: float) -> np.ndarray:
+    """Second finite difference (T-2, J, 3) in m/s^2."""
+    return (keypoints[2:] - 2 * keypoints[1:-1] + keypoints[:-2]) * fps * fps
+
+
 def jitter(keypoints: np.ndarray, fps: float, scored: np.ndarray | None = None) -> float:
     """Mean magnitude of the second finite difference (joint acceleration, m/s^2)."""
     p = keypoints if scored is None else keypoints[:, scored]
-    acc = (p[2:] - 2 * p[1:-1] + p[:-2]) * fps * fps
-    a = np.linalg.norm(acc, axis=-1)
+    a = np.linalg.norm(_acceleration(p, fps), axis=-1)
     a = a[np.isfinite(a)]
     return float(a.mean()) if a.size else float("nan")
+
+
+def acceleration_error(keypoints: np.ndarray, truth: np.ndarray, fps: float, scored: np.ndarray | None = None) -> float:
+    """Mean magnitude (m/s^2) of the joint acceleration's error against the truth's, both by
+    second finite differences: what an acceleration analysis of the output gets wrong (jitter
+    alone counts the motion's own acceleration too). Where three frames in a row are known."""
+    if scored is not None:
+        keypoints, truth = keypoints[:, scored], truth[:, scored]
+    e = np.linalg.norm(_acceleration(keypoints, fps) - _acceleration(truth, fps), axis=-1)
+    e = e[np.isfinite(e)]
+    return float(e.mean()) if e.size else float("nan")

@@ -31,7 +31,8 @@ from ...method.triangulation import triangulate_robust
 from ...motion import Motion, extend, load_motion, resample
 from ...paths import DATA, SHARED_DATA
 from ...pcm.synthetic import SyntheticPcmSource, benchmark_rig
-from ..metrics import bone_length_std, jitter, table_one
+from ..metrics import acceleration_error, bone_length_std, jitter, table_one
+from . import add_tracker_arguments, tracker_settings
 
 RATE_HZ = 60.0
 MIN_SECONDS = 4.0
@@ -115,6 +116,8 @@ def score_run(run: MotionRun) -> dict[str, object]:
     baseline["bone_length_std_m"] = bone_length_std(np.where(scored[None, :, None], run.baseline[frames], np.nan), BONES)
     method["jitter_m_s2"] = jitter(run.method[frames], RATE_HZ, scored)
     baseline["jitter_m_s2"] = jitter(run.baseline[frames], RATE_HZ, scored)
+    method["accel_error_m_s2"] = acceleration_error(run.method[frames], gt, RATE_HZ, scored)
+    baseline["accel_error_m_s2"] = acceleration_error(run.baseline[frames], gt, RATE_HZ, scored)
     method["tracked_pct"] = float(np.mean([s == "tracking" for s in run.status[run.first_tracked:]]) * 100)
     return {
         "inverted": m.is_inverted(),
@@ -146,6 +149,9 @@ def _pool(results: list[dict[str, Any]], who: str) -> dict[str, float | None]:
                 groups[g] = {k: float(sum(row[k] * w for row, w in full) / total) for k in keys}
     out["groups"] = groups  # type: ignore[assignment]
     out["bone_length_std_m"] = max(r[who]["bone_length_std_m"] for r in results)
+    a = np.array([r[who]["accel_error_m_s2"] for r in results], dtype=float)
+    ok = np.isfinite(a) & (n > 0)
+    out["accel_error_m_s2"] = float((a[ok] * n[ok]).sum() / n[ok].sum()) if ok.any() else None
     return out
 
 
@@ -188,10 +194,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--plots", type=Path, help="write MPJPE/score plots (PNG) into this folder")
     parser.add_argument("--no-rotation", action="store_true", help="disable the trunk-tilt input rotation")
-    parser.add_argument("--config", type=Path, help="tracker parameters (YAML mapping)")
-    parser.add_argument("--offline", action="store_true",
-                        help="offline mode: whole-clip identification, RTS smoother, second IK (offline.py)")
-    parser.add_argument("--lag", type=int, metavar="N", help="live fixed-lag smoothing over N frames (smoothing_lag_frames)")
+    add_tracker_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -199,16 +202,7 @@ def run(args: argparse.Namespace) -> int:
     if not files:
         print("no motion files found")
         return 2
-    cfg = {"fps": RATE_HZ}
-    if args.config:
-        import yaml
-
-        cfg.update(yaml.safe_load(args.config.read_text()) or {})
-    if args.offline:
-        cfg["offline"] = True
-    if args.lag is not None:
-        cfg["smoothing_lag_frames"] = args.lag
-    config = PipelineConfig.from_dict(cfg)
+    config = PipelineConfig.from_dict(tracker_settings(args, RATE_HZ))
     per_motion: dict[str, dict[str, object]] = {}
     if args.plots:
         args.plots.mkdir(parents=True, exist_ok=True)
@@ -241,7 +235,8 @@ def print_table(result: dict[str, Any]) -> None:
     for label, s in result["summary"].items():
         m, b = s["method"], s["baseline"]
         print(f"{label.upper()} ({s['motions']} motions): method MPJPE {m['mpjpe_mm']:.1f} mm, PCK@50/100/150 "
-              f"{m['pck50']:.1f}/{m['pck100']:.1f}/{m['pck150']:.1f} %, bone-length std {m['bone_length_std_m']:.1e} m; "
+              f"{m['pck50']:.1f}/{m['pck100']:.1f}/{m['pck150']:.1f} %, acceleration error {_fmt(m['accel_error_m_s2']).strip()} m/s^2, "
+              f"bone-length std {m['bone_length_std_m']:.1e} m; "
               f"baseline MPJPE {b['mpjpe_mm']:.1f} mm, PCK@100 {b['pck100']:.1f} %; ratio {m['mpjpe_mm'] / b['mpjpe_mm']:.2f}")
         for g in ("head", "upper_body", "lower_body"):
             mg, bg = m["groups"][g], b["groups"][g]

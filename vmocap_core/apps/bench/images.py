@@ -27,7 +27,8 @@ from ...errors import VmocapError
 from ...graph_config import Topics
 from ...keypoints import INDEX, KEYPOINTS
 from ...method.skeleton import BONES
-from ..metrics import table_one
+from ..metrics import acceleration_error, table_one
+from . import add_tracker_arguments, tracker_settings
 from .accuracy import RATE_HZ, default_motions
 
 REPO = paths.REPO
@@ -93,6 +94,7 @@ def score(est: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
         "offset_mm": {KEYPOINTS[j]: float(np.linalg.norm(offset[j]) * 1000) for j in np.flatnonzero(present)},
         "mpjpe_without_offset_mm": res_off["mpjpe_mm"],
         "link_length_error_mm": float(np.nanmean(np.abs(L_est - L_true)) * 1000),
+        "accel_error_m_s2": acceleration_error(e, g, RATE_HZ, present),
     }
 
 
@@ -148,6 +150,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="playback speed of the recording in the graph (0.2: 12 Hz, so the CNN keeps up)")
     parser.add_argument("--no-synthetic", action="store_true", help="skip the synthetic benchmark's figure")
     parser.add_argument("--json", action="store_true")
+    add_tracker_arguments(parser)  # --offline: the node graph (live by nature) is not run
 
 
 def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
@@ -168,18 +171,19 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
     for name in args.configs:
         rotation, precision = CONFIGS[name]
         out = args.out / f"{path.stem}_{name}.mcap"
-        process_bag(rec, out, rig, config={"fps": RATE_HZ, **getattr(args, "tracker", {})}, progress=not args.json,
+        process_bag(rec, out, rig, config=args.tracker, progress=not args.json,
                     provider=_Provider(rig, rotation, precision))
         est = read_estimates(out, stamps)
         row[name] = score(est, truth)
         curves[name] = frame_mpjpe(est, truth)
         if name == args.configs[0]:
             overlay(rec, rig, truth, est, len(stamps) // 2, args.out / f"{path.stem}.png")
-        graph = getattr(args, "graph", "none")
+        graph = "none" if args.tracker.get("offline") else args.graph
         if graph == "all" or (graph == "first" and name == args.configs[0]):
             # vmocap_ros is imported by name (as cli.py does): vmocap_core itself never imports rclpy
             g = importlib.import_module("vmocap_ros.bench_images_graph")
-            est_g, counts = g.run_graph(rec, args.rig_file, stamps, rotation, precision, RATE_HZ, args.graph_rate, args.out)
+            est_g, counts = g.run_graph(rec, args.rig_file, stamps, rotation, precision, args.tracker, args.graph_rate,
+                                        args.out)
             row[f"graph:{name}"] = {**score(est_g, truth), **counts}
             curves[f"graph:{name}"] = frame_mpjpe(est_g, truth)
     if not args.no_synthetic:
@@ -213,7 +217,7 @@ def plot_curves(name: str, row: dict[str, Any], curves: dict[str, np.ndarray], p
 
 
 def _pool(rows: list[dict[str, Any]], name: str, key: str) -> float | None:
-    v = [(r[name][key], r[name]["n"]) for r in rows if r[name].get(key) is not None]
+    v = [(r[name][key], r[name]["n"]) for r in rows if r[name].get(key) is not None and np.isfinite(r[name][key])]
     return float(sum(a * n for a, n in v) / sum(n for _, n in v)) if v else None
 
 
@@ -227,6 +231,7 @@ def run(args: argparse.Namespace) -> int:
     rig = scale_rig(load_rig(args.rig), args.scale)
     args.out.mkdir(parents=True, exist_ok=True)
     args.rig_file = args.out / "rig.yaml"  # the (scaled) rig the graph loads
+    args.tracker = tracker_settings(args, RATE_HZ)
     save_rig(rig, args.rig_file)
     clips = {p.stem: run_clip(p, rig, args) for p in files}
     summary = {}
@@ -235,8 +240,9 @@ def run(args: argparse.Namespace) -> int:
         if rows:
             runs = [c for c in list(args.configs) + [f"graph:{c}" for c in args.configs] if all(c in r for r in rows)]
             summary[label] = {c: {k: _pool(rows, c, k) for k in ("mpjpe_mm", "pck50", "mpjpe_without_offset_mm",
-                                                                 "link_length_error_mm")} for c in runs}
-    result = {"clips": clips, "summary": summary, "frames": args.frames, "scale": args.scale, "seed": args.seed}
+                                                                 "link_length_error_mm", "accel_error_m_s2")} for c in runs}
+    result = {"clips": clips, "summary": summary, "frames": args.frames, "scale": args.scale, "seed": args.seed,
+              "tracker": args.tracker}
     (args.out / "report.json").write_text(json.dumps(result, indent=1))
     if args.json:
         print(json.dumps(result, indent=1))
@@ -264,4 +270,5 @@ def print_table(result: dict[str, Any], configs: list[str]) -> None:
               + f" | {_f(r.get('synthetic_mpjpe_mm'))}")
     for label, s in result["summary"].items():
         print(f"{label.upper()}: " + "; ".join(f"{c} {_f(v['mpjpe_mm'], '.1f')} mm (PCK50 {_f(v['pck50'], '.1f')} %, "
-                                               f"link {_f(v['link_length_error_mm'], '.1f')} mm)" for c, v in s.items()))
+                                               f"link {_f(v['link_length_error_mm'], '.1f')} mm, acceleration error "
+                                               f"{_f(v['accel_error_m_s2'], '.1f')} m/s^2)" for c, v in s.items()))
