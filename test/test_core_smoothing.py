@@ -80,3 +80,24 @@ def test_offline_on_a_recording_never_tracked_is_a_clear_error() -> None:
     results = [TrackResult(k, "initializing", np.full(40, np.nan), [], nan, nan, np.zeros(25), nan) for k in range(5)]
     with pytest.raises(VmocapError, match="no tracked frame"):
         reconstruct(results, PipelineConfig.of(offline=True))
+
+
+def test_offline_identification_from_confident_markers() -> None:
+    """offline_identify_quantile: each keypoint keeps the markers whose weight reaches that
+    quantile of its own weights; unweighted (never seen) markers are dropped; 0 keeps all."""
+    from vmocap_core.method.config import ConfigError
+    from vmocap_core.method.offline import confident
+
+    rng = np.random.default_rng(0)
+    markers = rng.normal(size=(100, 25, 3))
+    weights = np.tile(np.linspace(0.1, 1.0, 100)[:, None], (1, 25))
+    weights[:, 3] *= 10  # another keypoint's scale: its own quantile
+    weights[:50, 7] = 0.0  # half of keypoint 7 unseen: the quantile of the seen half
+    weights[:, 9] = 0.0  # never seen
+    kept = np.isfinite(confident(markers, weights, 0.75)).all(axis=2)
+    assert kept[:, 0].sum() == 25 and kept[:, 3].sum() == 25 and kept[75:, 0].all()
+    assert kept[:, 7].sum() == 13 and kept[87:, 7].all()
+    assert not kept[:, 9].any()
+    assert confident(markers, weights, 0.0) is markers
+    with pytest.raises(ConfigError):
+        PipelineConfig.from_dict({"offline_identify_quantile": 1.0})

@@ -128,6 +128,11 @@ class SkeletonConfig(_Stage):
     offline_ik_iterations: int = 3
     offline_ik_prior_weight: float = 5e-4  # weaker than live: the smoother does the prior's work
     offline_second_ik_iterations: int = 3
+    # Identification from confident markers only: each keypoint's markers whose weight reaches
+    # this quantile of its weights over the recording (0: every marker). On rendered images with
+    # the real CNN 0.75 identifies better (docs/image_benchmark.md); on the synthetic noise
+    # model, whose weights say less about a marker's error, it does worse: off by default.
+    offline_identify_quantile: float = 0.0
     init_frames: int = 5  # consecutive agreeing frames needed (II-C)
     # Our addition: after the provisional fit on those frames, track this long (status
     # "identifying", no output) and identify the link lengths again on all of those frames'
@@ -150,6 +155,8 @@ class SkeletonConfig(_Stage):
             raise ConfigError("smoothing_lag_frames must be >= 0, offline_smoother 'rts' or 'gaussian'")
         if self.offline_ik_iterations < 1 or self.offline_second_ik_iterations < 1 or self.offline_ik_prior_weight < 0:
             raise ConfigError("offline IK iterations must be >= 1 and the prior weight >= 0")
+        if not 0 <= self.offline_identify_quantile < 1:
+            raise ConfigError("offline_identify_quantile must lie in [0, 1)")
         try:
             make_filter(self)  # the filter's and the motion model's own checks
             smoother_model(self)

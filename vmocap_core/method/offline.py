@@ -3,8 +3,9 @@ tracker cannot.
 
 The causal tracker runs first (its lattice search needs the previous frame's skeleton); its
 virtual markers and weights are kept. Then, on the whole recording:
-1. identification (II-C) on the virtual markers of every tracked frame: medians over
-   thousands of frames instead of the live 0.5 s, so the link lengths are robust to outliers;
+1. identification (II-C) on the virtual markers of every tracked frame (or the confident ones,
+   `offline_identify_quantile`): medians over thousands of frames instead of the live 0.5 s,
+   so the link lengths are robust to outliers;
    the waist height is chosen by the mean fit over frames spread through the recording;
 2. per tracked segment (a gap or re-initialization ends one; nothing is interpolated across):
    first IK (II-E) of the identified skeleton to the markers, forward;
@@ -48,6 +49,18 @@ def smooth_keypoints(x: np.ndarray, config: SkeletonConfig) -> np.ndarray:
 
 def _spread(n: int, k: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, min(k, n)).round().astype(int))
+
+
+def confident(markers: np.ndarray, weights: np.ndarray, quantile: float) -> np.ndarray:
+    """Markers (N, 25, 3) with those below `quantile` of their keypoint's weights (N, 25) over
+    the recording set to NaN (0: all kept)."""
+    if quantile <= 0:
+        return markers
+    w = np.where(weights > 0, weights, np.nan)
+    known = np.isfinite(w).any(axis=0)
+    thr = np.full(w.shape[1], np.inf)
+    thr[known] = np.nanquantile(w[:, known], quantile, axis=0)
+    return np.where((weights >= thr)[:, :, None], markers, np.nan)
 
 
 def identify_subject(frames: np.ndarray, max_fit_error_m: float, n_fit: int = 16, n_offsets: int = 48) -> Skeleton:
@@ -150,7 +163,8 @@ def identify_and_reconstruct(results: Sequence[TrackResult], config: SkeletonCon
         raise OfflineError("the recording has no tracked frame: nothing to reconstruct")
     markers = np.array([np.where((r.scores > 0)[:, None], r.markers, np.nan) for r in results])
     weights = np.array([np.where(np.isfinite(r.markers).all(axis=1), r.scores, 0.0) for r in results])
-    sk = identify_subject(markers[tracked], config.init_max_fit_error_m)
+    sk = identify_subject(confident(markers[tracked], weights[tracked], config.offline_identify_quantile),
+                          config.init_max_fit_error_m)
     out = list(results)
     names = results[0].joint_names
     lengths = sk.dims.bone_lengths()
