@@ -31,12 +31,18 @@ from ..graph_config import Topics
 from ..method.camera_check import image_problem
 from ..method.config import PipelineConfig
 from ..method.pipeline import FrameResult, ImageSet, Pipeline
+from ..method.time_offsets import camera_time_offsets
 from ..outputs.messages import CLOUD, DIAG, markers_message, subject_message, write_results
 from ..outputs.streams import SubjectOutputs
 from ..paths import REPO
 from ..pcm.assembly import PcmAssembler, channel_keypoints, pcm_topics
+from ..pcm.peaks import camera_keypoints
 from ..pcm.views import PcmViews
 
+# Camera time offsets (method/time_offsets.py) from the cameras' 2D keypoints of the first
+# frame sets: ~10 s at 60 Hz is plenty for whole frame sets and keeps it to a few seconds.
+OFFSET_WINDOW = 600
+OFFSET_MIN_TRACKED = 30
 DECODE_THREADS = 2
 DECODE_AHEAD = 8  # images decoded ahead of the pipeline: two frame sets of four cameras
 
@@ -100,11 +106,14 @@ def process_bag(
         with BagWriter(out_path, compression="zstd") as writer:
             stamps: list[int] = []
             start = time.perf_counter()  # the model is loaded: from here on it is the recording's own cost
+            first_kp: list[tuple[np.ndarray, np.ndarray]] = []
             for frame in tqdm(frames, total=total, unit="frame", desc="process", disable=not progress, file=sys.stderr):
                 stamps.append(frame.stamp_ns)
                 t0 = time.perf_counter()
                 res = pipe.step(frame)
                 stats["seconds"] += time.perf_counter() - t0
+                if len(stamps) <= OFFSET_WINDOW:  # the cameras' 2D keypoints of the first frame sets
+                    first_kp.append(camera_keypoints(res.pcm, len(rig)))
                 if offline:
                     kept.append(res)
                 else:
@@ -129,6 +138,13 @@ def process_bag(
     period = float(np.median(np.diff(stamps))) if len(stamps) > 1 else 0.0
     stats["recording_s"] = (stamps[-1] - stamps[0] + period) / 1e9 if stamps else 0.0
     stats["realtime_factor"] = stats["recording_s"] / stats["wall_s"] if stats["wall_s"] > 0 else 0.0
+    if stats["tracking"] >= OFFSET_MIN_TRACKED and period > 0:
+        fps = 1e9 / period
+        offsets = camera_time_offsets(rig, np.array([k[0] for k in first_kp]), np.array([k[1] for k in first_kp]))
+        stats["time_offsets"] = {o.camera: {"frames": o.frames, "ms": 1e3 * o.frames / fps, "error_px": o.error_px,
+                                            "shifted_error_px": o.best_error_px, "out_of_step": o.out_of_step}
+                                 for o in offsets}
+        stats["out_of_step"] = [o.describe(fps) for o in offsets if o.out_of_step]
     return stats
 
 
@@ -326,6 +342,8 @@ def run(args: argparse.Namespace) -> int:
     bad = {c: n for c, n in stats.get("bad_images", {}).items() if n}
     if bad:
         print(f"vmocap process: WARNING: images left out (wrong size or no contrast), per camera: {bad}", file=sys.stderr)
+    for line in stats.get("out_of_step", []):
+        print(f"vmocap process: WARNING: camera out of step? {line}", file=sys.stderr)
     if args.json:
         print(json.dumps(stats))
     else:

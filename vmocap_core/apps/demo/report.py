@@ -180,6 +180,9 @@ def write_report(rig: Rig, rec: dict, out_dir: Path, info: dict) -> dict:
     fig.colorbar(im, label="median px"); fig.tight_layout(); fig.savefig(out_dir / "reprojection_error.png", dpi=100)
     plt.close(fig)
 
+    from ...method.time_offsets import camera_time_offsets
+
+    offsets = camera_time_offsets(rig, rec["uv"], rec["w"])
     summary = {
         "frames": int(len(t)),
         "tracking_frames": int(tracking.sum()),
@@ -193,6 +196,8 @@ def write_report(rig: Rig, rec: dict, out_dir: Path, info: dict) -> dict:
         "reprojection_px_per_camera": per_cam,
         "reprojection_px_per_keypoint": per_kp,
         "bone_lengths": bones,
+        "time_offsets_frames": {o.camera: o.frames for o in offsets},
+        "out_of_step": [o.describe(FPS) for o in offsets if o.out_of_step],
         "timing": timing,
         **info,
     }
@@ -213,7 +218,9 @@ def write_report(rig: Rig, rec: dict, out_dir: Path, info: dict) -> dict:
         f"{median_free:.1f} px (ours {median_same:.1f} px). Without the 5 face keypoints: ours "
         f"{median_body:.1f} px, free triangulation {median_body_free:.1f} px (the face keypoints hang on a "
         "rigid head that pivots at the shoulder midpoint, BlazePose having no neck keypoint).", "",
-        "| camera | median px |", "|---|---|", *[f"| {k} | {v:.1f} |" for k, v in per_cam.items()], "",
+        "| camera | median px | time offset (frame sets, from the 2D keypoints) |", "|---|---|---|",
+        *[f"| {k} | {v:.1f} | {o.frames:+.1f} |" for (k, v), o in zip(per_cam.items(), offsets)], "",
+        *([f"Out of step? {line}." for line in summary["out_of_step"]] + [""] if summary["out_of_step"] else []),
         "| keypoint | median px | free triangulation px |", "|---|---|---|",
         *[f"| {k} | {v:.1f} | {free_kp.get(k, float('nan')):.1f} |" for k, v in per_kp.items()], "",
         "Bone lengths of the output while tracking (the skeleton keeps its links constant):", "",

@@ -1,0 +1,102 @@
+"""Camera time offsets from the CNN's 2D keypoints.
+
+The method assumes synchronized cameras (paper II-A). Cameras without a common trigger (V4L2
+webcams) or videos cut apart by hand can be frames out of step, which looks like a calibration
+error: a moving person's keypoints in that camera miss the other cameras' rays. Here each
+camera's 2D keypoint series is shifted against the others' by whole frame sets; the shift at
+which its reprojection error after triangulation is smallest is its offset (refined between
+frame sets by a parabola through the three errors around it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..cameras.projection import Rig
+from .triangulation import triangulate_with_errors
+
+MAX_SHIFT = 4  # frame sets each way
+MIN_WEIGHT = 0.5  # keypoints the CNN is confident of (the demo report's rule)
+# A verdict needs the best shift at least a frame set away and a clearly smaller error there.
+MIN_GAIN = 0.075
+
+
+@dataclass
+class TimeOffset:
+    camera: str
+    frames: float  # > 0: this camera's images lag: the one stamped t shows the scene at t - frames
+    error_px: float  # median reprojection error of this camera's keypoints as recorded
+    best_error_px: float  # the same with its series shifted by round(frames)
+
+    @property
+    def out_of_step(self) -> bool:
+        return bool(abs(self.frames) >= 1.0 and self.best_error_px < (1.0 - MIN_GAIN) * self.error_px)
+
+    def describe(self, fps: float) -> str:
+        return (f"{self.camera}: images lag the others by {self.frames:+.1f} frame sets ({1e3 * self.frames / fps:+.0f} ms); "
+                f"reprojection {self.error_px:.1f} px as stamped, {self.best_error_px:.1f} px shifted back")
+
+
+def camera_time_offsets(rig: Rig, uv: np.ndarray, weights: np.ndarray, max_shift: int = MAX_SHIFT,
+                        min_weight: float = MIN_WEIGHT) -> list[TimeOffset]:
+    """uv (N, C, 25, 2) pixels and weights (N, C, 25) of N consecutive frame sets (e.g.
+    `peaks.camera_keypoints` per frame set; weight 0 = not seen). One TimeOffset per camera;
+    NaN figures for a camera without enough confident keypoints.
+
+    A late camera also pulls the triangulated points, so the others seem a little out of step
+    too: the camera found most clearly out of step is shifted back first and the rest
+    estimated again, until none is left."""
+    uv = np.asarray(uv, dtype=np.float64)
+    w = np.where(np.isfinite(uv).all(axis=-1), np.nan_to_num(np.asarray(weights, dtype=np.float64)), 0.0)
+    found: dict[int, TimeOffset] = {}
+    while True:
+        est = {c: _estimate(rig, uv, w, c, max_shift, min_weight) for c in range(uv.shape[1]) if c not in found}
+        late = {c: o for c, o in est.items() if o.out_of_step}
+        if not late:
+            break
+        c = max(late, key=lambda k: 1.0 - late[k].best_error_px / late[k].error_px)
+        found[c] = late[c]
+        uv, w = _shifted(uv, w, c, int(round(late[c].frames)))
+    return [found.get(c) or est[c] for c in range(uv.shape[1])]
+
+
+def _shifted(uv: np.ndarray, w: np.ndarray, c: int, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """Camera c's series read s frame sets later (its frame t + s at t); the ends it lacks unseen."""
+    n = len(uv)
+    a, b = max(0, -s), min(n, n - s)
+    u, ww = uv.copy(), w.copy()
+    u[:, c], ww[:, c] = np.nan, 0.0
+    u[a:b, c], ww[a:b, c] = uv[a + s:b + s, c], w[a + s:b + s, c]
+    return u, ww
+
+
+def _estimate(rig: Rig, uv: np.ndarray, w: np.ndarray, c: int, max_shift: int, min_weight: float) -> TimeOffset:
+    """Camera c's reprojection error with its series shifted by -max_shift..max_shift."""
+    n_cams = uv.shape[1]
+    shifts = np.arange(-max_shift, max_shift + 1)
+    err = np.full(len(shifts), np.nan)
+    for k, s in enumerate(shifts):
+        u, ww = _shifted(uv, w, c, int(s))
+        # every frame set's keypoints in one call: (C, frames x 25) points
+        _, e = triangulate_with_errors(rig, u.transpose(1, 0, 2, 3).reshape(n_cams, -1, 2),
+                                       ww.transpose(1, 0, 2).reshape(n_cams, -1))
+        mine = e[c][(ww[:, c].ravel() >= min_weight) & ((ww > 0).sum(axis=1).ravel() >= 3)]
+        mine = mine[np.isfinite(mine)]
+        err[k] = np.median(mine) if mine.size >= 25 else np.nan
+    return _offset(rig.names[c], shifts, err)
+
+
+def _offset(name: str, shifts: np.ndarray, err: np.ndarray) -> TimeOffset:
+    zero = float(err[shifts == 0][0])
+    if not np.isfinite(err).any() or not np.isfinite(zero):
+        return TimeOffset(name, float("nan"), zero, float("nan"))
+    k = int(np.nanargmin(err))
+    frames = float(shifts[k])
+    if 0 < k < len(err) - 1 and np.isfinite(err[k - 1 : k + 2]).all():
+        lo, mid, hi = err[k - 1], err[k], err[k + 1]
+        curv = lo - 2 * mid + hi
+        if curv > 0:  # vertex of the parabola through the three errors
+            frames += 0.5 * (lo - hi) / curv
+    return TimeOffset(name, frames, zero, float(err[k]))
