@@ -137,7 +137,9 @@ class MarkersNode(VmocapNode):
         px = mrad * 1e-3 * float(self.rig[name].K[0, 0])
         self.problems["epipolar"] = (f"{name} disagrees with the other cameras' epipolar geometry: its keypoints lie "
                                      f"{mrad:.1f} mrad ({px:.0f} px) off their epipolar lines on average (the other pairs "
-                                     f"{others:.1f} mrad): moved or turned since calibration, or this view's keypoints biased?")
+                                     f"{others:.1f} mrad): moved or turned since calibration, out of step with the others "
+                                     "(`vmocap process` on a recording estimates each camera's time offset), or this "
+                                     "view's keypoints biased?")
 
     def _on_feedback(self, msg: dict) -> None:
         t = M.stamp_ns(msg)
