@@ -190,3 +190,38 @@ def test_process_reports_the_cameras_time_offsets(tmp_path):
     assert stats["tracking"] >= 30, stats
     assert set(stats["time_offsets"]) == set(rig.names) and stats["out_of_step"] == [], stats["time_offsets"]
     assert all(abs(o["frames"]) < 1 and np.isfinite(o["error_px"]) for o in stats["time_offsets"].values())
+
+
+def test_offset_probe_collects_consecutive_frame_sets():
+    """OffsetProbe (what vmocap_markers runs once the epipolar check names a camera): idle until
+    started, full after `frames` frame-set periods (a missing frame set left unseen, a long gap
+    starts it again); its keypoints show a camera whose views are two frame sets late."""
+    from vmocap_core.method.time_offsets import OffsetProbe, camera_time_offsets
+
+    m = punch()
+    rig = benchmark_rig()
+    src = SyntheticPcmSource(rig, m.positions, m.present, seed=4)
+    period = 16_666_667
+
+    def late_views(t):  # camera 1's views from frame set t - 2, the others' from t
+        now, old = src.render(t), src.render(t - 2)
+        keep = now.camera != 1
+        take = old.camera == 1
+        return PcmViews(np.concatenate([now.maps[keep], old.maps[take]]),
+                        np.concatenate([now.image_to_map[keep], old.image_to_map[take]]),
+                        np.concatenate([now.camera[keep], old.camera[take]]), now.keypoints,
+                        np.concatenate([now.valid[keep], old.valid[take]]),
+                        np.concatenate([now.presence[keep], old.presence[take]]), stamp_ns=t * period)
+
+    probe = OffsetProbe(len(rig), 1e9 / period, frames=80)
+    assert probe.add(late_views(2)) is None and not probe.collecting
+    probe.start()
+    full = None
+    # the jump from 11 to 30 (> MAX_GAP) restarts it; frame set 50 does not come: left unseen
+    for t in [t for t in list(range(2, 12)) + list(range(30, 110)) if t != 50]:
+        assert full is None
+        full = probe.add(late_views(t))
+    assert full is not None and full[0].shape == (80, len(rig), 25, 2) and not probe.collecting
+    assert not full[1][20].any() and full[1][19].any() and full[1][21].any()  # frame set 50: slot 20
+    found = {o.camera: o for o in camera_time_offsets(rig, *full)}
+    assert found[rig[1].name].out_of_step and abs(found[rig[1].name].frames - 2) < 0.5, found

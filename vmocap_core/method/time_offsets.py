@@ -15,12 +15,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..cameras.projection import Rig
+from ..keypoints import KEYPOINTS
+from ..pcm.peaks import camera_keypoints
+from ..pcm.views import PcmViews
 from .triangulation import triangulate_with_errors
 
 MAX_SHIFT = 4  # frame sets each way
 MIN_WEIGHT = 0.5  # keypoints the CNN is confident of (the demo report's rule)
 # A verdict needs the best shift at least a frame set away and a clearly smaller error there.
 MIN_GAIN = 0.075
+PROBE_FRAMES = 120  # frame sets a live probe collects (2 s at 60 Hz)
 
 
 @dataclass
@@ -99,4 +103,46 @@ def _offset(name: str, shifts: np.ndarray, err: np.ndarray) -> TimeOffset:
         curv = lo - 2 * mid + hi
         if curv > 0:  # vertex of the parabola through the three errors
             frames += 0.5 * (lo - hi) / curv
-    return TimeOffset(name, frames, zero, float(err[k]))
+    return TimeOffset(name, float(frames), zero, float(err[k]))
+
+
+class OffsetProbe:
+    """Collects the cameras' 2D keypoints of `frames` consecutive frame-set periods on request (a
+    live node asks when a camera disagrees with the others), for `camera_time_offsets` to tell a
+    camera out of step from a moved one. Frame sets that did not come (dropped) are left unseen;
+    a jump of more than MAX_GAP periods, or back, starts the collection again."""
+
+    MAX_GAP = 10
+
+    def __init__(self, n_cameras: int, fps: float, frames: int = PROBE_FRAMES) -> None:
+        self.n_cameras = n_cameras
+        self.period_ns = 1e9 / fps
+        self.frames = frames
+        self.collecting = False
+        self._uv: list[np.ndarray] = []
+        self._w: list[np.ndarray] = []
+        self._last: int | None = None
+
+    def start(self) -> None:
+        self.collecting, self._uv, self._w, self._last = True, [], [], None
+
+    def add(self, pcm: PcmViews) -> tuple[np.ndarray, np.ndarray] | None:
+        """One frame set while collecting; (uv (N, C, 25, 2), weights (N, C, 25)) once full."""
+        if not self.collecting:
+            return None
+        if self._last is not None:
+            steps = int(round((pcm.stamp_ns - self._last) / self.period_ns))
+            if steps <= 0 or steps > self.MAX_GAP:
+                self._uv, self._w = [], []
+            else:
+                for _ in range(steps - 1):  # the frame sets that did not come
+                    self._uv.append(np.full((self.n_cameras, len(KEYPOINTS), 2), np.nan))
+                    self._w.append(np.zeros((self.n_cameras, len(KEYPOINTS))))
+        self._last = pcm.stamp_ns
+        uv, w = camera_keypoints(pcm, self.n_cameras)
+        self._uv.append(uv)
+        self._w.append(w)
+        if len(self._uv) < self.frames:
+            return None
+        self.collecting = False
+        return np.array(self._uv[-self.frames:]), np.array(self._w[-self.frames:])
