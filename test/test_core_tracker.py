@@ -196,7 +196,9 @@ def test_offset_probe_collects_consecutive_frame_sets():
     """OffsetProbe (what vmocap_markers runs once the epipolar check names a camera): idle until
     started, full after `frames` frame-set periods (a missing frame set left unseen, a long gap
     starts it again); its keypoints show a camera whose views are two frame sets late."""
-    from vmocap_core.method.time_offsets import OffsetProbe, camera_time_offsets
+    import time
+
+    from vmocap_core.method.time_offsets import OffsetProbe, TimingCheck, camera_time_offsets
 
     m = punch()
     rig = benchmark_rig()
@@ -225,3 +227,17 @@ def test_offset_probe_collects_consecutive_frame_sets():
     assert not full[1][20].any() and full[1][19].any() and full[1][21].any()  # frame set 50: slot 20
     found = {o.camera: o for o in camera_time_offsets(rig, *full)}
     assert found[rig[1].name].out_of_step and abs(found[rig[1].name].frames - 2) < 0.5, found
+
+    # TimingCheck (vmocap_markers' use of it): one probe per request, estimated in a thread
+    check = TimingCheck(rig, 1e9 / period, frames=80)
+    assert check.note(rig[1].name) == ""
+    check.request(0.0)
+    for t in range(2, 82):
+        check.add(late_views(t))
+    check.request(1.0)  # not due again for a minute: no second probe
+    assert not check.probe.collecting
+    deadline = time.monotonic() + 30
+    while check.note(rig[1].name) == "" and time.monotonic() < deadline:
+        time.sleep(0.05)
+    check.close()
+    assert check.note(rig[1].name).endswith("out of step") and "in step" in check.note(rig[0].name)

@@ -10,6 +10,7 @@ frame sets by a parabola through the three errors around it).
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +26,7 @@ MIN_WEIGHT = 0.5  # keypoints the CNN is confident of (the demo report's rule)
 # A verdict needs the best shift at least a frame set away and a clearly smaller error there.
 MIN_GAIN = 0.075
 PROBE_FRAMES = 120  # frame sets a live probe collects (2 s at 60 Hz)
+PROBE_EVERY_S = 60.0  # at most one live probe (~0.5 s of CPU, in a thread) this often
 
 
 @dataclass
@@ -146,3 +148,50 @@ class OffsetProbe:
             return None
         self.collecting = False
         return np.array(self._uv[-self.frames:]), np.array(self._w[-self.frames:])
+
+
+class TimingCheck:
+    """What a live node runs once another check names a camera that disagrees with the others:
+    at most every `every_s`, an OffsetProbe, estimated in a worker thread (numpy's SVDs release
+    the GIL) so the caller does not wait; `note(camera)` says what it found for that camera."""
+
+    def __init__(self, rig: Rig, fps: float, every_s: float = PROBE_EVERY_S, frames: int = PROBE_FRAMES) -> None:
+        self.rig, self.fps, self.every_s = rig, fps, every_s
+        self.probe = OffsetProbe(len(rig), fps, frames)
+        self.found: dict[str, TimeOffset] = {}
+        self._job: Future | None = None
+        self._pool: ThreadPoolExecutor | None = None
+        self._due = 0.0
+        self._failed = ""
+
+    def request(self, now: float) -> None:
+        """A camera disagrees (`now`: monotonic seconds): probe unless one runs or ran recently."""
+        if self._job is None and not self.probe.collecting and now >= self._due:
+            self.probe.start()
+            self._due = now + self.every_s
+
+    def add(self, pcm: PcmViews) -> None:
+        """A tracked frame set (nothing to do unless a probe collects)."""
+        full = self.probe.add(pcm)
+        if full is not None:
+            self._pool = self._pool or ThreadPoolExecutor(1, thread_name_prefix="vmocap-timing")
+            self._job = self._pool.submit(camera_time_offsets, self.rig, *full)
+
+    def note(self, camera: str) -> str:
+        """" Timing: ..." for a diagnostic about `camera` ("" before the probe said anything)."""
+        if self._job is not None and self._job.done():
+            job, self._job = self._job, None
+            try:
+                self.found, self._failed = {o.camera: o for o in job.result()}, ""
+            except Exception as exc:  # noqa: BLE001 - a diagnostic of a diagnostic: say so, go on
+                self._failed = f" Timing: the probe failed ({exc})"
+        o = self.found.get(camera)
+        if o is None or not np.isfinite(o.frames):
+            return self._failed
+        if o.out_of_step:
+            return f" Timing: {o.describe(self.fps)}: out of step"
+        return f" Timing: in step ({o.frames:+.1f} frame sets)"
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)

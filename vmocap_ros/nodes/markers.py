@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -15,7 +14,7 @@ from vmocap_core.cameras.sync import frames_missing
 from vmocap_core.errors import VmocapError
 from vmocap_core.method.camera_check import BlindCameras, EpipolarCheck, OddCamera, camera_residuals
 from vmocap_core.method.markers import MarkerStage
-from vmocap_core.method.time_offsets import OffsetProbe, TimeOffset, camera_time_offsets
+from vmocap_core.method.time_offsets import TimingCheck
 from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO, markers_message
 from vmocap_core.pcm.assembly import PcmAssembler, channel_keypoints
 
@@ -26,7 +25,6 @@ CAMERA_CHECK_EVERY = 10  # frame sets between per-camera residual and heatmap ch
 EPIPOLAR_EVERY = 3  # frame sets between epipolar samples (~0.3 ms each; enough samples in a few seconds)
 HEATMAP_WARN_S = 5.0  # a corrupted-heatmap or blind-camera WARN stays this long after the last observation
 BLIND_WARN_S = 1.0  # a camera without any heatmap this long while the others track: WARN
-PROBE_EVERY_S = 60.0  # at most one time-offset probe (~0.3 s of CPU, in a thread) this often
 
 
 class MarkersNode(VmocapNode):
@@ -55,11 +53,7 @@ class MarkersNode(VmocapNode):
         self.epipolar = EpipolarCheck(self.rig)  # per-pair epipolar offsets while tracking
         self.blind = BlindCameras(BLIND_WARN_S)  # cameras without any heatmap while tracking
         # when the epipolar check names a camera: is it out of step rather than moved?
-        self.offset_probe = OffsetProbe(len(self.rig), p["fps"])
-        self.timing: dict[str, TimeOffset] = {}
-        self._timing_job: Future | None = None
-        self._probe_after = 0.0
-        self._timing_pool: ThreadPoolExecutor | None = None
+        self.timing = TimingCheck(self.rig, p["fps"])
         # markers and feedback are transient-local: a frame processed before the other node's
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
         self.pub = self.publisher(CLOUD, self.topics.markers, depth=p["queue_depth"], latched=True)
@@ -95,8 +89,8 @@ class MarkersNode(VmocapNode):
             self.counts["frames"] += 1
             self.proc.add(1e3 * (time.perf_counter() - t0))
             self.record_age(pcm.stamp_ns)
-            if markers.kind == "lattice" and self.offset_probe.collecting:
-                self._probe_timing(pcm)
+            if markers.kind == "lattice":
+                self.timing.add(pcm)
             if markers.kind == "lattice" and self.counts["frames"] % EPIPOLAR_EVERY == 0:
                 self._check_epipolar(pcm)
             if self.counts["frames"] % CAMERA_CHECK_EVERY == 0:
@@ -145,36 +139,16 @@ class MarkersNode(VmocapNode):
             self.problems.pop("epipolar", None)
             return
         name, mrad, others = odd
-        now = time.monotonic()
-        if self._timing_job is None and not self.offset_probe.collecting and now >= self._probe_after:
-            self.offset_probe.start()
-            self._probe_after = now + PROBE_EVERY_S
-        if self._timing_job is not None and self._timing_job.done():
-            job, self._timing_job = self._timing_job, None
-            try:
-                self.timing = {o.camera: o for o in job.result()}
-            except Exception as exc:  # noqa: BLE001 - a diagnostic of a diagnostic: say so, go on
-                self.get_logger().warning(f"time-offset probe failed: {exc}")
-        timing = self.timing.get(name)
+        self.timing.request(time.monotonic())
         px = mrad * 1e-3 * float(self.rig[name].K[0, 0])
         self.problems["epipolar"] = (f"{name} disagrees with the other cameras' epipolar geometry: its keypoints lie "
                                      f"{mrad:.1f} mrad ({px:.0f} px) off their epipolar lines on average (the other pairs "
                                      f"{others:.1f} mrad): moved or turned since calibration, out of step, or this view's "
-                                     "keypoints biased?" + _timing_note(timing, self.p["fps"]))
+                                     "keypoints biased?" + self.timing.note(name))
 
     def close(self) -> None:
-        if self._timing_pool is not None:
-            self._timing_pool.shutdown(wait=True, cancel_futures=True)
+        self.timing.close()
         super().close()
-
-    def _probe_timing(self, pcm: Any) -> None:
-        """Collect the probe's frame sets; once full, estimate the offsets in a thread (numpy's
-        SVDs release the GIL) so the lattice search does not wait."""
-        full = self.offset_probe.add(pcm)
-        if full is not None:
-            if self._timing_pool is None:
-                self._timing_pool = ThreadPoolExecutor(1, thread_name_prefix="vmocap-timing")
-            self._timing_job = self._timing_pool.submit(camera_time_offsets, self.rig, *full)
 
     def _on_feedback(self, msg: dict) -> None:
         t = M.stamp_ns(msg)
@@ -202,12 +176,3 @@ class MarkersNode(VmocapNode):
                     rejected_frame_sets=self.asm.bad_views, presence={k: round(v, 3) for k, v in self.presence.items()},
                     **{f"residual_px:{k}": round(v, 1) for k, v in self.cameras.medians().items()})
 
-
-def _timing_note(o: TimeOffset | None, fps: float) -> str:
-    """What the time-offset probe said of the named camera ("" before it said anything)."""
-    if o is None or not np.isfinite(o.frames):
-        return ""
-    if o.out_of_step:
-        return (f" Timing: its images lag by {o.frames:+.1f} frame sets ({1e3 * o.frames / fps:+.0f} ms; "
-                f"{o.error_px:.1f} px, {o.best_error_px:.1f} px shifted back): out of step.")
-    return f" Timing: in step ({o.frames:+.1f} frame sets)."

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 
-def add_tracker_arguments(parser: "argparse.ArgumentParser") -> None:
+def add_tracker_arguments(parser: argparse.ArgumentParser) -> None:
     """The tracker options both accuracy benchmarks take (PipelineConfig keys)."""
     parser.add_argument("--config", type=Path, help="tracker parameters (YAML mapping)")
     parser.add_argument("--offline", action="store_true",
@@ -15,7 +15,7 @@ def add_tracker_arguments(parser: "argparse.ArgumentParser") -> None:
     parser.add_argument("--lag", type=int, metavar="N", help="live fixed-lag smoothing over N frames (smoothing_lag_frames)")
 
 
-def tracker_settings(args: "argparse.Namespace", fps: float) -> dict[str, Any]:
+def tracker_settings(args: argparse.Namespace, fps: float) -> dict[str, Any]:
     """The flat tracker settings (`PipelineConfig.from_dict`) that add_tracker_arguments' options ask for."""
     cfg: dict[str, Any] = {"fps": fps}
     if args.config:
