@@ -103,6 +103,9 @@ def process_bag(
             stats["bad_images"] = {c: 0 for c in cams}
             frames, total, sync_stats = _image_frame_sets(reader, rig, topics, cams, max(tolerance_ns, 8_000_000),
                                                           min_views, binning, recorded, stats["bad_images"])
+        warm_up = getattr(pipe.pcm, "warm_up", None)
+        if warm_up is not None:  # the CNN's first run allocates and picks kernels: start-up, as in vmocap_pcm
+            warm_up()
         with BagWriter(out_path, compression="zstd") as writer:
             stamps: list[int] = []
             start = time.perf_counter()  # the model is loaded: from here on it is the recording's own cost
