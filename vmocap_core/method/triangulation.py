@@ -34,9 +34,10 @@ def _dlt(rig: Rig, xy: np.ndarray, uv: np.ndarray, w: np.ndarray, min_views: int
     rows_x = xy[..., 0, None] * Rt[:, None, 2, :] - Rt[:, None, 0, :]  # (C, J, 4)
     rows_y = xy[..., 1, None] * Rt[:, None, 2, :] - Rt[:, None, 1, :]
     A = np.concatenate([rows_x * w[..., None], rows_y * w[..., None]], axis=0)  # (2C, J, 4)
-    A = A.transpose(1, 0, 2)  # (J, 2C, 4)
-    _, _, vt = np.linalg.svd(A)
-    X = vt[:, -1, :]
+    # The least-squares X (|X| = 1) is A's last right singular vector, i.e. the eigenvector of
+    # the 4 x 4 normal matrix A^T A with the smallest eigenvalue: eigh of (J, 4, 4) instead of
+    # an SVD of (J, 2C, 4), 2.5x faster on thousands of points (time_offsets.py).
+    X = np.linalg.eigh(np.einsum("cji,cjk->jik", A, A))[1][:, :, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         pts = X[:, :3] / X[:, 3:4]
     enough = (w > 0).sum(axis=0) >= min_views
