@@ -28,11 +28,12 @@ def _models_present() -> bool:
 
 @needs_demo
 def test_qualisys_rig_matches_the_file_and_sees_the_scene() -> None:
-    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes
+    from vmocap_core.apps.demo.data import video_paths, video_sizes
+    from vmocap_core.calibration.reference import load_qualisys
 
     qca = DEMO / "calibration" / "Calib.qca.txt"
     sizes = video_sizes(video_paths(DEMO))
-    rig = load_qualisys_rig(qca, sizes)
+    rig = load_qualisys(qca, sizes)
     assert rig.names == ["cam01", "cam02", "cam03", "cam04"]
     for cam, el in zip(rig, ET.parse(qca).getroot().iter("camera")):
         tr = el.find("transform")
@@ -53,13 +54,14 @@ def test_qualisys_rig_matches_the_file_and_sees_the_scene() -> None:
 @needs_demo
 @pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
 def test_demo_pipeline_tracks_the_walker(tmp_path: Path) -> None:
-    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes, videos_to_bag
+    from vmocap_core.apps.demo.data import video_paths, video_sizes, videos_to_bag
     from vmocap_core.apps.demo.report import reprojection_errors
     from vmocap_core.apps.demo.runs import run_pipeline
     from vmocap_core.bag import BagReader
+    from vmocap_core.calibration.reference import load_qualisys
 
     videos = video_paths(DEMO)
-    rig = load_qualisys_rig(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    rig = load_qualisys(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
     bag = tmp_path / "demo.mcap"
     assert videos_to_bag(videos, rig, bag, max_frames=8) == 8
     with BagReader(bag) as r:
@@ -102,13 +104,14 @@ def test_report_markdown_from_a_real_shelf_run(tmp_path: Path) -> None:
 @pytest.mark.skipif(not _models_present(), reason="PCM models not fetched (vmocap models fetch)")
 def test_demo_on_the_node_graph(tmp_path: Path) -> None:
     pytest.importorskip("rclpy")
-    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes, videos_to_bag
+    from vmocap_core.apps.demo.data import video_paths, video_sizes, videos_to_bag
     from vmocap_core.apps.demo.report import reprojection_errors
     from vmocap_core.apps.demo.runs import live_rate, recording_from_graph, run_graph
+    from vmocap_core.calibration.reference import load_qualisys
     from vmocap_core.cameras.rig_file import save_rig
 
     videos = video_paths(DEMO)
-    rig = load_qualisys_rig(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    rig = load_qualisys(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
     save_rig(rig, tmp_path / "rig.yaml")
     bag = tmp_path / "demo.mcap"  # JPEG CompressedImage, as `vmocap demo` writes: the camera node decodes
     assert videos_to_bag(videos, rig, bag, max_frames=16) == 16
@@ -133,14 +136,15 @@ def test_demo_on_the_node_graph(tmp_path: Path) -> None:
 def test_process_on_reduced_jpegs_tracks_as_on_full_ones(tmp_path: Path) -> None:
     """`vmocap process --binning 2`: JPEGs decoded at half size, the CNN's crops cut from them,
     track the same frames, within a few centimetres of the full-size decode."""
-    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes, videos_to_bag
+    from vmocap_core.apps.demo.data import video_paths, video_sizes, videos_to_bag
     from vmocap_core.apps.process import process_bag
     from vmocap_core.bag import BagReader
     from vmocap_core.bag import messages as M
+    from vmocap_core.calibration.reference import load_qualisys
     from vmocap_core.method.config import PipelineConfig
 
     videos = video_paths(DEMO)
-    rig = load_qualisys_rig(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    rig = load_qualisys(DEMO / "calibration" / "Calib.qca.txt", video_sizes(videos))
     bag = tmp_path / "demo.mcap"
     assert videos_to_bag(videos, rig, bag, max_frames=16) == 16
     offline = PipelineConfig.from_dict(None).replace(offline=True)  # identified on the whole (short) clip

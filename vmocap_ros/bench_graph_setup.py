@@ -49,17 +49,18 @@ def pose2sim_bag(work: Path, args: argparse.Namespace):
     (intrinsics scaled to match), stamps at --fps."""
     import cv2
 
-    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes
+    from vmocap_core.apps.demo.data import video_paths, video_sizes
     from vmocap_core.bag import BagWriter
     from vmocap_core.bag import messages as M
     from vmocap_core.calibration.datasets import pose2sim_demo
+    from vmocap_core.calibration.reference import load_qualisys
     from vmocap_core.cameras.projection import Camera, Rig
     from vmocap_core.cameras.rig_file import save_rig
     from vmocap_core.graph_config import Topics
 
     demo = pose2sim_demo(fetch=True)
     videos = video_paths(demo)
-    full = load_qualisys_rig(demo / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    full = load_qualisys(demo / "calibration" / "Calib.qca.txt", video_sizes(videos))
     w, h = (int(x) for x in args.size.split("x"))
     cams = []
     for c in full:

@@ -243,15 +243,16 @@ def demo_bag(path: Path, frames: int):
     """The first `frames` frame sets of the Pose2Sim demo's 4 videos (a real person, 1080x1920
     portrait, JPEG CompressedImage as `vmocap demo` writes them) and its rig; None when the
     pose2sim wheel is not cached (models/pose2sim or ~/.cache/vmocap/pose2sim: `make demo`)."""
-    from vmocap_core.apps.demo.data import load_qualisys_rig, video_paths, video_sizes, videos_to_bag
+    from vmocap_core.apps.demo.data import video_paths, video_sizes, videos_to_bag
     from vmocap_core.calibration.datasets import pose2sim_demo
+    from vmocap_core.calibration.reference import load_qualisys
     from vmocap_core.cameras.rig_file import save_rig
 
     demo = pose2sim_demo(fetch=False)
     if demo is None:
         return None
     videos = video_paths(demo)
-    rig = load_qualisys_rig(demo / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    rig = load_qualisys(demo / "calibration" / "Calib.qca.txt", video_sizes(videos))
     rig_path = path.with_suffix(".rig.yaml")
     save_rig(rig, rig_path)
     if not path.exists():

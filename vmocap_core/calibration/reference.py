@@ -13,6 +13,8 @@ from ..errors import RigFileError
 from .geometry import rotation_angle_deg
 
 QUALISYS_SUBPIXELS = 64  # Qualisys stores image coordinates in 1/64 pixel units
+# Qualisys camera axes: x right, y up, z backwards; OpenCV's: x right, y down, z forward.
+QUALISYS_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 
 
 def load_caliscope(path: str | Path, prefix: str = "") -> Rig:
@@ -38,37 +40,58 @@ def load_caliscope(path: str | Path, prefix: str = "") -> Rig:
     return Rig(out)
 
 
-def load_qualisys_intrinsics(path: str | Path) -> Rig:
-    """Intrinsics of a Qualisys .qca.txt calibration (cameras named by their serial).
+def load_qualisys(path: str | Path, sizes: dict[str, tuple[int, int]] | None = None,
+                  intrinsics_only: bool = False) -> Rig:
+    """The rig of a Qualisys .qca.txt calibration (cameras named by their serial).
 
-    Only K and the image size are taken (focal length and principal point are stored in
-    1/64 pixel, relative to the sensor; the video field of view gives the crop); extrinsics
-    are left at identity."""
+    `transform` holds the camera position (mm) and a rotation whose rows are the Qualisys camera
+    axes in world coordinates (y up, z backwards): world->camera for OpenCV is
+    R = diag(1, -1, -1) @ rows, t = -R @ position. Intrinsics are in 1/64 pixel relative to the
+    sensor; the video field of view gives the crop. `sizes` (name -> (w, h)) overrides the image
+    size where a video was stored cropped at the right/bottom (e.g. 1080 of 1088 columns).
+    intrinsics_only: K and the image size only (no distortion, extrinsics at identity; the
+    file's transform and distortion are not read)."""
     path = Path(path)
     try:
         root = ET.parse(path).getroot()
-    except ET.ParseError as exc:
+    except (OSError, ET.ParseError) as exc:
         raise RigFileError(path, "xml", str(exc)) from None
-    out: list[Camera] = []
+    cams: list[Camera] = []
     for cam in root.iter("camera"):
-        name = cam.get("serial", f"cam{len(out)}")
-        intr, fov = cam.find("intrinsic"), cam.find("fov_video")
-        if intr is None or fov is None:
-            raise RigFileError(path, f"camera {name}", "missing intrinsic or fov_video")
+        name = cam.get("serial") or f"cam{len(cams) + 1:02d}"
+        tr, it, fov = cam.find("transform"), cam.find("intrinsic"), cam.find("fov_video")
+        if it is None or fov is None or (tr is None and not intrinsics_only):
+            raise RigFileError(path, f"camera {name}", "missing " + ("intrinsic or fov_video" if intrinsics_only
+                                                                      else "transform, intrinsic or fov_video"))
         try:
-            fx = float(intr.get("focalLengthU")) / QUALISYS_SUBPIXELS
-            fy = float(intr.get("focalLengthV")) / QUALISYS_SUBPIXELS
-            cx = float(intr.get("centerPointU")) / QUALISYS_SUBPIXELS - float(fov.get("left"))
-            cy = float(intr.get("centerPointV")) / QUALISYS_SUBPIXELS - float(fov.get("top"))
+            fx = float(it.get("focalLengthU")) / QUALISYS_SUBPIXELS
+            fy = float(it.get("focalLengthV")) / QUALISYS_SUBPIXELS
+            cx = float(it.get("centerPointU")) / QUALISYS_SUBPIXELS - float(fov.get("left"))
+            cy = float(it.get("centerPointV")) / QUALISYS_SUBPIXELS - float(fov.get("top"))
             w = int(fov.get("right")) - int(fov.get("left")) + 1
             h = int(fov.get("bottom")) - int(fov.get("top")) + 1
+            R, t, dist = np.eye(3), np.zeros(3), [0.0] * 5
+            if not intrinsics_only:
+                assert tr is not None
+                rows = np.array([[float(tr.get(f"r{i}{j}")) for j in (1, 2, 3)] for i in (1, 2, 3)])
+                R = QUALISYS_TO_OPENCV @ rows
+                t = -R @ (np.array([float(tr.get(a)) for a in "xyz"]) / 1000.0)
+                dist = [float(it.get(k)) for k in ("radialDistortion1", "radialDistortion2", "tangentalDistortion1",
+                                                   "tangentalDistortion2", "radialDistortion3")]
         except (TypeError, ValueError) as exc:
-            raise RigFileError(path, f"camera {name} intrinsic", str(exc)) from None
-        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-        out.append(Camera(name, K, np.zeros(5), np.eye(3), np.zeros(3), w, h))
-    if not out:
+            raise RigFileError(path, f"camera {name}", f"bad number ({exc})") from None
+        if sizes and name in sizes:
+            w, h = sizes[name]
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        cams.append(Camera(name, K, dist, R, t, w, h))
+    if not cams:
         raise RigFileError(path, "cameras", "no camera")
-    return Rig(out)
+    return Rig(cams)
+
+
+def load_qualisys_intrinsics(path: str | Path) -> Rig:
+    """The intrinsics of a Qualisys calibration (`load_qualisys(intrinsics_only=True)`)."""
+    return load_qualisys(path, intrinsics_only=True)
 
 
 def load_reference(path: str | Path) -> Rig:

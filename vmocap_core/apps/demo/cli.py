@@ -26,8 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ...calibration.reference import load_qualisys
 from ...paths import REPO
-from .data import _count_frame_sets, _video_frames, load_qualisys_rig, log, video_paths, video_sizes, videos_to_bag
+from .data import _count_frame_sets, _video_frames, log, video_paths, video_sizes, videos_to_bag
 from .report import render_overlays, write_report
 from .runs import TRACKER_SETTINGS, live_rate, recording_from_graph, run_graph, run_pipeline
 
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         print("vmocap demo: could not obtain the Pose2Sim demo", file=sys.stderr)
         return 1
     videos = video_paths(demo)
-    rig = load_qualisys_rig(demo / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    rig = load_qualisys(demo / "calibration" / "Calib.qca.txt", video_sizes(videos))
     args.out.mkdir(parents=True, exist_ok=True)
     save_rig(rig, args.out / "rig.yaml")
     log(f"rig {rig.names} -> {args.out / 'rig.yaml'}")

@@ -1,74 +1,23 @@
-"""The demo's data: the Pose2Sim videos, their Qualisys calibration as a rig, the videos as an
-MCAP bag, and that bag's synchronized frame sets."""
+"""The demo's data: the Pose2Sim videos (their Qualisys calibration is read by
+calibration.reference.load_qualisys), the videos as an MCAP bag, and that bag's synchronized
+frame sets."""
 
 from __future__ import annotations
 
 import sys
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 
 from ...cameras.bag import bin_image, decode_compressed
-from ...cameras.projection import Camera, Rig
-from ...errors import RigFileError, SourceError, VmocapError
+from ...cameras.projection import Rig
+from ...errors import SourceError, VmocapError
 
 FPS = 60.0
 
 
-QUALISYS_SUBPIXELS = 64
-
-
-# Qualisys camera axes: x right, y up, z backwards; OpenCV's: x right, y down, z forward.
-QUALISYS_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
-
-
 def log(msg: str) -> None:
     print(f"vmocap demo: {msg}", file=sys.stderr, flush=True)
-
-
-# ------------------------------------------------------------------------------ calibration
-def load_qualisys_rig(path: str | Path, sizes: dict[str, tuple[int, int]] | None = None) -> Rig:
-    """Full rig (intrinsics, distortion, extrinsics) from a Qualisys .qca.txt calibration.
-
-    `transform` holds the camera position (mm) and a rotation whose rows are the Qualisys camera
-    axes in world coordinates (y up, z backwards): world->camera for OpenCV is
-    R = diag(1, -1, -1) @ rows, t = -R @ position. Intrinsics are in 1/64 pixel relative to the
-    sensor; the video field of view gives the crop. `sizes` (name -> (w, h)) overrides the image
-    size where a video was stored cropped at the right/bottom (e.g. 1080 of 1088 columns).
-    """
-    path = Path(path)
-    try:
-        root = ET.parse(path).getroot()
-    except (OSError, ET.ParseError) as exc:
-        raise RigFileError(path, "xml", str(exc)) from None
-    cams: list[Camera] = []
-    for cam in root.iter("camera"):
-        name = cam.get("serial") or f"cam{len(cams) + 1:02d}"
-        tr, it, fov = cam.find("transform"), cam.find("intrinsic"), cam.find("fov_video")
-        if tr is None or it is None or fov is None:
-            raise RigFileError(path, f"camera {name}", "missing transform, intrinsic or fov_video")
-        try:
-            rows = np.array([[float(tr.get(f"r{i}{j}")) for j in (1, 2, 3)] for i in (1, 2, 3)])
-            pos = np.array([float(tr.get(a)) for a in "xyz"]) / 1000.0
-            fx = float(it.get("focalLengthU")) / QUALISYS_SUBPIXELS
-            fy = float(it.get("focalLengthV")) / QUALISYS_SUBPIXELS
-            cx = float(it.get("centerPointU")) / QUALISYS_SUBPIXELS - float(fov.get("left"))
-            cy = float(it.get("centerPointV")) / QUALISYS_SUBPIXELS - float(fov.get("top"))
-            dist = [float(it.get(k)) for k in ("radialDistortion1", "radialDistortion2", "tangentalDistortion1",
-                                               "tangentalDistortion2", "radialDistortion3")]
-            w = int(fov.get("right")) - int(fov.get("left")) + 1
-            h = int(fov.get("bottom")) - int(fov.get("top")) + 1
-        except (TypeError, ValueError) as exc:
-            raise RigFileError(path, f"camera {name}", f"bad number ({exc})") from None
-        if sizes and name in sizes:
-            w, h = sizes[name]
-        R = QUALISYS_TO_OPENCV @ rows
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        cams.append(Camera(name, K, dist, R, -R @ pos, w, h))
-    if not cams:
-        raise RigFileError(path, "cameras", "no camera")
-    return Rig(cams)
 
 
 def video_paths(demo: Path) -> dict[str, Path]:
