@@ -152,8 +152,9 @@ class OffsetProbe:
 
 class TimingCheck:
     """What a live node runs once another check names a camera that disagrees with the others:
-    at most every `every_s`, an OffsetProbe, estimated in a worker thread (numpy's SVDs release
-    the GIL) so the caller does not wait; `note(camera)` says what it found for that camera."""
+    at most every `every_s`, an OffsetProbe, estimated in a worker thread (numpy's linear
+    algebra releases the GIL) so the caller does not wait; `note(camera)` says what it found for
+    that camera."""
 
     def __init__(self, rig: Rig, fps: float, every_s: float = PROBE_EVERY_S, frames: int = PROBE_FRAMES) -> None:
         self.rig, self.fps, self.every_s = rig, fps, every_s
