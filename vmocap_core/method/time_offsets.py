@@ -3,9 +3,14 @@
 The method assumes synchronized cameras (paper II-A). Cameras without a common trigger (V4L2
 webcams) or videos cut apart by hand can be frames out of step, which looks like a calibration
 error: a moving person's keypoints in that camera miss the other cameras' rays. Here each
-camera's 2D keypoint series is shifted against the others' by whole frame sets; the shift at
-which its reprojection error after triangulation is smallest is its offset (refined between
-frame sets by a parabola through the three errors around it).
+camera's 2D keypoint series is shifted against the others' by whole frame sets and compared with
+the projection of the other cameras' triangulation; the shift at which its error is smallest is
+its offset (refined between frame sets by a parabola through the three errors around it).
+
+A camera turned or moved since calibration is off by a near-constant amount, and while the
+subject moves one way a time shift explains part of such an offset too: so each camera's
+constant 2D offset is removed before its error is measured, and only the part of the error that
+follows the image motion is left for a shift to explain.
 """
 
 from __future__ import annotations
@@ -19,21 +24,21 @@ from ..cameras.projection import Rig
 from ..keypoints import KEYPOINTS
 from ..pcm.peaks import camera_keypoints
 from ..pcm.views import PcmViews
-from .triangulation import triangulate_with_errors
+from .triangulation import triangulate
 
 MAX_SHIFT = 4  # frame sets each way
 MIN_WEIGHT = 0.5  # keypoints the CNN is confident of (the demo report's rule)
 # A verdict needs the best shift at least a frame set away and a clearly smaller error there.
 MIN_GAIN = 0.075
 PROBE_FRAMES = 120  # frame sets a live probe collects (2 s at 60 Hz)
-PROBE_EVERY_S = 60.0  # at most one live probe (~0.5 s of CPU, in a thread) this often
+PROBE_EVERY_S = 60.0  # at most one live probe (~0.05 s of CPU, in a thread) this often
 
 
 @dataclass
 class TimeOffset:
     camera: str
     frames: float  # > 0: this camera's images lag: the one stamped t shows the scene at t - frames
-    error_px: float  # median reprojection error of this camera's keypoints as recorded
+    error_px: float  # median error of its keypoints as recorded, against the others' triangulation, constant offset removed
     best_error_px: float  # the same with its series shifted by round(frames)
 
     @property
@@ -79,18 +84,27 @@ def _shifted(uv: np.ndarray, w: np.ndarray, c: int, s: int) -> tuple[np.ndarray,
 
 
 def _estimate(rig: Rig, uv: np.ndarray, w: np.ndarray, c: int, max_shift: int, min_weight: float) -> TimeOffset:
-    """Camera c's reprojection error with its series shifted by -max_shift..max_shift."""
-    n_cams = uv.shape[1]
+    """Camera c's reprojection error with its series shifted by -max_shift..max_shift, against
+    the other cameras' triangulation (camera c left out, so it cannot pull the points towards
+    itself) and after removing camera c's constant 2D offset: a camera turned or moved since
+    calibration shifts all its keypoints by about the same amount, which, while the subject
+    moves one way, a time shift would otherwise partly explain. What is left for a shift to
+    explain is the part of the error that follows the image motion."""
+    n, n_cams = uv.shape[:2]
+    others = np.ones(n_cams, bool)
+    others[c] = False
+    w_others = w.copy()
+    w_others[:, c] = 0.0
+    X, _ = triangulate(rig, uv.transpose(1, 0, 2, 3).reshape(n_cams, -1, 2), w_others.transpose(1, 0, 2).reshape(n_cams, -1))
+    proj = rig[c].project(np.nan_to_num(X))[0].reshape(n, -1, 2)
+    seen = np.isfinite(X).all(axis=1).reshape(n, -1) & ((w[:, others] > 0).sum(axis=1) >= 2)
     shifts = np.arange(-max_shift, max_shift + 1)
     err = np.full(len(shifts), np.nan)
     for k, s in enumerate(shifts):
         u, ww = _shifted(uv, w, c, int(s))
-        # every frame set's keypoints in one call: (C, frames x 25) points
-        _, e = triangulate_with_errors(rig, u.transpose(1, 0, 2, 3).reshape(n_cams, -1, 2),
-                                       ww.transpose(1, 0, 2).reshape(n_cams, -1))
-        mine = e[c][(ww[:, c].ravel() >= min_weight) & ((ww > 0).sum(axis=1).ravel() >= 3)]
-        mine = mine[np.isfinite(mine)]
-        err[k] = np.median(mine) if mine.size >= 25 else np.nan
+        r = (u[:, c] - proj)[seen & (ww[:, c] >= min_weight) & np.isfinite(u[:, c]).all(axis=-1)]
+        if len(r) >= 25:
+            err[k] = float(np.median(np.linalg.norm(r - np.median(r, axis=0), axis=1)))
     return _offset(rig.names[c], shifts, err)
 
 
