@@ -169,3 +169,22 @@ def test_blind_camera_is_the_one_without_any_heatmap_while_others_see() -> None:
     valid[4, 1:] = False  # camera 3: one keypoint is enough
     assert blind_cameras(views(valid)) == {1}
     assert blind_cameras(views(np.zeros((V, J), bool))) == set()  # nobody anywhere: the person left, not a camera
+
+
+def test_a_turned_camera_gets_a_timing_probe_that_finds_it_in_step(tmp_path: Path) -> None:
+    """cam2 turned by 1.5 degrees: the epipolar check names it, vmocap_markers then collects 120
+    frame-set periods of 2D keypoints and estimates the cameras' time offsets in a thread
+    (time_offsets.TimingCheck), and the WARN says the camera is in step: a turned camera is not
+    taken for a late one (the walking subject made the estimate before session 11 call it late)."""
+    bag = tmp_path / "in.mcap"
+    _, rig_path, kps = synthetic_bag(bag, frames=300)
+    wrong = _miscalibrated(rig_path, tmp_path / "turned.rig.yaml", (0.0, 0.0, 1.5, 0.0))
+    out = _track(tmp_path, bag, wrong, kps, {"vmocap_markers": {"queue_depth": 100}, "vmocap_skeleton": {"queue_depth": 100}}, 23)
+    with BagReader(out) as r:
+        tracked = r.message_counts.get("/vmocap/joint_states", 0)
+        messages = [s["message"] for m in r.messages(["/diagnostics"]) for s in m.decode()["status"]
+                    if s["name"] == "vmocap_markers"]
+    epipolar = [m for m in messages if "cam2 disagrees with the other cameras' epipolar geometry" in m]
+    assert tracked >= 200 and epipolar, (tracked, messages[-3:])
+    timed = [m for m in epipolar if "Timing:" in m]
+    assert timed and all("Timing: in step" in m for m in timed), timed[-1:] or epipolar[-1:]
