@@ -110,17 +110,26 @@ def process_bag(
             stamps: list[int] = []
             start = time.perf_counter()  # the model is loaded: from here on it is the recording's own cost
             first_kp: list[tuple[np.ndarray, np.ndarray]] = []
+            tracked_any = False
             for frame in tqdm(frames, total=total, unit="frame", desc="process", disable=not progress, file=sys.stderr):
                 stamps.append(frame.stamp_ns)
                 t0 = time.perf_counter()
                 res = pipe.step(frame)
                 stats["seconds"] += time.perf_counter() - t0
+                tracked_any = tracked_any or res.status == "tracking"
                 if len(stamps) <= OFFSET_WINDOW:  # the cameras' 2D keypoints of the first frame sets
                     first_kp.append(camera_keypoints(res.pcm, len(rig)))
                 if offline:
                     kept.append(res)
                 else:
                     _write_frame(writer, topics, res, stats, subject)
+            if stamps and pipe.last is not None and not tracked_any:
+                stats["not_tracked_because"] = _why_not_tracked(pipe, rig)
+                if offline:
+                    from ..method.offline import OfflineError
+
+                    raise OfflineError(f"{in_path}: no frame set of {len(kept)} tracked, nothing to reconstruct: "
+                                       f"{stats['not_tracked_because']}")
             if offline and kept:
                 _write_offline(writer, topics, kept, cfg, stats, progress, subject)
             stats["wall_s"] = time.perf_counter() - start
@@ -149,6 +158,22 @@ def process_bag(
                                  for o in offsets}
         stats["out_of_step"] = [o.describe(fps) for o in offsets if o.out_of_step]
     return stats
+
+
+def _why_not_tracked(pipe: Pipeline, rig: Rig) -> str:
+    """Why no frame set was tracked, as the graph's WARN says it (init_report.py): from the
+    last frame set's virtual markers, or the skeleton fit that failed."""
+    from ..method.init_report import describe
+
+    last = pipe.last
+    if last is None or last.markers.kind == "none":
+        return "no heatmap views (no frames, or the CNN found nobody)"
+    if last.status in ("identifying", "smoothing"):
+        what = {"identifying": "identified (identify_seconds)", "smoothing": "smoothed (smoothing_lag_frames)"}[last.status]
+        return f"the recording ended while the subject was still being {what}"
+    m = last.markers
+    return pipe.skeleton.init_problem or describe(m.residual_px, m.cameras, rig.names,
+                                                   pipe.markers.config.init_max_reprojection_px, m.presence)
 
 
 def _pcm_frame_sets(reader: BagReader, rig: Rig, topics: Topics, views: list[str], keypoints: np.ndarray,
@@ -347,6 +372,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"vmocap process: WARNING: images left out (wrong size or no contrast), per camera: {bad}", file=sys.stderr)
     for line in stats.get("out_of_step", []):
         print(f"vmocap process: WARNING: camera out of step? {line}", file=sys.stderr)
+    failed = stats["frames"] > 0 and stats["tracking"] == 0
+    if failed:
+        print(f"vmocap process: ERROR: no frame set of {stats['frames']} tracked: {stats.get('not_tracked_because', '')}",
+              file=sys.stderr)
     if args.json:
         print(json.dumps(stats))
     else:
@@ -359,4 +388,4 @@ def run(args: argparse.Namespace) -> int:
 
         for f in plot_session(load_session(args.output), args.plots):
             print(f"plot: {f}")
-    return 0
+    return 1 if failed else 0
