@@ -1,7 +1,8 @@
 """`vmocap bench faults --json` on a subset of its faults (damaged bags through `vmocap process`
 and `vmocap play`, the person leaving every view and returning through the node graph; an
 Aravis Fake camera unplugged and back): the JSON has the documented shape and every fault tried
-is survived and diagnosed. Fast forms of two more: the launcher's restart policy on a killed
+is survived and diagnosed (camera_late: cam2's images two frame sets late, found by vmocap_markers'
+periodic time-offset probe). Fast forms of two more: the launcher's restart policy on a killed
 recorder, and vmocap_pcm with the CNN leaving out black and wrong-size images."""
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import pytest
 import yaml
 from graph_helpers import REPO, domain_env, synthetic_bag, vmocap, write_config
 
-FAULTS = ["truncated_bag", "corrupted_bag", "person_leaves", "heatmaps_nan"]
+FAULTS = ["truncated_bag", "corrupted_bag", "person_leaves", "heatmaps_nan", "camera_late"]
 
 
 def test_bench_faults_subset_survived_and_diagnosed(tmp_path: Path) -> None:
@@ -30,7 +31,7 @@ def test_bench_faults_subset_survived_and_diagnosed(tmp_path: Path) -> None:
     out = json.loads(run.stdout.strip().splitlines()[-1])
     names = set(out["faults"])
     assert names == {"truncated_bag:process", "truncated_bag:play", "corrupted_bag:process", "corrupted_bag:play",
-                     "person_leaves:default", "heatmaps_nan:default"}, names
+                     "person_leaves:default", "heatmaps_nan:default", "camera_late:default"}, names
     assert out["tried"] == len(names)
     assert out["survived"] == sum(r["survived"] for r in out["faults"].values())
     for name, r in out["faults"].items():

@@ -172,10 +172,10 @@ def test_blind_camera_is_the_one_without_any_heatmap_while_others_see() -> None:
 
 
 def test_a_turned_camera_gets_a_timing_probe_that_finds_it_in_step(tmp_path: Path) -> None:
-    """cam2 turned by 1.5 degrees: the epipolar check names it, vmocap_markers then collects 120
-    frame-set periods of 2D keypoints and estimates the cameras' time offsets in a thread
-    (time_offsets.TimingCheck), and the WARN says the camera is in step: a turned camera is not
-    taken for a late one (the walking subject made the estimate before session 11 call it late)."""
+    """cam2 turned by 1.5 degrees: the epipolar check names it, and its WARN adds what
+    vmocap_markers' time-offset probe (120 frame-set periods of 2D keypoints, estimated in a
+    thread: time_offsets.TimingCheck) found: in step. A turned camera is not taken for a late
+    one (with the walking subject, the estimator before session 11 called it +4 frame sets late)."""
     bag = tmp_path / "in.mcap"
     _, rig_path, kps = synthetic_bag(bag, frames=300)
     wrong = _miscalibrated(rig_path, tmp_path / "turned.rig.yaml", (0.0, 0.0, 1.5, 0.0))

@@ -23,7 +23,7 @@ from .bench_faults_camera import CAMERA_FAULTS, IMAGE_FAULTS, IMAGE_FRAMES, arav
 
 BAG_FAULTS = ["truncated_bag:process", "truncated_bag:play", "corrupted_bag:process", "corrupted_bag:play"]
 PCM_FAULTS = ["heatmaps_nan", "heatmaps_inf", "heatmaps_negative", "person_leaves", "camera_pause", "calibration_rotated",
-              "calibration_moved"]
+              "calibration_moved", "camera_late"]
 GRAPH_FAULTS = ["launcher_sigint", "launcher_sigterm", "recorder_sigkill", "node_killed", "node_restarted",
                 "recorder_restarted"]
 # one process: killing a node kills the graph (that is recorder_sigkill), and nothing restarts it
@@ -90,6 +90,10 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
         src = H.alter_heatmaps(bag, work / f"{name}.mcap", window, bad_views, how)
     if name.startswith("calibration_"):  # the bag is right, the rig the graph is given is not
         rig_path = H.miscalibrated(rig_path, work / "wrong.rig.yaml", "cam2", name.split("_")[1])
+    if name == "camera_late":  # cam2's images two frame sets late; long enough for a timing probe after tracking starts
+        frames = 240
+        _, rig_path, kps = H.synthetic_bag(work / "in_step.mcap", frames, images=False, size=(1024, 768))
+        src = H.delay_view(work / "in_step.mcap", work / f"{name}.mcap", "cam2", 2)
     out = work / f"{name}_{mode}_out.mcap"
     # silent after 1 s of stamp time: the two players of camera_pause start up to ~1 s apart, and
     # a camera whose stamps trail the others by more than that is never used again (sync.py)
@@ -159,6 +163,9 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
         during = sum(pause[0] <= t <= pause[1] for t, _ in o.joint_states)
         r.update(survived=rc == 0 and back and during >= 10 * (pause[1] - pause[0]) / 1e9, diagnosed=gone is not None,
                  outputs_while_paused=during)
+    elif name == "camera_late":
+        r.update(survived=rc == 0 and len(got) >= 0.5 * frames,
+                 diagnosed=o.warned("vmocap_markers", "camera out of step: cam2: images lag the others by +"))
     elif name.startswith("calibration_"):
         # vmocap_markers' per-camera reprojection residuals and a WARN naming the camera
         res = [v.get("residual_px:cam2") for _, _, _, v in o.diag.get("vmocap_markers", []) if "residual_px:cam2" in v]

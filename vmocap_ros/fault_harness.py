@@ -67,6 +67,30 @@ def alter_heatmaps(src: Path, dst: Path, frames: range, views: list[str], how: s
     return dst
 
 
+def delay_view(src: Path, dst: Path, view: str, frames: int) -> Path:
+    """A copy of `src` in which `view`'s heatmaps and their camera_info are those of `frames`
+    frame sets earlier under the later stamps (a camera whose images lag the others); its
+    first `frames` frame sets are left out."""
+    from collections import deque
+
+    from vmocap_core.bag import BagReader, BagWriter, cdr
+
+    held: dict[str, deque] = {}
+    with BagReader(src) as r, BagWriter(dst) as w:
+        for m in r.messages():
+            data: bytes = bytes(m.data)
+            if f"/pcm/{view}/" in m.topic:
+                queue = held.setdefault(m.topic, deque())
+                queue.append(cdr.decode(m.type, data))
+                if len(queue) <= frames:
+                    continue
+                msg = queue.popleft()
+                msg["header"] = cdr.decode(m.type, data)["header"]  # the stamp of the frame set it goes out with
+                data = cdr.encode(m.type, msg)
+            w.write(m.topic, m.type, data, m.log_time_ns)
+    return dst
+
+
 def miscalibrated(rig_path: Path, out: Path, camera: str, how: str) -> Path:
     """The rig with one camera turned by 5 degrees about its vertical axis (`rotated`) or its
     centre moved by 10 cm along world x (`moved`), the others as they were."""

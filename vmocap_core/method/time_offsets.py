@@ -165,10 +165,10 @@ class OffsetProbe:
 
 
 class TimingCheck:
-    """What a live node runs once another check names a camera that disagrees with the others:
-    at most every `every_s`, an OffsetProbe, estimated in a worker thread (numpy's linear
-    algebra releases the GIL) so the caller does not wait; `note(camera)` says what it found for
-    that camera."""
+    """What a live node runs while it tracks: at most every `every_s`, an OffsetProbe, estimated
+    in a worker thread (numpy's linear algebra releases the GIL) so the caller does not wait;
+    `late()` lists the cameras the last probe found out of step, `note(camera)` says what it
+    found for one camera (for a diagnostic that names it)."""
 
     def __init__(self, rig: Rig, fps: float, every_s: float = PROBE_EVERY_S, frames: int = PROBE_FRAMES) -> None:
         self.rig, self.fps, self.every_s = rig, fps, every_s
@@ -180,7 +180,7 @@ class TimingCheck:
         self._failed = ""
 
     def request(self, now: float) -> None:
-        """A camera disagrees (`now`: monotonic seconds): probe unless one runs or ran recently."""
+        """Probe (`now`: monotonic seconds) unless one runs or ran within `every_s`."""
         if self._job is None and not self.probe.collecting and now >= self._due:
             self.probe.start()
             self._due = now + self.every_s
@@ -192,14 +192,23 @@ class TimingCheck:
             self._pool = self._pool or ThreadPoolExecutor(1, thread_name_prefix="vmocap-timing")
             self._job = self._pool.submit(camera_time_offsets, self.rig, *full)
 
-    def note(self, camera: str) -> str:
-        """" Timing: ..." for a diagnostic about `camera` ("" before the probe said anything)."""
+    def _collect(self) -> None:
+        """Take a finished probe's result."""
         if self._job is not None and self._job.done():
             job, self._job = self._job, None
             try:
                 self.found, self._failed = {o.camera: o for o in job.result()}, ""
             except Exception as exc:  # noqa: BLE001 - a diagnostic of a diagnostic: say so, go on
                 self._failed = f" Timing: the probe failed ({exc})"
+
+    def late(self) -> list[TimeOffset]:
+        """The cameras the last probe found out of step (none before the first)."""
+        self._collect()
+        return [o for o in self.found.values() if o.out_of_step]
+
+    def note(self, camera: str) -> str:
+        """" Timing: ..." for a diagnostic about `camera` ("" before the probe said anything)."""
+        self._collect()
         o = self.found.get(camera)
         if o is None or not np.isfinite(o.frames):
             return self._failed

@@ -52,7 +52,7 @@ class MarkersNode(VmocapNode):
         self.cameras = OddCamera()  # per-camera reprojection residuals while tracking
         self.epipolar = EpipolarCheck(self.rig)  # per-pair epipolar offsets while tracking
         self.blind = BlindCameras(BLIND_WARN_S)  # cameras without any heatmap while tracking
-        # when the epipolar check names a camera: is it out of step rather than moved?
+        # cameras out of step (a probe a minute while tracking; the epipolar WARN says it too)
         self.timing = TimingCheck(self.rig, p["fps"])
         # markers and feedback are transient-local: a frame processed before the other node's
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
@@ -90,6 +90,7 @@ class MarkersNode(VmocapNode):
             self.proc.add(1e3 * (time.perf_counter() - t0))
             self.record_age(pcm.stamp_ns)
             if markers.kind == "lattice":
+                self.timing.request(time.monotonic())
                 self.timing.add(pcm)
             if markers.kind == "lattice" and self.counts["frames"] % EPIPOLAR_EVERY == 0:
                 self._check_epipolar(pcm)
@@ -98,6 +99,7 @@ class MarkersNode(VmocapNode):
                 if markers.kind == "lattice":
                     self._check_cameras(pcm, markers.positions)
                 self._check_blind(pcm, markers.kind == "lattice")
+                self._check_timing()
 
     def _check_heatmaps(self, pcm: Any) -> None:
         """WARN (for HEATMAP_WARN_S) when heatmaps arrive with values the lattice search has to
@@ -130,6 +132,16 @@ class MarkersNode(VmocapNode):
         self.problems["camera"] = (f"{name} disagrees with the other cameras: its heatmap peaks lie {px:.0f} px from the "
                                    f"markers' projections (the others {others:.0f} px): moved or turned since calibration?")
 
+    def _check_timing(self) -> None:
+        """WARN naming the cameras the last time-offset probe found out of step (one probe a
+        minute while tracking, time_offsets.TimingCheck), until a later probe finds them in step."""
+        late = self.timing.late()
+        if late:
+            self.problems["timing"] = ("camera out of step: " + "; ".join(o.describe(self.p["fps"]) for o in late)
+                                       + " (cameras without a common trigger, or videos cut apart?)")
+        else:
+            self.problems.pop("timing", None)
+
     def _check_epipolar(self, pcm: Any) -> None:
         """WARN naming a camera whose keypoints lie off the others' epipolar lines by a constant
         (camera_check.EpipolarCheck): moved or turned since calibration, or a view the CNN biases."""
@@ -139,7 +151,6 @@ class MarkersNode(VmocapNode):
             self.problems.pop("epipolar", None)
             return
         name, mrad, others = odd
-        self.timing.request(time.monotonic())
         px = mrad * 1e-3 * float(self.rig[name].K[0, 0])
         self.problems["epipolar"] = (f"{name} disagrees with the other cameras' epipolar geometry: its keypoints lie "
                                      f"{mrad:.1f} mrad ({px:.0f} px) off their epipolar lines on average (the other pairs "
