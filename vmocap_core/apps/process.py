@@ -31,6 +31,7 @@ from ..graph_config import Topics
 from ..method.camera_check import image_problem
 from ..method.config import PipelineConfig
 from ..method.pipeline import FrameResult, ImageSet, Pipeline
+from ..method.results import FEEDBACK_STATUSES
 from ..method.time_offsets import camera_time_offsets
 from ..outputs.messages import CLOUD, DIAG, markers_message, subject_message, write_results
 from ..outputs.streams import SubjectOutputs
@@ -123,7 +124,9 @@ def process_bag(
                     kept.append(res)
                 else:
                     _write_frame(writer, topics, res, stats, subject)
-            if stamps and pipe.last is not None and not tracked_any:
+            # offline, frame sets the live pass was still identifying on are enough
+            followed = tracked_any or (offline and any(r.status in FEEDBACK_STATUSES for r in kept))
+            if stamps and pipe.last is not None and not followed:
                 stats["not_tracked_because"] = _why_not_tracked(pipe, rig)
                 if offline:
                     from ..method.offline import OfflineError
