@@ -278,3 +278,27 @@ def test_offset_probe_collects_consecutive_frame_sets():
         time.sleep(0.05)
     check.close()
     assert check.note(rig[1].name).endswith("out of step") and "in step" in check.note(rig[0].name)
+
+
+def test_timing_check_says_when_its_probe_failed():
+    """A probe whose estimate raises is reported (TimingCheck.failed, and in note()), not lost."""
+    from vmocap_core.method import time_offsets as T
+
+    rig = benchmark_rig()
+    check = T.TimingCheck(rig, 60.0, frames=2)
+    original = T.camera_time_offsets
+    T.camera_time_offsets = lambda *a: (_ for _ in ()).throw(ValueError("no keypoints"))
+    try:
+        check.request(0.0)
+        src = SyntheticPcmSource(rig, punch().positions, punch().present, seed=5)
+        for t in range(2):
+            pv = src.render(t)
+            check.add(PcmViews(pv.maps, pv.image_to_map, pv.camera, pv.keypoints, pv.valid, pv.presence,
+                               stamp_ns=t * 16_666_667))
+        check._job.result() if check._job is not None else None
+    except ValueError:
+        pass
+    finally:
+        T.camera_time_offsets = original
+    assert check.late() == [] and "no keypoints" in check.failed and "no keypoints" in check.note(rig[0].name)
+    check.close()

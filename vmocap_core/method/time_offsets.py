@@ -206,6 +206,12 @@ class TimingCheck:
         self._collect()
         return [o for o in self.found.values() if o.out_of_step]
 
+    @property
+    def failed(self) -> str:
+        """Why the last probe failed ("" when it did not)."""
+        self._collect()
+        return self._failed.removeprefix(" Timing: ")
+
     def note(self, camera: str) -> str:
         """" Timing: ..." for a diagnostic about `camera` ("" before the probe said anything)."""
         self._collect()

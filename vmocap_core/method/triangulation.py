@@ -64,13 +64,6 @@ def triangulate(rig: Rig, uv: np.ndarray, weights: np.ndarray, min_views: int = 
     return pts, resid
 
 
-def triangulate_with_errors(rig: Rig, uv: np.ndarray, weights: np.ndarray, min_views: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """`triangulate`, returning each camera's reprojection error (C, J) px instead of the mean."""
-    uv, w = _sanitize(uv, weights)
-    pts, _, err = _dlt(rig, undistort_all(rig, uv), uv, w, min_views)
-    return pts, np.where(np.isfinite(pts).all(axis=1)[None], err, np.nan)
-
-
 def triangulate_robust(
     rig: Rig, uv: np.ndarray, weights: np.ndarray, max_error_px: float = 20.0, min_views: int = 2
 ) -> tuple[np.ndarray, np.ndarray]:
