@@ -81,11 +81,11 @@ def delay_view(src: Path, dst: Path, view: str, frames: int) -> Path:
             data: bytes = bytes(m.data)
             if f"/pcm/{view}/" in m.topic:
                 queue = held.setdefault(m.topic, deque())
-                queue.append(cdr.decode(m.type, data))
+                now = cdr.decode(m.type, data)
+                queue.append(now)
                 if len(queue) <= frames:
                     continue
-                msg = queue.popleft()
-                msg["header"] = cdr.decode(m.type, data)["header"]  # the stamp of the frame set it goes out with
+                msg = dict(queue.popleft(), header=now["header"])  # the stamp of the frame set it goes out with
                 data = cdr.encode(m.type, msg)
             w.write(m.topic, m.type, data, m.log_time_ns)
     return dst

@@ -164,19 +164,17 @@ def process_bag(
 
 
 def _why_not_tracked(pipe: Pipeline, rig: Rig) -> str:
-    """Why no frame set was tracked, as the graph's WARN says it (init_report.py): from the
-    last frame set's virtual markers, or the skeleton fit that failed."""
-    from ..method.init_report import describe
+    """Why no frame set was tracked, as the graph's WARN says it (init_report.py), or that the
+    recording ended before the tracker's first output."""
+    from ..method.init_report import not_initialized_reason
 
     last = pipe.last
-    if last is None or last.markers.kind == "none":
-        return "no heatmap views (no frames, or the CNN found nobody)"
-    if last.status in ("identifying", "smoothing"):
-        what = {"identifying": "identified (identify_seconds)", "smoothing": "smoothed (smoothing_lag_frames)"}[last.status]
-        return f"the recording ended while the subject was still being {what}"
-    m = last.markers
-    return pipe.skeleton.init_problem or describe(m.residual_px, m.cameras, rig.names,
-                                                   pipe.markers.config.init_max_reprojection_px, m.presence)
+    assert last is not None  # called after at least one frame set
+    ended = {"identifying": "identified (identify_seconds)", "smoothing": "smoothed (smoothing_lag_frames)"}
+    if last.status in ended:
+        return f"the recording ended while the subject was still being {ended[last.status]}"
+    return not_initialized_reason(last.markers, rig.names, pipe.markers.config.init_max_reprojection_px,
+                                  pipe.skeleton.init_problem)
 
 
 def _pcm_frame_sets(reader: BagReader, rig: Rig, topics: Topics, views: list[str], keypoints: np.ndarray,

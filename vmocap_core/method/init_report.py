@@ -10,7 +10,7 @@ cameras, or cameras that contribute nothing at all (no person in view, or a CNN 
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -65,3 +65,13 @@ def describe(residual_px: np.ndarray, cameras: np.ndarray, camera_names: Sequenc
     if not parts:
         return "the core keypoints agree; waiting for enough consecutive frame sets or a skeleton fit"
     return "; ".join(parts)
+
+
+def not_initialized_reason(markers: Any, camera_names: Sequence[str], bound_px: float, problem: str | None = None,
+                           min_presence: float | None = None) -> str:
+    """Why no subject is initialized, from a frame set's virtual markers (results.Markers):
+    no heatmap views at all, else the skeleton fit's `problem` when one failed, else `describe`."""
+    if markers.kind == "none":
+        return "no heatmap views (no frames, or the CNN found nobody)"
+    return problem or describe(markers.residual_px, markers.cameras, camera_names, bound_px, markers.presence, min_presence)
+

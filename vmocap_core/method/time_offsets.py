@@ -167,8 +167,8 @@ class OffsetProbe:
 class TimingCheck:
     """What a live node runs while it tracks: at most every `every_s`, an OffsetProbe, estimated
     in a worker thread (numpy's linear algebra releases the GIL) so the caller does not wait;
-    `late()` lists the cameras the last probe found out of step, `note(camera)` says what it
-    found for one camera (for a diagnostic that names it)."""
+    `warning()` is the WARN for the cameras the last probe found out of step, `note(camera)` says
+    what it found for one camera (for a diagnostic that names it)."""
 
     def __init__(self, rig: Rig, fps: float, every_s: float = PROBE_EVERY_S, frames: int = PROBE_FRAMES) -> None:
         self.rig, self.fps, self.every_s = rig, fps, every_s
@@ -199,7 +199,7 @@ class TimingCheck:
             try:
                 self.found, self._failed = {o.camera: o for o in job.result()}, ""
             except Exception as exc:  # noqa: BLE001 - a diagnostic of a diagnostic: say so, go on
-                self._failed = f" Timing: the probe failed ({exc})"
+                self._failed = f"the probe failed ({exc})"
 
     def late(self) -> list[TimeOffset]:
         """The cameras the last probe found out of step (none before the first)."""
@@ -210,14 +210,23 @@ class TimingCheck:
     def failed(self) -> str:
         """Why the last probe failed ("" when it did not)."""
         self._collect()
-        return self._failed.removeprefix(" Timing: ")
+        return self._failed
+
+    def warning(self) -> str:
+        """A live node's WARN: the cameras the last probe found out of step, or why it failed
+        ("" when neither)."""
+        late = self.late()
+        if late:
+            return ("camera out of step: " + "; ".join(o.describe(self.fps) for o in late)
+                    + " (cameras without a common trigger, or videos cut apart?)")
+        return f"camera time offsets: {self._failed}" if self._failed else ""
 
     def note(self, camera: str) -> str:
         """" Timing: ..." for a diagnostic about `camera` ("" before the probe said anything)."""
         self._collect()
         o = self.found.get(camera)
         if o is None or not np.isfinite(o.frames):
-            return self._failed
+            return f" Timing: {self._failed}" if self._failed else ""
         if o.out_of_step:
             return f" Timing: {o.describe(self.fps)}: out of step"
         return f" Timing: in step ({o.frames:+.1f} frame sets)"

@@ -26,9 +26,9 @@ def _sanitize(uv: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return np.nan_to_num(uv), w
 
 
-def _dlt(rig: Rig, xy: np.ndarray, uv: np.ndarray, w: np.ndarray, min_views: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted DLT on normalized coordinates xy (C, J, 2); also returns the per-camera
-    reprojection errors (C, J) px."""
+def _dlt(rig: Rig, xy: np.ndarray, uv: np.ndarray, w: np.ndarray, min_views: int) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted DLT on normalized coordinates xy (C, J, 2): points (J, 3) and their weighted
+    mean reprojection error (J,) px."""
     Rt = np.concatenate([rig._R, rig._t[:, :, None]], axis=2)  # (C, 3, 4)
     # Rows x*P3 - P1 and y*P3 - P2 per camera, scaled by the camera's confidence.
     rows_x = xy[..., 0, None] * Rt[:, None, 2, :] - Rt[:, None, 0, :]  # (C, J, 4)
@@ -49,7 +49,7 @@ def _dlt(rig: Rig, xy: np.ndarray, uv: np.ndarray, w: np.ndarray, min_views: int
         resid = (wf * err).sum(axis=0) / wf.sum(axis=0)
     resid[~enough] = np.nan
     pts[~np.isfinite(pts).all(axis=1)] = np.nan
-    return pts, resid, err
+    return pts, resid
 
 
 def triangulate(rig: Rig, uv: np.ndarray, weights: np.ndarray, min_views: int = 2) -> tuple[np.ndarray, np.ndarray]:
@@ -60,7 +60,7 @@ def triangulate(rig: Rig, uv: np.ndarray, weights: np.ndarray, min_views: int = 
     error in pixels (J,) (NaN likewise).
     """
     uv, w = _sanitize(uv, weights)
-    pts, resid, _ = _dlt(rig, undistort_all(rig, uv), uv, w, min_views)
+    pts, resid = _dlt(rig, undistort_all(rig, uv), uv, w, min_views)
     return pts, resid
 
 
@@ -74,7 +74,7 @@ def triangulate_robust(
     points (J, 3), residual px (J,)."""
     uv, w = _sanitize(uv, weights)
     xy = undistort_all(rig, uv)  # once: only the weights change between rounds
-    pts, resid, _ = _dlt(rig, xy, uv, w, min_views)
+    pts, resid = _dlt(rig, xy, uv, w, min_views)
     for _ in range(max(0, len(rig) - min_views)):
         bad = (resid > max_error_px) & ((w > 0).sum(axis=0) > min_views)
         if not bad.any():
@@ -87,10 +87,10 @@ def triangulate_robust(
                 continue
             w_c = w.copy()
             w_c[c, active] = 0.0
-            _, r_c, _ = _dlt(rig, xy, uv, w_c, min_views)
+            _, r_c = _dlt(rig, xy, uv, w_c, min_views)
             better = active & (np.nan_to_num(r_c, nan=np.inf) < best)
             best[better], drop[better] = r_c[better], c
         chosen = np.nonzero(drop >= 0)[0]
         w[drop[chosen], chosen] = 0.0
-        pts, resid, _ = _dlt(rig, xy, uv, w, min_views)
+        pts, resid = _dlt(rig, xy, uv, w, min_views)
     return pts, resid

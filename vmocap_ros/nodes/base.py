@@ -216,7 +216,7 @@ class InitWatch:
 
     def update(self, node: VmocapNode, status: str, markers: Any, problem: str | None = None,
                min_presence: float | None = None) -> None:
-        from vmocap_core.method.init_report import describe
+        from vmocap_core.method.init_report import not_initialized_reason
 
         if status not in ("initializing", "lost", "none"):
             self.since_ns = None
@@ -225,10 +225,6 @@ class InitWatch:
         self.since_ns = markers.stamp_ns if self.since_ns is None else self.since_ns
         waited = markers.stamp_ns - self.since_ns
         if self.warn_ns and waited >= self.warn_ns:
-            if markers.kind == "none":
-                why = "no heatmap views (no frames, or the CNN found nobody)"
-            else:
-                names = self.camera_names or [f"camera {c}" for c in range(32)]
-                why = problem or describe(markers.residual_px, markers.cameras, names, self.bound_px,
-                                          markers.presence, min_presence)
+            names = self.camera_names or [f"camera {c}" for c in range(32)]
+            why = not_initialized_reason(markers, names, self.bound_px, problem, min_presence)
             node.problems["initializing"] = f"no subject initialized for {waited / 1e9:.1f} s: {why}"

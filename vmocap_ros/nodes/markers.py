@@ -135,12 +135,9 @@ class MarkersNode(VmocapNode):
     def _check_timing(self) -> None:
         """WARN naming the cameras the last time-offset probe found out of step (one probe a
         minute while tracking, time_offsets.TimingCheck), until a later probe finds them in step."""
-        late, failed = self.timing.late(), self.timing.failed
-        if late:
-            self.problems["timing"] = ("camera out of step: " + "; ".join(o.describe(self.p["fps"]) for o in late)
-                                       + " (cameras without a common trigger, or videos cut apart?)")
-        elif failed:
-            self.problems["timing"] = f"camera time offsets: {failed}"
+        text = self.timing.warning()
+        if text:
+            self.problems["timing"] = text
         else:
             self.problems.pop("timing", None)
 
