@@ -10,7 +10,7 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(include=["vmocap_core", "vmocap_core.*", "vmocap_ros", "vmocap_ros.*"]),
-    package_data={"vmocap_core": ["data/motions/*.npz", "data/motions/*.md", "data/pcm/*.json", "data/pcm/*.jpg", "data/pcm/*.md"]},
+    package_data={"vmocap_core": ["data/motions/*.npz", "data/motions/*.md", "data/pcm/*.json", "data/pcm/*.jpg", "data/pcm/*.md", "data/landmarks/*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

@@ -139,6 +139,9 @@ class SkeletonConfig(_Stage):
     # virtual markers; output starts with these. 0: the provisional fit is final (the paper).
     identify_seconds: float = 0.5
     init_max_fit_error_m: float = 0.04  # skeleton fit residual (RMS) to confirm
+    # Where the PCM model's keypoints lie relative to the joint centres (landmarks.py): "none"
+    # (joint centres), a shipped model ("blazepose") or a YAML file.
+    landmarks: str = "none"
 
     def validate(self) -> None:
         from .filter import make_filter, smoother_model
@@ -157,6 +160,12 @@ class SkeletonConfig(_Stage):
             raise ConfigError("offline IK iterations must be >= 1 and the prior weight >= 0")
         if not 0 <= self.offline_identify_quantile < 1:
             raise ConfigError("offline_identify_quantile must lie in [0, 1)")
+        from .landmarks import LandmarkError, load_landmarks
+
+        try:
+            load_landmarks(self.landmarks)
+        except LandmarkError as exc:
+            raise ConfigError(str(exc)) from None
         try:
             make_filter(self)  # the filter's and the motion model's own checks
             smoother_model(self)

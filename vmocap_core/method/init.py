@@ -19,6 +19,7 @@ from ..pcm.views import PcmViews
 from .config import MarkersConfig
 from .ik import solve_ik
 from .init_report import camera_mask
+from .landmarks import LandmarkModel
 from .results import N_KP, Markers, nan_markers
 from .skeleton import BodyDimensions, Skeleton
 from .triangulation import triangulate_robust
@@ -85,8 +86,11 @@ def _shoulder_offsets(p: np.ndarray) -> tuple[float, float]:
     return float(np.median(fwd[ok])), float(-np.median(up[ok]))
 
 
-def identify_dimensions(frames: np.ndarray) -> BodyDimensions:
-    """Link lengths from triangulated keypoints (N, 25, 3): medians over frames (II-C)."""
+def identify_dimensions(frames: np.ndarray, landmarks: LandmarkModel | None = None) -> BodyDimensions:
+    """Link lengths from triangulated keypoints (N, 25, 3): medians over frames (II-C).
+    Joint centres of a CNN with `landmarks` and no neck landmark: the neck stays at the
+    shoulder landmarks' midpoint (LandmarkModel.neck_dimensions)."""
+    neck_seen = bool(np.isfinite(frames[..., INDEX["neck"], :]).all(axis=-1).any())
     p = with_midpoints(frames)
 
     def dist(a: str, b: str) -> float:
@@ -119,6 +123,8 @@ def identify_dimensions(frames: np.ndarray) -> BodyDimensions:
         eye=tuple(np.array(base.eye) * scale),
         ear=tuple(np.array(base.ear) * scale),
     )
+    if landmarks is not None and not neck_seen:
+        dims = dataclasses.replace(dims, **landmarks.neck_dimensions())
     hand = both("wrist", "hand")
     if np.isfinite(hand):
         dims = dataclasses.replace(dims, hand=hand)
@@ -136,6 +142,17 @@ OFFSET_FIELDS = {"nose": "nose", "left_eye": "eye", "right_eye": "eye", "left_ea
                  "left_heel": "heel", "right_heel": "heel", "left_toe": "toe", "right_toe": "toe"}
 
 
+def frame_poses(skeleton: Skeleton, frames: np.ndarray, q0: np.ndarray) -> list[np.ndarray]:
+    """The skeleton's pose fitted to each of the frames (N, 25, 3; NaN unknown), warm-started
+    from q0 and then from the previous frame."""
+    poses, q = [], q0
+    for f in frames:
+        ok = np.isfinite(f).all(axis=1).astype(float)
+        q = solve_ik(skeleton, q, f, ok, 30, damping=1e-2, regularization=1e-6, line_search=True).q
+        poses.append(q)
+    return poses
+
+
 def refine_offsets(skeleton: Skeleton, frames: np.ndarray, q0: np.ndarray, rounds: int = 2) -> Skeleton:
     """Identify the offsets of face and foot keypoints on the subject (II-C identifies link
     lengths; these are the rest of the body's geometry): alternate IK over the initialization
@@ -149,9 +166,7 @@ def refine_offsets(skeleton: Skeleton, frames: np.ndarray, q0: np.ndarray, round
     sk = skeleton
     for _ in range(rounds):
         samples: dict[str, list[np.ndarray]] = {n: [] for n in names}
-        q = q0
-        for f, ok in zip(frames, seen):
-            q = solve_ik(sk, q, f, ok.astype(float), 30, damping=1e-2, regularization=1e-6, line_search=True).q
+        for f, ok, q in zip(frames, seen, frame_poses(sk, frames, q0)):
             pin.forwardKinematics(sk.model, sk.data, q)
             R, t = sk._placements()
             for n in names:
@@ -184,11 +199,26 @@ def initial_pose(skeleton: Skeleton, keypoints: np.ndarray) -> np.ndarray:
     return q
 
 
-def fit_skeleton(frames: np.ndarray, max_fit_error_m: float, q0: np.ndarray | None = None) -> tuple[Skeleton, Any] | None:
+def fit_skeleton(frames: np.ndarray, max_fit_error_m: float, q0: np.ndarray | None = None,
+                 landmarks: LandmarkModel | None = None) -> tuple[Skeleton, Any] | None:
     """Identify a skeleton on keypoint frames (N, 25, 3; NaN unknown) and fit it to the last
     frame: link lengths (II-C), the waist height by the fit it gives, face/foot offsets. None
-    when the fit's RMS stays above `max_fit_error_m` (the frames do not show one body)."""
-    dims = identify_dimensions(frames)
+    when the fit's RMS stays above `max_fit_error_m` (the frames do not show one body).
+
+    With `landmarks` the frames are the CNN's landmarks: a first skeleton fitted to them gives
+    each frame's segment orientations, the landmark offsets turned by those are removed, and
+    the skeleton is identified again on the joint centres so found."""
+    fitted = _fit_skeleton(frames, max_fit_error_m, q0)
+    if fitted is None or landmarks is None:
+        return fitted
+    sk, fit = fitted
+    centres = np.array([f - landmarks.correction(sk, q) for f, q in zip(frames, frame_poses(sk, frames, fit.q))])
+    return _fit_skeleton(centres, max_fit_error_m, fit.q, landmarks)
+
+
+def _fit_skeleton(frames: np.ndarray, max_fit_error_m: float, q0: np.ndarray | None,
+                  landmarks: LandmarkModel | None = None) -> tuple[Skeleton, Any] | None:
+    dims = identify_dimensions(frames, landmarks)
     last = frames[-1]
     w = np.where(np.isfinite(last).all(axis=1), 1.0, 0.0)
     best = None

@@ -28,6 +28,7 @@ from .config import SkeletonConfig
 from .filter import smoother_model
 from .ik import solve_ik
 from .init import identify_dimensions, initial_pose, refine_offsets
+from .landmarks import LandmarkModel, load_landmarks
 from .results import FEEDBACK_STATUSES, TrackResult
 from .skeleton import Skeleton
 from .smoothing import gaussian_smooth, rts_smooth, runs
@@ -63,11 +64,12 @@ def confident(markers: np.ndarray, weights: np.ndarray, quantile: float) -> np.n
     return np.where((weights >= thr)[:, :, None], markers, np.nan)
 
 
-def identify_subject(frames: np.ndarray, max_fit_error_m: float, n_fit: int = 16, n_offsets: int = 48) -> Skeleton:
-    """Skeleton of the subject from virtual markers (N, 25, 3; NaN unknown) of a whole
-    recording: link lengths by medians over all frames, waist height by the mean fit over
-    `n_fit` frames spread through it, face/foot offsets on `n_offsets` frames."""
-    dims = identify_dimensions(frames)
+def identify_subject(frames: np.ndarray, max_fit_error_m: float, n_fit: int = 16, n_offsets: int = 48,
+                     landmarks: LandmarkModel | None = None) -> Skeleton:
+    """Skeleton of the subject from virtual markers (N, 25, 3; NaN unknown; joint centres) of
+    a whole recording: link lengths by medians over all frames, waist height by the mean fit
+    over `n_fit` frames spread through it, face/foot offsets on `n_offsets` frames."""
+    dims = identify_dimensions(frames, landmarks)
     bad = [f.name for f in dataclasses.fields(dims) if isinstance(getattr(dims, f.name), float)
            and not np.isfinite(getattr(dims, f.name))]
     if bad:
@@ -164,7 +166,7 @@ def identify_and_reconstruct(results: Sequence[TrackResult], config: SkeletonCon
     markers = np.array([np.where((r.scores > 0)[:, None], r.markers, np.nan) for r in results])
     weights = np.array([np.where(np.isfinite(r.markers).all(axis=1), r.scores, 0.0) for r in results])
     sk = identify_subject(confident(markers[tracked], weights[tracked], config.offline_identify_quantile),
-                          config.init_max_fit_error_m)
+                          config.init_max_fit_error_m, landmarks=load_landmarks(config.landmarks))
     out = list(results)
     names = results[0].joint_names
     lengths = sk.dims.bone_lengths()

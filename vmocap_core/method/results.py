@@ -44,9 +44,9 @@ class TrackResult:
     q: np.ndarray  # (40,) published DOF after the second IK (see Skeleton.to_angles)
     joint_names: list[str]
     keypoints: np.ndarray  # (25, 3) filtered output
-    raw_keypoints: np.ndarray  # (25, 3) first IK (fed back to the lattice search)
+    raw_keypoints: np.ndarray  # (25, 3) first IK at the CNN's landmarks (landmarks.py; fed back to the lattice search)
     scores: np.ndarray  # (25,) marker weights
-    markers: np.ndarray  # (25, 3) virtual markers
+    markers: np.ndarray  # (25, 3) virtual markers as joint centres (landmark offsets removed)
     link_lengths: dict[str, float] = field(default_factory=dict)
     dims: BodyDimensions | None = None  # the subject's skeleton (tracking results only)
     feedback_stamp_ns: int | None = None  # the frame set of raw_keypoints when not stamp_ns

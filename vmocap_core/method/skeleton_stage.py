@@ -21,6 +21,7 @@ from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
 from .init import fit_skeleton, with_midpoints
 from .init_report import CORE
+from .landmarks import load_landmarks
 from .one_euro import OneEuroFilter
 from .results import N_KP, Markers, TrackResult
 from .skeleton import Skeleton
@@ -39,6 +40,7 @@ class SkeletonStage:
         self._q_raw: np.ndarray | None = None
         self._q_out: np.ndarray | None = None
         self._filter = make_filter(self.config)
+        self._landmarks = load_landmarks(self.config.landmarks)
         # Fixed-lag mode: the smoother and the frames (stamp, weights, markers, first-IK q) it delays.
         lag = self.config.smoothing_lag_frames
         self._lag = FixedLagSmoother(smoother_model(self.config), lag) if lag > 0 else None
@@ -78,19 +80,21 @@ class SkeletonStage:
         t0 = time.perf_counter()
         dt = self._skipped_interval(markers.stamp_ns)
         rate = cfg.fps if dt is None else 1.0 / dt
-        first = solve_ik(sk, self._q_raw, markers.positions, markers.weights, cfg.ik_iterations,
+        centres = self._centres(markers.positions, self._q_raw)
+        first = solve_ik(sk, self._q_raw, centres, markers.weights, cfg.ik_iterations,
                          damping=cfg.ik_damping, regularization=cfg.ik_regularization,
                          prior=self._q_raw, prior_weight=cfg.ik_prior_weight * (rate / 60.0) ** 2)
         self._q_raw = first.q
+        sites = self._sites(first.keypoints, first.q)
         if self._identify is not None:
-            return self._identifying(markers, first.keypoints)
+            return self._identifying(markers, centres, sites)
         t1 = time.perf_counter()
-        frame = (markers.stamp_ns, markers.weights.copy(), markers.positions.copy(), first.q)
+        frame = (markers.stamp_ns, markers.weights.copy(), centres.copy(), first.q)
         if self._lag is not None:
             smooth = self._lag(first.keypoints)
             self._delayed.append(frame)
             if smooth is None:
-                return self._smoothing(markers, first.keypoints)
+                return self._smoothing(markers, sites)
             frame = self._delayed[0]  # the output is the frame `lag` back
         elif isinstance(self._filter, OneEuroFilter):
             smooth = self._filter(first.keypoints, dt)
@@ -112,8 +116,22 @@ class SkeletonStage:
         t3 = time.perf_counter()
         self.timings = {"ik": t1 - t0, "filter": t2 - t1, "ik2": t3 - t2}
         return TrackResult(frame[0], "tracking", angles, self._joint_names,
-                           second.keypoints, first.keypoints, frame[1], frame[2], sk.dims.bone_lengths(), sk.dims,
+                           second.keypoints, sites, frame[1], frame[2], sk.dims.bone_lengths(), sk.dims,
                            feedback_stamp_ns=markers.stamp_ns)
+
+    def _centres(self, positions: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Virtual markers (the CNN's landmarks) -> joint centres, with the segments turned as
+        in pose q (the previous frame's: the turn in 1/60 s moves an offset by < 1 mm)."""
+        if self._landmarks is None or self.skeleton is None:
+            return positions
+        return positions - self._landmarks.correction(self.skeleton, q)
+
+    def _sites(self, keypoints: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Joint centres in pose q -> where the CNN's landmarks are: what the lattice search
+        and the crops are fed back."""
+        if self._landmarks is None or self.skeleton is None:
+            return keypoints.copy()
+        return keypoints + self._landmarks.correction(self.skeleton, q)
 
     def _smoothing(self, markers: Markers, raw: np.ndarray) -> TrackResult:
         """Fixed-lag window filling: feedback, no output yet."""
@@ -151,7 +169,7 @@ class SkeletonStage:
         if len(self._buffer) < cfg.init_frames:
             return self._empty(markers, status)
         frames = np.array(self._buffer)
-        fitted = fit_skeleton(frames, cfg.init_max_fit_error_m)
+        fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, landmarks=self._landmarks)
         if fitted is None:
             self._buffer.popleft()
             self.init_problem = (f"the views agree, but {cfg.init_frames} frame sets of triangulated keypoints do not "
@@ -164,10 +182,10 @@ class SkeletonStage:
         if cfg.identify_frames > 0:
             self._identify = []
             self._identify_start_ns = markers.stamp_ns
-            return self._identifying(markers, fit.keypoints)
+            return self._identifying(markers, self._centres(markers.positions, fit.q), self._sites(fit.keypoints, fit.q))
         return self._start_tracking(markers, sk, fit)
 
-    def _identifying(self, markers: Markers, raw: np.ndarray) -> TrackResult:
+    def _identifying(self, markers: Markers, centres: np.ndarray, raw: np.ndarray) -> TrackResult:
         """Identification phase: collect the virtual markers for identify_seconds of capture
         time (identify_frames at the nominal rate; fewer when frame sets are skipped, so a graph
         that falls behind starts its output as late as one that keeps up), then identify the
@@ -179,16 +197,16 @@ class SkeletonStage:
         if len(self._identify) >= cfg.identify_frames or span_frames >= cfg.identify_frames - 0.5:
             frames = np.array(self._identify)
             self._identify = None
-            fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, self._q_raw)
+            fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, self._q_raw, self._landmarks)
             if fitted is not None:
                 return self._start_tracking(markers, *fitted)
-            fit = solve_ik(self.skeleton, self._q_raw, frames[-1], np.isfinite(frames[-1]).all(axis=1).astype(float),
+            fit = solve_ik(self.skeleton, self._q_raw, centres, np.isfinite(frames[-1]).all(axis=1).astype(float),
                            30, damping=1e-2, regularization=1e-6, line_search=True)
             return self._start_tracking(markers, self.skeleton, fit)
         self.status = "identifying"
         nan = np.full((N_KP, 3), np.nan)
         return TrackResult(markers.stamp_ns, "identifying", np.full(40, np.nan), self._joint_names, nan, raw.copy(),
-                           markers.weights.copy(), markers.positions.copy(), {})
+                           markers.weights.copy(), centres.copy(), {})
 
     def _start_tracking(self, markers: Markers, sk: Skeleton, fit: Any) -> TrackResult:
         self.skeleton = sk
@@ -196,13 +214,14 @@ class SkeletonStage:
         self._q_out = fit.q.copy()
         self._filter.reset()
         self._filter(fit.keypoints)
+        centres, sites = self._centres(markers.positions, fit.q), self._sites(fit.keypoints, fit.q)
         if self._lag is not None:
             self._lag.reset()
             self._delayed.clear()
-            self._delayed.append((markers.stamp_ns, markers.weights.copy(), markers.positions.copy(), fit.q.copy()))
+            self._delayed.append((markers.stamp_ns, markers.weights.copy(), centres.copy(), fit.q.copy()))
             self._lag(fit.keypoints)
-            return self._smoothing(markers, fit.keypoints)
+            return self._smoothing(markers, sites)
         self.status = "tracking"
         return TrackResult(markers.stamp_ns, "tracking", sk.to_angles(fit.q), self._joint_names, fit.keypoints,
-                           fit.keypoints.copy(), markers.weights.copy(), markers.positions.copy(),
+                           sites, markers.weights.copy(), centres,
                            sk.dims.bone_lengths(), sk.dims)

@@ -1,0 +1,128 @@
+"""Where the CNN's keypoints sit on the body: landmark offsets from the joint centres.
+
+The skeletal model's keypoints are joint centres (skeleton.py). A CNN's landmarks are not:
+BlazePose puts its hips in front of the hip joints and its shoulders on the body's surface
+above the shoulder joints. A `LandmarkModel` holds, for each such keypoint, the landmark's
+offset from the joint centre in the frame of one body segment (pelvis, thorax, upper arm,
+forearm, thigh, shank), as markers in optical motion capture are placed on segments. The
+skeleton stage subtracts the offset, turned by the segment's current orientation, from the
+virtual markers before the IK (so identification, IK, filter and output all work on joint
+centres), and adds it to the skeleton it feeds back, so the lattice search looks for the
+landmark where the CNN puts it.
+
+Offsets are learnt (`learn_offsets`) from recordings with exact joint centres, i.e. the image
+benchmark's renders; `scripts/learn_landmarks.py` writes them to
+`vmocap_core/data/landmarks/<name>.yaml`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import yaml
+
+from ..errors import VmocapError
+from ..keypoints import INDEX, KEYPOINTS
+from .skeleton import Skeleton
+
+DATA = Path(__file__).resolve().parent.parent / "data" / "landmarks"
+
+# The joint whose frame carries each keypoint's landmark offset (left side; right mirrors):
+# the segment the landmark lies on. Hips on the pelvis, shoulders on the thorax (the waist
+# joint's frame), elbows on the upper arm, wrists on the forearm, knees on the thigh, ankles
+# on the shank. Face, hand and foot keypoints are offsets of their own already (skeleton.py).
+SEGMENT: dict[str, str] = {
+    "left_hip": "root",
+    "left_shoulder": "waist",
+    "left_elbow": "left_shoulder",
+    "left_wrist": "left_elbow",
+    "left_knee": "left_hip",
+    "left_ankle": "left_knee",
+}
+SEGMENT |= {k.replace("left_", "right_"): v.replace("left_", "right_") for k, v in SEGMENT.items()}
+_MIRROR = np.array([1.0, -1.0, 1.0])
+
+
+class LandmarkError(VmocapError, ValueError):
+    """A landmark model that cannot be loaded."""
+
+
+@dataclass(frozen=True)
+class LandmarkModel:
+    """Landmark offsets (25, 3) in metres, each in the frame of its keypoint's SEGMENT joint
+    (zero for the keypoints not in SEGMENT)."""
+
+    name: str
+    offsets: np.ndarray
+
+    def correction(self, skeleton: Skeleton, q: np.ndarray) -> np.ndarray:
+        """(25, 3) world vectors from each joint centre to its landmark, in pose q."""
+        pin.forwardKinematics(skeleton.model, skeleton.data, q)
+        R, _ = skeleton._placements()
+        return np.einsum("kij,kj->ki", R[_segment_ids(skeleton)], self.offsets)
+
+    def neck_dimensions(self) -> dict[str, float]:
+        """The shoulders' place relative to the neck keypoint (BodyDimensions fields) that keeps
+        the neck where a CNN without a neck landmark puts it, at its shoulder landmarks'
+        midpoint: the shoulder joint centres lie the shoulder offset's x and z away from it."""
+        x, _, z = self.offsets[INDEX["left_shoulder"]]
+        return {"shoulder_forward": float(-x), "shoulder_drop": float(z)}
+
+    def to_dict(self) -> dict[str, object]:
+        left = {k: [round(float(x) * 1e3, 1) for x in self.offsets[INDEX[k]]] for k in SEGMENT if k.startswith("left_")}
+        return {"name": self.name, "offsets_mm": left}
+
+
+def _segment_ids(skeleton: Skeleton) -> np.ndarray:
+    ids = np.zeros(len(KEYPOINTS), dtype=np.intp)  # universe (identity) for the unlisted
+    for k, joint in SEGMENT.items():
+        ids[INDEX[k]] = skeleton.model.getJointId(joint)
+    return ids
+
+
+def from_left(name: str, left_mm: dict[str, list[float]]) -> LandmarkModel:
+    """A model from the left side's offsets in mm (the right side mirrors y)."""
+    offsets = np.zeros((len(KEYPOINTS), 3))
+    for k, v in left_mm.items():
+        if k not in SEGMENT or not k.startswith("left_"):
+            raise LandmarkError(f"landmark offsets are given for left_* keypoints of {sorted(SEGMENT)}, not {k!r}")
+        offsets[INDEX[k]] = np.asarray(v, dtype=np.float64) * 1e-3
+        offsets[INDEX[k.replace("left_", "right_")]] = offsets[INDEX[k]] * _MIRROR
+    return LandmarkModel(name, offsets)
+
+
+def load_landmarks(spec: str) -> LandmarkModel | None:
+    """'none' (joint centres: a PCM model whose keypoints are joint centres, e.g. the
+    synthetic one), a shipped model's name ('blazepose') or a YAML file's path."""
+    if spec in ("", "none"):
+        return None
+    path = DATA / f"{spec}.yaml" if "/" not in spec and not spec.endswith(".yaml") else Path(spec)
+    if not path.exists():
+        shipped = sorted(p.stem for p in DATA.glob("*.yaml"))
+        raise LandmarkError(f"landmarks {spec!r}: no such file {path} (shipped: none, {', '.join(shipped)})")
+    d = yaml.safe_load(path.read_text())
+    if not isinstance(d, dict) or not isinstance(d.get("offsets_mm"), dict):
+        raise LandmarkError(f"{path}: expected a mapping with 'offsets_mm' (left keypoint -> [x, y, z] mm)")
+    return from_left(str(d.get("name", path.stem)), d["offsets_mm"])
+
+
+def learn_offsets(skeleton: Skeleton, poses: np.ndarray, markers: np.ndarray, truth: np.ndarray) -> dict[str, np.ndarray]:
+    """Landmark samples in the segment frames: for frames with poses q (N, nq) of the skeleton
+    fitted to the true joint centres truth (N, 25, 3), each measured landmark markers (N, 25, 3)
+    minus its true joint centre, turned into its segment's frame; right-side samples mirrored
+    onto the left. Returns left keypoint -> (n, 3) samples in metres (NaN rows dropped)."""
+    ids = _segment_ids(skeleton)
+    local = np.empty_like(markers)
+    for f, q in enumerate(poses):
+        pin.forwardKinematics(skeleton.model, skeleton.data, q)
+        R, _ = skeleton._placements()
+        local[f] = np.einsum("kji,kj->ki", R[ids], markers[f] - truth[f])
+    out = {}
+    for k in SEGMENT:
+        if k.startswith("left_"):
+            s = np.concatenate([local[:, INDEX[k]], local[:, INDEX[k.replace("left_", "right_")]] * _MIRROR])
+            out[k] = s[np.isfinite(s).all(axis=1)]
+    return out
