@@ -3,7 +3,7 @@
 After `vmocap bench images` (its renders in --cache, its offline outputs in --runs), for each
 clip: our skeleton is identified on the true joint centres and fitted to every frame, and each
 lattice marker's offset from its true joint centre is expressed in its segment's frame. The
-median over the samples of all clips is the model (--write, e.g.
+median over clips of each clip's median is the model (--write, e.g.
 vmocap_core/data/landmarks/blazepose.yaml); --leave-one-out DIR also writes, per clip, a
 tracker config whose model was learnt on the other clips only, to score each clip with
 offsets it was not learnt on:
@@ -59,7 +59,8 @@ def clip_samples(recording: Path, run: Path) -> dict[str, np.ndarray]:
 
 
 def model(name: str, samples: list[dict[str, np.ndarray]], note: str) -> dict[str, object]:
-    offsets = {k: [round(float(x) * 1e3, 1) for x in np.median(np.concatenate([s[k] for s in samples]), axis=0)]
+    """The median over clips of each clip's median: every clip one vote, however long."""
+    offsets = {k: [round(float(x) * 1e3, 1) for x in np.median([np.median(s[k], axis=0) for s in samples], axis=0)]
                for k in SEGMENT if k.startswith("left_")}
     return {"name": name, "note": note, "offsets_mm": offsets}
 
@@ -98,11 +99,9 @@ def main() -> None:
             (a.leave_one_out / f"{held}_landmarks.yaml").write_text(yaml.safe_dump(m, sort_keys=False, width=120, default_flow_style=None))
             path.write_text(yaml.safe_dump({"landmarks": str((a.leave_one_out / f"{held}_landmarks.yaml").resolve())}))
         print(f"wrote {len(clips)} leave-one-out configs to {a.leave_one_out}")
-    for k in SEGMENT:
-        if k.startswith("left_"):
-            s = np.concatenate([v[k] for v in samples.values()]) * 1e3
-            print(f"{k:15s} median {np.round(np.median(s, axis=0), 1)} mm, spread (IQR) "
-                  f"{np.round(np.subtract(*np.percentile(s, [75, 25], axis=0)), 1)} mm, {len(s)} samples")
+    print("per clip, the median offset (mm, x y z of the segment):")
+    for n, v in samples.items():
+        print(f"  {n:14s} " + "  ".join(f"{k[5:]} {np.round(np.median(s, axis=0) * 1e3).astype(int)}" for k, s in v.items()))
 
 
 if __name__ == "__main__":

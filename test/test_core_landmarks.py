@@ -83,3 +83,18 @@ def test_landmark_models_load_or_say_why(tmp_path):
     bad.write_text(yaml.safe_dump({"offsets_mm": {"nose": [0, 0, 0]}}))
     with pytest.raises(ConfigError, match="left_"):
         PipelineConfig.of(landmarks=str(bad))
+
+
+def test_a_pipeline_takes_the_landmarks_of_its_pcm_source():
+    from vmocap_core.pcm.providers import SyntheticPcmProvider
+
+    m = next(f for f in default_motions() if f.stem == "walk")
+    rig = benchmark_rig(np.zeros(3))
+
+    class Cnn(SyntheticPcmProvider):
+        landmarks = "blazepose"
+
+    assert Pipeline(rig, PipelineConfig.of(fps=60.0), SyntheticPcmProvider(rig, m, 60.0)).config.skeleton.landmarks == "none"
+    assert Pipeline(rig, PipelineConfig.of(fps=60.0), Cnn(rig, m, 60.0)).config.skeleton.landmarks == "blazepose"
+    assert Pipeline(rig, PipelineConfig.of(fps=60.0, landmarks="none"), Cnn(rig, m, 60.0)).config.skeleton.landmarks == "none"
+    assert Pipeline(rig, PipelineConfig.of(fps=60.0)).skeleton._landmarks is None  # markers from elsewhere: "auto" = none

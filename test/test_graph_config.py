@@ -92,3 +92,17 @@ def test_live_config_and_config_check_command(tmp_path):
     out = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "config", "check", str(bad)], capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 2 and "vmocap_pcm_cam0" in out.stderr and "threads" in out.stderr and str(bad) in out.stderr
+
+
+def test_skeleton_landmarks_follow_the_graphs_pcm_source(tmp_path):
+    """`landmarks: auto` is the CNN's landmark model when vmocap_pcm runs the CNN, joint
+    centres for synthetic heatmaps and PCM bags; a value given stays."""
+    def landmarks(patch):
+        return graph_config.load(_cfg(tmp_path, patch)).skeleton_config().landmarks
+
+    assert landmarks({}) == "none"  # the shipped graph.yaml: synthetic heatmaps
+    assert landmarks({"vmocap_pcm": {"source": "model", "model": "blazepose"}}) == "blazepose"
+    assert landmarks({"vmocap_pcm": {"source": "model", "model": "pcm.mcap"}}) == "none"
+    assert landmarks({"vmocap_pcm": {"source": "model", "model": "blazepose"},
+                      "vmocap_skeleton": {"landmarks": "none"}}) == "none"
+    assert graph_config.load(REPO / "config" / "live.yaml").skeleton_config().landmarks == "blazepose"

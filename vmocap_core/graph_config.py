@@ -339,6 +339,17 @@ class GraphConfig:
         except ValueError as exc:
             raise GraphConfigError(self.path, node, str(exc)) from None
 
+    def skeleton_config(self, node: str = "vmocap_skeleton", params: dict[str, Any] | None = None) -> Any:
+        """stage_config of a skeleton node, its `landmarks: auto` resolved by this graph's PCM
+        source (vmocap_pcm: the CNN's landmarks, or joint centres for synthetic heatmaps and
+        PCM bags)."""
+        from .method.landmarks import resolve
+
+        cfg = self.stage_config(node, params)
+        pcm = self.node_params("vmocap_pcm")
+        cnn = pcm["source"] == "model" and not str(pcm["model"]).endswith(".mcap")
+        return cfg.replace(landmarks=resolve(cfg.landmarks, "blazepose" if cnn else "none"))
+
     def pipeline_config(self) -> Any:
         """Both stages' configs (method.config.PipelineConfig): what `vmocap process`, the
         demo and the nodes build their stages from."""

@@ -134,7 +134,9 @@ def process_bag(
                     raise OfflineError(f"{in_path}: no frame set of {len(kept)} tracked, nothing to reconstruct: "
                                        f"{stats['not_tracked_because']}")
             if offline and kept:
-                _write_offline(writer, topics, kept, cfg, stats, progress, subject)
+                # the live pass' landmark model (its PCM source resolved "auto")
+                _write_offline(writer, topics, kept, cfg.replace(landmarks=pipe.config.skeleton.landmarks), stats,
+                               progress, subject)
             stats["wall_s"] = time.perf_counter() - start
             st = sync_stats()
             if st.get("rejected_frame_sets") and stats["frames"] == 0:

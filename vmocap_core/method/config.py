@@ -139,9 +139,10 @@ class SkeletonConfig(_Stage):
     # virtual markers; output starts with these. 0: the provisional fit is final (the paper).
     identify_seconds: float = 0.5
     init_max_fit_error_m: float = 0.04  # skeleton fit residual (RMS) to confirm
-    # Where the PCM model's keypoints lie relative to the joint centres (landmarks.py): "none"
-    # (joint centres), a shipped model ("blazepose") or a YAML file.
-    landmarks: str = "none"
+    # Where the PCM model's keypoints lie relative to the joint centres (landmarks.py): "auto"
+    # (the PCM source's own: "blazepose" for the CNN, "none" for the synthetic PCMs and PCM
+    # bags), "none" (joint centres), a shipped model ("blazepose") or a YAML file.
+    landmarks: str = "auto"
 
     def validate(self) -> None:
         from .filter import make_filter, smoother_model

@@ -94,10 +94,16 @@ def from_left(name: str, left_mm: dict[str, list[float]]) -> LandmarkModel:
     return LandmarkModel(name, offsets)
 
 
+def resolve(spec: str, pcm_landmarks: str) -> str:
+    """A config's `landmarks` with "auto" replaced by the PCM source's own (`pcm_landmarks`)."""
+    return pcm_landmarks if spec == "auto" else spec
+
+
 def load_landmarks(spec: str) -> LandmarkModel | None:
     """'none' (joint centres: a PCM model whose keypoints are joint centres, e.g. the
-    synthetic one), a shipped model's name ('blazepose') or a YAML file's path."""
-    if spec in ("", "none"):
+    synthetic one), a shipped model's name ('blazepose') or a YAML file's path. 'auto' that
+    nothing resolved (no PCM source known, e.g. markers from elsewhere) is 'none'."""
+    if spec in ("", "none", "auto"):
         return None
     path = DATA / f"{spec}.yaml" if "/" not in spec and not spec.endswith(".yaml") else Path(spec)
     if not path.exists():

@@ -21,6 +21,7 @@ import numpy as np
 from ..cameras.projection import Rig
 from ..pcm.views import PcmViews
 from .config import PipelineConfig
+from .landmarks import resolve
 from .markers import MarkerStage
 from .results import Markers, TrackResult, feedback_of
 from .rotation import trunk_tilt
@@ -69,6 +70,9 @@ class Pipeline:
     def __init__(self, rig: Rig, config: PipelineConfig | None = None, pcm: PcmProvider | None = None) -> None:
         self.rig = rig
         self.config = config or PipelineConfig()
+        if pcm is not None:  # the CNN's keypoints are its landmarks, not joint centres
+            self.config = self.config.replace(
+                landmarks=resolve(self.config.skeleton.landmarks, getattr(pcm, "landmarks", "none")))
         self.markers = MarkerStage(rig, self.config.markers)
         self.skeleton = SkeletonStage(self.config.skeleton)
         self.pcm = pcm

@@ -21,6 +21,7 @@ class BagPcmProvider:
     (looping): stands in for the CNN while keeping the rest of the graph real."""
 
     name = "bag"
+    landmarks = "none"  # unknown: a config names the model that made the heatmaps
 
     def __init__(self, path: str | Path, rig: Rig, keypoints: np.ndarray, namespace: str = "/vmocap") -> None:
         topics = Topics(namespace)
@@ -52,6 +53,7 @@ class SyntheticPcmProvider:
     rotation follows the fed-back skeleton."""
 
     name = "synthetic"
+    landmarks = "none"  # heatmaps drawn at the clip's joint centres
 
     def __init__(self, rig: Rig, motion_path: str | Path, fps: float, seed: int | None = None) -> None:
         """seed None: from the camera names, so that per-camera workers draw independent noise
@@ -90,6 +92,7 @@ class ModelPcmProvider:
         from .pipeline import BlazePosePcm
 
         variant = "lite" if model.endswith("lite") else "full"
+        self.landmarks = "blazepose"  # both variants share the landmark definition
         self.rig = rig
         self.binning = int(binning)
         self.seen = rig.binned(self.binning) if self.binning > 1 else rig  # the cameras the images come from

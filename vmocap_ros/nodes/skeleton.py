@@ -23,7 +23,7 @@ class SkeletonNode(VmocapNode):
         super().__init__(name, config, overrides, transport)
         from vmocap_core.method.skeleton_stage import SkeletonStage
 
-        self.stage = SkeletonStage(config.stage_config(name, self.p))
+        self.stage = SkeletonStage(config.skeleton_config(name, self.p))
         self.pubs = {}
         for topic, ty in ((self.topics.feedback, CLOUD), (self.topics.joint_states, "sensor_msgs/msg/JointState"),
                           (self.topics.keypoints, CLOUD), (self.topics.skeleton, "visualization_msgs/msg/MarkerArray")):

@@ -45,6 +45,7 @@ class _Provider:
         from ...pcm.pipeline import BlazePosePcm
 
         self.rig = rig
+        self.landmarks = "blazepose"
         self.pcm = BlazePosePcm(rig, rotation=rotation, threads=threads, precision=precision)
         self.name = f"blazepose-full {precision} (rotation {rotation})"
 
