@@ -230,6 +230,7 @@ def run(args: argparse.Namespace) -> int:
     if not files:
         raise VmocapError("no motion clips (give --clips)")
     rig = scale_rig(load_rig(args.rig), args.scale)
+    args.out, args.cache = args.out.resolve(), args.cache.resolve()  # the graph's config lives in --out
     args.out.mkdir(parents=True, exist_ok=True)
     args.rig_file = args.out / "rig.yaml"  # the (scaled) rig the graph loads
     args.tracker = tracker_settings(args, RATE_HZ)
