@@ -57,6 +57,7 @@ class LandmarkModel:
 
     name: str
     offsets: np.ndarray
+    note: str = ""  # where the offsets come from
 
     def correction(self, skeleton: Skeleton, q: np.ndarray) -> np.ndarray:
         """(25, 3) world vectors from each joint centre to its landmark, in pose q."""
@@ -71,10 +72,6 @@ class LandmarkModel:
         x, _, z = self.offsets[INDEX["left_shoulder"]]
         return {"shoulder_forward": float(-x), "shoulder_drop": float(z)}
 
-    def to_dict(self) -> dict[str, object]:
-        left = {k: [round(float(x) * 1e3, 1) for x in self.offsets[INDEX[k]]] for k in SEGMENT if k.startswith("left_")}
-        return {"name": self.name, "offsets_mm": left}
-
 
 def _segment_ids(skeleton: Skeleton) -> np.ndarray:
     ids = np.zeros(len(KEYPOINTS), dtype=np.intp)  # universe (identity) for the unlisted
@@ -83,7 +80,7 @@ def _segment_ids(skeleton: Skeleton) -> np.ndarray:
     return ids
 
 
-def from_left(name: str, left_mm: dict[str, list[float]]) -> LandmarkModel:
+def from_left(name: str, left_mm: dict[str, list[float]], note: str = "") -> LandmarkModel:
     """A model from the left side's offsets in mm (the right side mirrors y)."""
     offsets = np.zeros((len(KEYPOINTS), 3))
     for k, v in left_mm.items():
@@ -91,7 +88,7 @@ def from_left(name: str, left_mm: dict[str, list[float]]) -> LandmarkModel:
             raise LandmarkError(f"landmark offsets are given for left_* keypoints of {sorted(SEGMENT)}, not {k!r}")
         offsets[INDEX[k]] = np.asarray(v, dtype=np.float64) * 1e-3
         offsets[INDEX[k.replace("left_", "right_")]] = offsets[INDEX[k]] * _MIRROR
-    return LandmarkModel(name, offsets)
+    return LandmarkModel(name, offsets, note)
 
 
 def resolve(spec: str, pcm_landmarks: str) -> str:
@@ -112,7 +109,7 @@ def load_landmarks(spec: str) -> LandmarkModel | None:
     d = yaml.safe_load(path.read_text())
     if not isinstance(d, dict) or not isinstance(d.get("offsets_mm"), dict):
         raise LandmarkError(f"{path}: expected a mapping with 'offsets_mm' (left keypoint -> [x, y, z] mm)")
-    return from_left(str(d.get("name", path.stem)), d["offsets_mm"])
+    return from_left(str(d.get("name", path.stem)), d["offsets_mm"], str(d.get("note", "")))
 
 
 def learn_offsets(skeleton: Skeleton, poses: np.ndarray, markers: np.ndarray, truth: np.ndarray) -> dict[str, np.ndarray]:

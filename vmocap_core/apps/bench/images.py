@@ -150,13 +150,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--graph-rate", type=float, default=0.2,
                         help="playback speed of the recording in the graph (0.2: 12 Hz, so the CNN keeps up)")
     parser.add_argument("--no-synthetic", action="store_true", help="skip the synthetic benchmark's figure")
+    parser.add_argument("--leave-one-out", action="store_true",
+                        help="score each clip with a landmark model learnt on the other clips (the shipped one was "
+                             "learnt on the shared clips: their default figures are in-sample)")
     parser.add_argument("--json", action="store_true")
     add_tracker_arguments(parser)  # --offline: the node graph (live by nature) is not run
 
 
-def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
+def render(path: Path, rig, args: argparse.Namespace) -> tuple[Any, Path, np.ndarray, np.ndarray]:
+    """The clip's rendered recording (cached): (ClipSpec, MCAP path, truth stamps, truth)."""
     from ...motion import load_motion
-    from ..process import process_bag
     from ..render.recording import ClipSpec, read_truth, render_recording
 
     frames = args.frames
@@ -166,8 +169,44 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
     spec = ClipSpec(path, frames, RATE_HZ, args.seed)
     rec = render_recording(spec, rig, args.cache, progress=not args.json)
     stamps, truth = read_truth(rec)
+    return spec, rec, stamps, truth
+
+
+def leave_one_out_models(files: list[Path], rig, args: argparse.Namespace) -> dict[str, Path]:
+    """Per clip, a landmark model learnt on the other clips only (landmark_fit.py), from their
+    lattice markers of a rot-int8 run without a landmark model: clip name -> model file."""
+    import yaml
+    from tqdm import tqdm
+
+    from ..process import process_bag
+    from .landmark_fit import clip_samples, model_yaml, read_markers
+
+    folder = args.out / "landmarks"
+    folder.mkdir(exist_ok=True)
+    samples = {}
+    for path in tqdm(files, desc="landmark samples", disable=args.json):
+        _, rec, stamps, truth = render(path, rig, args)
+        out = folder / f"{path.stem}_markers.mcap"
+        process_bag(rec, out, rig, config={**args.tracker, "landmarks": "none"}, progress=False,
+                    provider=_Provider(rig, "all", "int8"))
+        samples[path.stem] = clip_samples(truth, read_markers(out, stamps))
+    models = {}
+    for held in samples:
+        others = [n for n in samples if n != held]
+        models[held] = folder / f"without_{held}.yaml"
+        note = f"learnt by vmocap bench images --leave-one-out on {', '.join(others)} (rot-int8 lattice markers)"
+        models[held].write_text(yaml.safe_dump(model_yaml(f"without-{held}", [samples[n] for n in others], note),
+                                               sort_keys=False, default_flow_style=None))
+    return models
+
+
+def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
+    from ...motion import load_motion
+    from ..process import process_bag
+
+    spec, rec, stamps, truth = render(path, rig, args)
     row: dict[str, Any] = {"recording": str(rec), "shape": spec.shape(), "frames": len(stamps),
-                           "inverted": load_motion(path).is_inverted()}
+                           "inverted": load_motion(path).is_inverted(), "landmarks": args.tracker.get("landmarks", "auto")}
     curves: dict[str, np.ndarray] = {}
     for name in args.configs:
         rotation, precision = CONFIGS[name]
@@ -235,7 +274,14 @@ def run(args: argparse.Namespace) -> int:
     args.rig_file = args.out / "rig.yaml"  # the (scaled) rig the graph loads
     args.tracker = tracker_settings(args, RATE_HZ)
     save_rig(rig, args.rig_file)
-    clips = {p.stem: run_clip(p, rig, args) for p in files}
+    if args.leave_one_out:
+        if len(files) < 2:
+            raise VmocapError("--leave-one-out needs at least two clips")
+        models = leave_one_out_models(files, rig, args)
+        clips = {p.stem: run_clip(p, rig, argparse.Namespace(**{**vars(args), "tracker": {
+            **args.tracker, "landmarks": str(models[p.stem])}})) for p in files}
+    else:
+        clips = {p.stem: run_clip(p, rig, args) for p in files}
     summary = {}
     for label, inv in (("regular", False), ("inverted", True)):
         rows = [r for r in clips.values() if r["inverted"] == inv]
@@ -244,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
             summary[label] = {c: {k: _pool(rows, c, k) for k in ("mpjpe_mm", "pck50", "mpjpe_without_offset_mm",
                                                                  "link_length_error_mm", "accel_error_m_s2")} for c in runs}
     result = {"clips": clips, "summary": summary, "frames": args.frames, "scale": args.scale, "seed": args.seed,
-              "tracker": args.tracker}
+              "tracker": args.tracker, "landmarks": landmarks_used(args, list(clips))}
     (args.out / "report.json").write_text(json.dumps(result, indent=1))
     if args.json:
         print(json.dumps(result, indent=1))
@@ -254,6 +300,20 @@ def run(args: argparse.Namespace) -> int:
     if bad:  # a figure of the benchmark (reported, pooled figures leave them out), loud
         print(f"vmocap bench images: WARNING never tracked (left out of the pooled figures): {bad}", file=sys.stderr)
     return 1 if len(bad) == len(clips) else 0
+
+
+def landmarks_used(args: argparse.Namespace, clips: list[str]) -> str:
+    """Which landmark model the CNN's runs used, and whether it saw the scored clips."""
+    from ...method.landmarks import load_landmarks, resolve
+
+    if args.leave_one_out:
+        return "leave-one-out: each clip with a model learnt on the others (OUT/landmarks)"
+    model = load_landmarks(resolve(args.tracker.get("landmarks", "auto"), "blazepose"))
+    if model is None:
+        return "none (joint centres)"
+    seen = [c for c in clips if c in model.note]
+    return model.name + (f", learnt on {', '.join(seen)} among others: figures on those are in-sample "
+                         "(--leave-one-out for held-out ones)" if seen else "")
 
 
 def _f(v: float | None, fmt: str = "6.1f") -> str:
@@ -270,6 +330,7 @@ def print_table(result: dict[str, Any], configs: list[str]) -> None:
                  if c in r else f"{'':>19}" for c in runs]
         print(f"{name:<14}{'yes' if r['inverted'] else 'no':>4} {r['shape']:>8} | " + " | ".join(cells)
               + f" | {_f(r.get('synthetic_mpjpe_mm'))}")
+    print(f"landmark model: {result['landmarks']}")
     for label, s in result["summary"].items():
         print(f"{label.upper()}: " + "; ".join(f"{c} {_f(v['mpjpe_mm'], '.1f')} mm (PCK50 {_f(v['pck50'], '.1f')} %, "
                                                f"link {_f(v['link_length_error_mm'], '.1f')} mm, acceleration error "
