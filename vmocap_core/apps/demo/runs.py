@@ -128,7 +128,7 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
     from ...graph_config import Topics, stage_sections
 
     topics = Topics()
-    record = [topics.keypoints, topics.joint_states, topics.markers, topics.skeleton, Topics.diagnostics]
+    record = [topics.keypoints, topics.feedback, topics.joint_states, topics.markers, topics.skeleton, Topics.diagnostics]
     # the report needs each camera's 2D detections, not the heatmaps (1.7 MB a frame set at 60 Hz)
     record += [topics.pcm_keypoints(c.name) for c in rig]
     output = out_dir / "graph_outputs.mcap"
@@ -232,6 +232,9 @@ def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
                 rec["status"][f] = "tracking" if P is not None else "initializing"
                 if P is not None:
                     rec["keypoints"][f] = P
+            elif m.topic == topics.feedback:  # the first IK, at the CNN's landmarks
+                P, _, _ = M.cloud_keypoints(msg)
+                if P is not None:
                     rec["raw"][f] = P
             elif m.topic == topics.markers:
                 P, S, _ = M.cloud_keypoints(msg)
