@@ -165,3 +165,21 @@ def test_detector_finds_a_small_person_in_every_view(tmp_path):
           f"median error {np.nanmedian(err) * 1000:.0f} mm")
     assert np.isfinite(err).all(), mk.residual_px[core]
     assert np.median(err) < 0.06
+
+
+def test_leave_one_out_learns_each_clips_landmarks_from_the_others(rig, tmp_path):
+    """`--leave-one-out`: each clip's landmark model comes from the other clips' lattice
+    markers only, loads as a tracker's model, and is centimetres, not metres or nothing."""
+    from vmocap_core.apps.bench import images
+    from vmocap_core.method.landmarks import load_landmarks
+
+    clips = [CLIP, CLIP.with_name("punch.npz")]
+    args = argparse.Namespace(frames=60, seed=0, cache=tmp_path / "cache", out=tmp_path / "out", json=True,
+                              tracker={"fps": 60.0})
+    args.out.mkdir()
+    models = images.leave_one_out_models(clips, rig, args)
+    assert set(models) == {"walk", "punch"}
+    for held, path in models.items():
+        model = load_landmarks(str(path))
+        assert model is not None and held not in model.note and ({"walk", "punch"} - {held}).pop() in model.note
+        assert np.isfinite(model.offsets).all() and 0.005 < np.abs(model.offsets).max() < 0.1, model.offsets
