@@ -57,18 +57,24 @@ class _Provider:
         return self.pcm.infer(full, keypoints=feedback if usable else None, stamp_ns=stamp_ns)
 
 
-def read_estimates(path: Path, stamps: np.ndarray) -> np.ndarray:
-    """(T, 25, 3) graph keypoints at the truth stamps (NaN where nothing or 'not tracking')."""
+def read_clouds(path: Path, stamps: np.ndarray, topic: str, kind: str | None = None) -> np.ndarray:
+    """(T, 25, 3) keypoint clouds of `topic` at the truth stamps (NaN where none); with `kind`,
+    only clouds of that kind (e.g. "lattice" markers), their zero-weight points NaN."""
     out = np.full((len(stamps), len(KEYPOINTS), 3), np.nan)
     row = {int(s): i for i, s in enumerate(stamps)}
     with BagReader(path) as r:
-        for m in r.messages([Topics().keypoints]):
+        for m in r.messages([topic]):
             d = m.decode()
-            P, _, _ = M.cloud_keypoints(d)
+            P, S, k = M.cloud_keypoints(d)
             i = row.get(M.stamp_ns(d))
-            if P is not None and i is not None:
-                out[i] = P
+            if P is not None and i is not None and kind in (None, k):
+                out[i] = P if kind is None else np.where((S > 0)[:, None], P, np.nan)
     return out
+
+
+def read_estimates(path: Path, stamps: np.ndarray) -> np.ndarray:
+    """(T, 25, 3) graph keypoints at the truth stamps (NaN where nothing or 'not tracking')."""
+    return read_clouds(path, stamps, Topics().keypoints)
 
 
 def score(est: np.ndarray, truth: np.ndarray) -> dict[str, Any]:

@@ -12,10 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...bag import BagReader
-from ...bag import messages as M
 from ...graph_config import Topics
-from ...keypoints import KEYPOINTS
 from ...method.init import fit_skeleton, frame_poses
 from ...method.landmarks import SEGMENT, learn_offsets
 
@@ -25,16 +22,9 @@ Samples = dict[str, np.ndarray]  # left keypoint -> (n, 3) offsets in metres
 def read_markers(path: Path, stamps: np.ndarray) -> np.ndarray:
     """(T, 25, 3) lattice markers of a `vmocap process` output at the truth stamps (NaN: none
     or weight 0)."""
-    out = np.full((len(stamps), len(KEYPOINTS), 3), np.nan)
-    row = {int(s): i for i, s in enumerate(stamps)}
-    with BagReader(path) as r:
-        for m in r.messages([Topics().markers]):
-            d = m.decode()
-            P, S, kind = M.cloud_keypoints(d)
-            i = row.get(M.stamp_ns(d))
-            if P is not None and i is not None and kind == "lattice":
-                out[i] = np.where((S > 0)[:, None], P, np.nan)
-    return out
+    from .images import read_clouds
+
+    return read_clouds(path, stamps, Topics().markers, kind="lattice")
 
 
 def clip_samples(truth: np.ndarray, markers: np.ndarray) -> Samples:
