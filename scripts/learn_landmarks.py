@@ -1,16 +1,14 @@
 """Learn a CNN's landmark offsets (vmocap_core/method/landmarks.py) from the image benchmark.
 
-After `vmocap bench images` (its renders in --cache, its offline outputs in --runs), the
-offsets of each clip's lattice markers from the true joint centres in their segments' frames
+After `vmocap bench images --configs rot-int8 --graph none --config NONE.yaml` (a tracker
+config `landmarks: none`; its renders in --cache, its offline outputs in --runs), the offsets
+of each clip's lattice markers from the true joint centres in their segments' frames
 (vmocap_core/apps/bench/landmark_fit.py); the median over clips of each clip's median is the
-model (--write, e.g.
-vmocap_core/data/landmarks/blazepose.yaml); --leave-one-out DIR also writes, per clip, a
-tracker config whose model was learnt on the other clips only, to score each clip with
-offsets it was not learnt on:
+model:
 
-    .venv/bin/python scripts/learn_landmarks.py --write vmocap_core/data/landmarks/blazepose.yaml \
-        --leave-one-out out/landmarks
-    vmocap bench images --clips <clip.npz> --config out/landmarks/<clip>.yaml ...
+    .venv/bin/python scripts/learn_landmarks.py --write vmocap_core/data/landmarks/blazepose.yaml
+
+Held-out figures: `vmocap bench images --leave-one-out` learns the same way per clip.
 """
 
 from __future__ import annotations
@@ -43,7 +41,6 @@ def main() -> None:
     ap.add_argument("--config", default="rot-int8", help="which benchmark configuration's markers")
     ap.add_argument("--name", default="blazepose")
     ap.add_argument("--write", type=Path, help="the model learnt on every clip (YAML)")
-    ap.add_argument("--leave-one-out", type=Path, metavar="DIR", help="per clip, a tracker config learnt on the others")
     a = ap.parse_args()
     clips = {}
     for rec in sorted(a.cache.glob("*.mcap")):
@@ -60,16 +57,8 @@ def main() -> None:
             "(x forward, y left, z up in the neutral pose)")
     if a.write:
         a.write.parent.mkdir(parents=True, exist_ok=True)
-        a.write.write_text(yaml.safe_dump(model_yaml(a.name, list(samples.values()), note), sort_keys=False, width=120, default_flow_style=None))
+        a.write.write_text(yaml.safe_dump(model_yaml(a.name, samples, note), sort_keys=False, width=120, default_flow_style=None))
         print(f"wrote {a.write}")
-    if a.leave_one_out:
-        a.leave_one_out.mkdir(parents=True, exist_ok=True)
-        for held in clips:
-            path = a.leave_one_out / f"{held}.yaml"
-            m = model_yaml(f"{a.name}-without-{held}", [s for n, s in samples.items() if n != held], note + f", {held} left out")
-            (a.leave_one_out / f"{held}_landmarks.yaml").write_text(yaml.safe_dump(m, sort_keys=False, width=120, default_flow_style=None))
-            path.write_text(yaml.safe_dump({"landmarks": str((a.leave_one_out / f"{held}_landmarks.yaml").resolve())}))
-        print(f"wrote {len(clips)} leave-one-out configs to {a.leave_one_out}")
     print("per clip, the median offset (mm, x y z of the segment):")
     for n, v in samples.items():
         print(f"  {n:14s} " + "  ".join(f"{k[5:]} {np.round(np.median(s, axis=0) * 1e3).astype(int)}" for k, s in v.items()))

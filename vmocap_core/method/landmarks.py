@@ -18,6 +18,7 @@ benchmark's renders; `scripts/learn_landmarks.py` writes them to
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -58,12 +59,13 @@ class LandmarkModel:
     name: str
     offsets: np.ndarray
     note: str = ""  # where the offsets come from
+    learnt_on: tuple[str, ...] = ()  # the clips (recordings) they were learnt on
 
     def correction(self, skeleton: Skeleton, q: np.ndarray) -> np.ndarray:
         """(25, 3) world vectors from each joint centre to its landmark, in pose q."""
         pin.forwardKinematics(skeleton.model, skeleton.data, q)
         R, _ = skeleton._placements()
-        return np.einsum("kij,kj->ki", R[_segment_ids(skeleton)], self.offsets)
+        return np.einsum("kij,kj->ki", R[_segment_ids()], self.offsets)
 
     def neck_dimensions(self) -> dict[str, float]:
         """The shoulders' place relative to the neck keypoint (BodyDimensions fields) that keeps
@@ -73,14 +75,17 @@ class LandmarkModel:
         return {"shoulder_forward": float(-x), "shoulder_drop": float(z)}
 
 
-def _segment_ids(skeleton: Skeleton) -> np.ndarray:
+@cache
+def _segment_ids() -> np.ndarray:
+    """Each keypoint's SEGMENT joint id: every Skeleton builds the same joint tree."""
+    model = Skeleton().model
     ids = np.zeros(len(KEYPOINTS), dtype=np.intp)  # universe (identity) for the unlisted
     for k, joint in SEGMENT.items():
-        ids[INDEX[k]] = skeleton.model.getJointId(joint)
+        ids[INDEX[k]] = model.getJointId(joint)
     return ids
 
 
-def from_left(name: str, left_mm: dict[str, list[float]], note: str = "") -> LandmarkModel:
+def from_left(name: str, left_mm: dict[str, list[float]], note: str = "", learnt_on: tuple[str, ...] = ()) -> LandmarkModel:
     """A model from the left side's offsets in mm (the right side mirrors y)."""
     offsets = np.zeros((len(KEYPOINTS), 3))
     for k, v in left_mm.items():
@@ -88,7 +93,7 @@ def from_left(name: str, left_mm: dict[str, list[float]], note: str = "") -> Lan
             raise LandmarkError(f"landmark offsets are given for left_* keypoints of {sorted(SEGMENT)}, not {k!r}")
         offsets[INDEX[k]] = np.asarray(v, dtype=np.float64) * 1e-3
         offsets[INDEX[k.replace("left_", "right_")]] = offsets[INDEX[k]] * _MIRROR
-    return LandmarkModel(name, offsets, note)
+    return LandmarkModel(name, offsets, note, learnt_on)
 
 
 def resolve(spec: str, pcm_landmarks: str) -> str:
@@ -109,7 +114,8 @@ def load_landmarks(spec: str) -> LandmarkModel | None:
     d = yaml.safe_load(path.read_text())
     if not isinstance(d, dict) or not isinstance(d.get("offsets_mm"), dict):
         raise LandmarkError(f"{path}: expected a mapping with 'offsets_mm' (left keypoint -> [x, y, z] mm)")
-    return from_left(str(d.get("name", path.stem)), d["offsets_mm"], str(d.get("note", "")))
+    return from_left(str(d.get("name", path.stem)), d["offsets_mm"], str(d.get("note", "")),
+                     tuple(str(c) for c in d.get("learnt_on", ())))
 
 
 def learn_offsets(skeleton: Skeleton, poses: np.ndarray, markers: np.ndarray, truth: np.ndarray) -> dict[str, np.ndarray]:
@@ -117,7 +123,7 @@ def learn_offsets(skeleton: Skeleton, poses: np.ndarray, markers: np.ndarray, tr
     fitted to the true joint centres truth (N, 25, 3), each measured landmark markers (N, 25, 3)
     minus its true joint centre, turned into its segment's frame; right-side samples mirrored
     onto the left. Returns left keypoint -> (n, 3) samples in metres (NaN rows dropped)."""
-    ids = _segment_ids(skeleton)
+    ids = _segment_ids()
     local = np.empty_like(markers)
     for f, q in enumerate(poses):
         pin.forwardKinematics(skeleton.model, skeleton.data, q)

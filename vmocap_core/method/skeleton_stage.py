@@ -41,6 +41,7 @@ class SkeletonStage:
         self._q_out: np.ndarray | None = None
         self._filter = make_filter(self.config)
         self._landmarks = load_landmarks(self.config.landmarks)
+        self._last_correction: tuple[np.ndarray | None, np.ndarray] = (None, np.zeros((N_KP, 3)))
         # Fixed-lag mode: the smoother and the frames (stamp, weights, markers, first-IK q) it delays.
         lag = self.config.smoothing_lag_frames
         self._lag = FixedLagSmoother(smoother_model(self.config), lag) if lag > 0 else None
@@ -124,14 +125,22 @@ class SkeletonStage:
         in pose q (the previous frame's: the turn in 1/60 s moves an offset by < 1 mm)."""
         if self._landmarks is None or self.skeleton is None:
             return positions
-        return positions - self._landmarks.correction(self.skeleton, q)
+        return positions - self._correction(q)
 
     def _sites(self, keypoints: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Joint centres in pose q -> where the CNN's landmarks are: what the lattice search
         and the crops are fed back."""
         if self._landmarks is None or self.skeleton is None:
             return keypoints.copy()
-        return keypoints + self._landmarks.correction(self.skeleton, q)
+        return keypoints + self._correction(q)
+
+    def _correction(self, q: np.ndarray) -> np.ndarray:
+        """The landmark offsets in pose q; the feedback's pose is the next frame set's warm
+        start, so each pose's correction is computed once."""
+        assert self._landmarks is not None and self.skeleton is not None
+        if self._last_correction[0] is not q:
+            self._last_correction = (q, self._landmarks.correction(self.skeleton, q))
+        return self._last_correction[1]
 
     def _smoothing(self, markers: Markers, raw: np.ndarray) -> TrackResult:
         """Fixed-lag window filling: feedback, no output yet."""

@@ -201,7 +201,7 @@ def leave_one_out_models(files: list[Path], rig, args: argparse.Namespace) -> di
         others = [n for n in samples if n != held]
         models[held] = folder / f"without_{held}.yaml"
         note = f"learnt by vmocap bench images --leave-one-out on {', '.join(others)} (rot-int8 lattice markers)"
-        models[held].write_text(yaml.safe_dump(model_yaml(f"without-{held}", [samples[n] for n in others], note),
+        models[held].write_text(yaml.safe_dump(model_yaml(f"without-{held}", {n: samples[n] for n in others}, note),
                                                sort_keys=False, default_flow_style=None))
     return models
 
@@ -317,7 +317,7 @@ def landmarks_used(args: argparse.Namespace, clips: list[str]) -> str:
     model = load_landmarks(resolve(args.tracker.get("landmarks", "auto"), "blazepose"))
     if model is None:
         return "none (joint centres)"
-    seen = [c for c in clips if c in model.note]
+    seen = [c for c in clips if c in model.learnt_on]
     return model.name + (f", learnt on {', '.join(seen)} among others: figures on those are in-sample "
                          "(--leave-one-out for held-out ones)" if seen else "")
 

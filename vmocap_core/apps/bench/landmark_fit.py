@@ -36,8 +36,9 @@ def clip_samples(truth: np.ndarray, markers: np.ndarray) -> Samples:
     return learn_offsets(sk, np.array(frame_poses(sk, truth, fit.q)), markers, truth)
 
 
-def model_yaml(name: str, samples: list[Samples], note: str) -> dict[str, object]:
-    """A landmark model file's content (load_landmarks) from the samples of several clips."""
-    offsets = {k: [round(float(x) * 1e3, 1) for x in np.median([np.median(s[k], axis=0) for s in samples], axis=0)]
+def model_yaml(name: str, samples: dict[str, Samples], note: str) -> dict[str, object]:
+    """A landmark model file's content (load_landmarks) from the samples of several clips
+    (clip name -> samples)."""
+    offsets = {k: [round(float(x) * 1e3, 1) for x in np.median([np.median(s[k], axis=0) for s in samples.values()], axis=0)]
                for k in SEGMENT if k.startswith("left_")}
-    return {"name": name, "note": note, "offsets_mm": offsets}
+    return {"name": name, "note": note, "learnt_on": list(samples), "offsets_mm": offsets}
