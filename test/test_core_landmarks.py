@@ -98,3 +98,48 @@ def test_a_pipeline_takes_the_landmarks_of_its_pcm_source():
     assert Pipeline(rig, PipelineConfig.of(fps=60.0), Cnn(rig, m, 60.0)).config.skeleton.landmarks == "blazepose"
     assert Pipeline(rig, PipelineConfig.of(fps=60.0, landmarks="none"), Cnn(rig, m, 60.0)).config.skeleton.landmarks == "none"
     assert Pipeline(rig, PipelineConfig.of(fps=60.0)).skeleton._landmarks is None  # markers from elsewhere: "auto" = none
+
+
+def _waist_angle_deg(sk, q) -> float:
+    j = sk.model.joints[sk.model.getJointId("waist")]
+    x, y, z, w = q[j.idx_q:j.idx_q + 4]
+    return float(np.degrees(2 * np.arctan2(np.linalg.norm([x, y, z]), abs(w))))
+
+
+def test_identification_on_landmarks_keeps_the_trunk_straight(walk_with_landmarks):
+    """A CNN without a neck landmark: the skeleton identified on its landmarks puts the
+    shoulder joint centres where they are and stands straight (the walk's trunk is), rather
+    than bending its waist to bring shoulders placed too high back to the data."""
+    _, truth, landmarks, sk_truth, poses, model = walk_with_landmarks
+    cnn = landmarks[:40].copy()
+    cnn[:, [INDEX["neck"], INDEX["pelvis"]]] = np.nan
+    fitted = fit_skeleton(cnn, 0.05, landmarks=model)
+    assert fitted is not None
+    sk, fit = fitted
+    shoulders = [INDEX["left_shoulder"], INDEX["right_shoulder"]]
+    err = np.linalg.norm(fit.keypoints[shoulders] - truth[39, shoulders], axis=1)
+    assert err.max() < 0.01, err
+    assert _waist_angle_deg(sk, fit.q) < _waist_angle_deg(sk_truth, poses[39]) + 5.0
+
+
+def test_trunk_landmarks_do_not_follow_the_waist_bend():
+    """A trunk shorter than the skeleton's is fitted by bending the waist forwards or
+    backwards: both bends put pelvis, hips, neck and shoulders in the same places, so the hip
+    and shoulder landmarks, which ride on trunk frames of those keypoints, must not move."""
+    from vmocap_core.method.skeleton import BodyDimensions, Skeleton
+
+    sk = Skeleton(BodyDimensions(shoulder_drop=0.0, shoulder_forward=0.0))
+    model = from_left("test", OFFSETS_MM)
+    root = sk.model.joints[sk.model.getJointId("root")].idx_q + 3
+    waist = sk.model.joints[sk.model.getJointId("waist")].idx_q
+    bends = []
+    for phi in (0.4, -0.4):  # root pitched by phi, waist bent by -2 phi: the same neck
+        q = sk.neutral()
+        q[root:root + 4] = [0.0, np.sin(phi / 2), 0.0, np.cos(phi / 2)]
+        q[waist:waist + 4] = [0.0, np.sin(-phi), 0.0, np.cos(-phi)]
+        bends.append((sk.keypoint_positions(q), model.correction(sk, q)))
+    trunk = [INDEX[k] for k in ("pelvis", "neck", "left_hip", "right_hip", "left_shoulder", "right_shoulder")]
+    np.testing.assert_allclose(bends[0][0][trunk], bends[1][0][trunk], atol=1e-9)
+    rows = [INDEX[k] for k in ("left_hip", "right_hip", "left_shoulder", "right_shoulder")]
+    assert np.abs(bends[0][1][rows]).max() > 0.02
+    np.testing.assert_allclose(bends[0][1][rows], bends[1][1][rows], atol=1e-9)

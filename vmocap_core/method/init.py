@@ -66,18 +66,23 @@ def with_midpoints(p: np.ndarray) -> np.ndarray:
     return p
 
 
+def _trunk_axes(p: np.ndarray, top: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Forward and up axes (N, 3) of the trunk frames of p (N, 25, 3): y along the shoulders
+    (right to left), z from the pelvis towards `top` (N, 3) orthogonal to y, x = y x z."""
+    y = p[:, INDEX["left_shoulder"]] - p[:, INDEX["right_shoulder"]]
+    y /= np.linalg.norm(y, axis=1, keepdims=True)
+    z = top - p[:, INDEX["pelvis"]]
+    z -= y * np.sum(z * y, axis=1, keepdims=True)
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    return np.cross(y, z), z
+
+
 def _shoulder_offsets(p: np.ndarray) -> tuple[float, float]:
     """Shoulder centre relative to the neck in the trunk frame (x forward, z from the pelvis
     to the neck): (forward, drop), medians over frames."""
-    neck, pel = p[:, INDEX["neck"]], p[:, INDEX["pelvis"]]
-    ls, rs = p[:, INDEX["left_shoulder"]], p[:, INDEX["right_shoulder"]]
-    y = ls - rs
-    y /= np.linalg.norm(y, axis=1, keepdims=True)
-    z = neck - pel
-    z -= y * np.sum(z * y, axis=1, keepdims=True)
-    z /= np.linalg.norm(z, axis=1, keepdims=True)
-    x = np.cross(y, z)
-    d = 0.5 * (ls + rs) - neck
+    neck = p[:, INDEX["neck"]]
+    x, z = _trunk_axes(p, neck)
+    d = 0.5 * (p[:, INDEX["left_shoulder"]] + p[:, INDEX["right_shoulder"]]) - neck
     fwd = np.sum(d * x, axis=1)
     up = np.sum(d * z, axis=1)
     ok = np.isfinite(fwd) & np.isfinite(up)
@@ -86,12 +91,26 @@ def _shoulder_offsets(p: np.ndarray) -> tuple[float, float]:
     return float(np.median(fwd[ok])), float(-np.median(up[ok]))
 
 
+def _landmark_neck(p: np.ndarray, landmarks: LandmarkModel) -> np.ndarray:
+    """(N, 3) necks of joint-centre frames p (N, 25, 3) where the model puts its neck: at the
+    shoulder landmarks' midpoint, i.e. the shoulder centres' midpoint moved by the shoulder
+    offset's x and z in the trunk frame. The trunk length is measured to this neck: to the
+    centres' midpoint, it would put the skeleton's shoulders the offset's z too high, and the IK
+    would bend the waist in every pose to bring them down."""
+    x_off, _, z_off = landmarks.offsets[INDEX["left_shoulder"]]
+    mid = 0.5 * (p[:, INDEX["left_shoulder"]] + p[:, INDEX["right_shoulder"]])
+    x, z = _trunk_axes(p, mid)
+    return mid + x_off * x + z_off * z
+
+
 def identify_dimensions(frames: np.ndarray, landmarks: LandmarkModel | None = None) -> BodyDimensions:
     """Link lengths from triangulated keypoints (N, 25, 3): medians over frames (II-C).
     Joint centres of a CNN with `landmarks` and no neck landmark: the neck stays at the
     shoulder landmarks' midpoint (LandmarkModel.neck_dimensions)."""
     neck_seen = bool(np.isfinite(frames[..., INDEX["neck"], :]).all(axis=-1).any())
     p = with_midpoints(frames)
+    if landmarks is not None and not neck_seen:
+        p[:, INDEX["neck"]] = _landmark_neck(p, landmarks)
 
     def dist(a: str, b: str) -> float:
         d = np.linalg.norm(p[:, INDEX[a]] - p[:, INDEX[b]], axis=1)

@@ -31,13 +31,19 @@ from .skeleton import Skeleton
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "landmarks"
 
-# The joint whose frame carries each keypoint's landmark offset (left side; right mirrors):
-# the segment the landmark lies on. Hips on the pelvis, shoulders on the thorax (the waist
-# joint's frame), elbows on the upper arm, wrists on the forearm, knees on the thigh, ankles
-# on the shank. Face, hand and foot keypoints are offsets of their own already (skeleton.py).
+# The frame that carries each keypoint's landmark offset (left side; right mirrors): the
+# segment the landmark lies on. Limb landmarks ride on their joint's frame: elbows on the upper
+# arm, wrists on the forearm, knees on the thigh, ankles on the shank. Hips and shoulders ride on
+# TRUNK frames built from keypoints (the pelvis-to-neck line with the hip or shoulder line): the
+# root's and the waist's own orientations are not seen by any keypoint, since a trunk shorter
+# than its identified length is fitted by bending the waist forwards or backwards alike, and the
+# two bends turn those frames apart. Face, hand and foot keypoints are offsets of their own
+# already (skeleton.py).
+TRUNK = {"left_hip": ("left_hip", "right_hip"), "left_shoulder": ("left_shoulder", "right_shoulder")}
+TRUNK |= {k.replace("left_", "right_"): v for k, v in TRUNK.items()}
 SEGMENT: dict[str, str] = {
-    "left_hip": "root",
-    "left_shoulder": "waist",
+    "left_hip": "trunk",
+    "left_shoulder": "trunk",
     "left_elbow": "left_shoulder",
     "left_wrist": "left_elbow",
     "left_knee": "left_hip",
@@ -63,9 +69,7 @@ class LandmarkModel:
 
     def correction(self, skeleton: Skeleton, q: np.ndarray) -> np.ndarray:
         """(25, 3) world vectors from each joint centre to its landmark, in pose q."""
-        pin.forwardKinematics(skeleton.model, skeleton.data, q)
-        R, _ = skeleton._placements()
-        return np.einsum("kij,kj->ki", R[_segment_ids()], self.offsets)
+        return np.einsum("kij,kj->ki", segment_rotations(skeleton, q), self.offsets)
 
     def neck_dimensions(self) -> dict[str, float]:
         """The shoulders' place relative to the neck keypoint (BodyDimensions fields) that keeps
@@ -76,13 +80,39 @@ class LandmarkModel:
 
 
 @cache
-def _segment_ids() -> np.ndarray:
-    """Each keypoint's SEGMENT joint id: every Skeleton builds the same joint tree."""
+def _segment_ids() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each keypoint's SEGMENT joint id (every Skeleton builds the same joint tree; 0, the
+    universe, for the unlisted and the TRUNK ones), and the TRUNK keypoints with their
+    (left, right) keypoint pairs."""
     model = Skeleton().model
-    ids = np.zeros(len(KEYPOINTS), dtype=np.intp)  # universe (identity) for the unlisted
+    ids = np.zeros(len(KEYPOINTS), dtype=np.intp)
     for k, joint in SEGMENT.items():
-        ids[INDEX[k]] = model.getJointId(joint)
-    return ids
+        if k not in TRUNK:
+            ids[INDEX[k]] = model.getJointId(joint)
+    rows = np.array([INDEX[k] for k in TRUNK])
+    pairs = np.array([[INDEX[a], INDEX[b]] for a, b in TRUNK.values()])
+    return ids, rows, pairs
+
+
+def trunk_frames(keypoints: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) rotations of trunk frames of keypoints (25, 3): y along each (left, right)
+    pair of `pairs` (n, 2), z from the pelvis towards the neck orthogonal to y, x = y x z."""
+    y = keypoints[pairs[:, 0]] - keypoints[pairs[:, 1]]
+    y /= np.linalg.norm(y, axis=1, keepdims=True)
+    z = keypoints[INDEX["neck"]] - keypoints[INDEX["pelvis"]]
+    z = z[None] - y * (y @ z)[:, None]
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    return np.stack([np.cross(y, z), y, z], axis=2)
+
+
+def segment_rotations(skeleton: Skeleton, q: np.ndarray) -> np.ndarray:
+    """(25, 3, 3) world rotations of each keypoint's SEGMENT frame in pose q."""
+    ids, rows, pairs = _segment_ids()
+    pin.forwardKinematics(skeleton.model, skeleton.data, q)
+    R, _ = skeleton._placements()
+    out = R[ids]
+    out[rows] = trunk_frames(skeleton._keypoints_of_data(), pairs)
+    return out
 
 
 def from_left(name: str, left_mm: dict[str, list[float]], note: str = "", learnt_on: tuple[str, ...] = ()) -> LandmarkModel:
@@ -123,12 +153,9 @@ def learn_offsets(skeleton: Skeleton, poses: np.ndarray, markers: np.ndarray, tr
     fitted to the true joint centres truth (N, 25, 3), each measured landmark markers (N, 25, 3)
     minus its true joint centre, turned into its segment's frame; right-side samples mirrored
     onto the left. Returns left keypoint -> (n, 3) samples in metres (NaN rows dropped)."""
-    ids = _segment_ids()
     local = np.empty_like(markers)
     for f, q in enumerate(poses):
-        pin.forwardKinematics(skeleton.model, skeleton.data, q)
-        R, _ = skeleton._placements()
-        local[f] = np.einsum("kji,kj->ki", R[ids], markers[f] - truth[f])
+        local[f] = np.einsum("kji,kj->ki", segment_rotations(skeleton, q), markers[f] - truth[f])
     out = {}
     for k in SEGMENT:
         if k.startswith("left_"):
