@@ -51,7 +51,7 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     from vmocap_core.bag import cdr
     from vmocap_core.bag import messages as M
 
-    from .common import init_rclpy, msg_class, prepare_env, qos
+    from .common import msg_class, prepare_env, qos
     from .run_node import make_executor
 
     cfg = graph_config(work, rec, rig_path, rotation, tracker, rate)
@@ -61,11 +61,18 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
     env["VMOCAP_PCM_PRECISION"] = precision  # read by the CNN in vmocap_pcm
     env["PYTHONUNBUFFERED"] = "1"
-    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION")})
-    if "FASTRTPS_DEFAULT_PROFILES_FILE" in env:
-        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = env["FASTRTPS_DEFAULT_PROFILES_FILE"]
-    rclpy = init_rclpy()
-    node = rclpy.create_node("vmocap_bench_images_probe")
+    # The probe gets a context of its own on the graph's domain, shut down when done, and the
+    # DDS settings only while it lives: a caller's own rclpy (a test's listener on another
+    # domain) must find the process as it was.
+    keys = ("ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION", "FASTRTPS_DEFAULT_PROFILES_FILE")
+    saved = {k: os.environ.get(k) for k in keys}
+    os.environ.update({k: env[k] for k in keys if k in env})
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]), signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("vmocap_bench_images_probe", context=context)
     got: dict[int, np.ndarray] = {}
     last_rx = [0.0]
 
@@ -76,7 +83,7 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
         last_rx[0] = time.monotonic()
 
     node.create_subscription(msg_class("sensor_msgs/msg/PointCloud2"), "/vmocap/keypoints", on_keypoints, qos(200), raw=True)
-    ex = make_executor()
+    ex = make_executor(context)
     ex.add_node(node)
     log = open(work / f"{cfg.stem}.log", "w")
     launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
@@ -103,6 +110,12 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
         ex.remove_node(node)
         ex.shutdown()
         node.destroy_node()
+        context.try_shutdown()
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
     if not got:
         raise VmocapError(f"no keypoints came out of the node graph (log: {log.name})")
     row = {int(s): i for i, s in enumerate(stamps)}

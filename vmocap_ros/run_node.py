@@ -33,20 +33,20 @@ def _nothing() -> None:
     pass
 
 
-def make_executor():
+def make_executor(context=None):
     """rclpy's EventsExecutor (C++ event queue; per message it costs a fraction of the
     SingleThreadedExecutor, which rebuilds a wait set over every entity on each spin) unless
-    VMOCAP_EXECUTOR=single_threaded or this rclpy lacks it."""
+    VMOCAP_EXECUTOR=single_threaded or this rclpy lacks it; on `context` (default: rclpy's)."""
     if os.environ.get("VMOCAP_EXECUTOR", "events") == "events":
         try:
             from rclpy.experimental import EventsExecutor
 
-            return EventsExecutor()
+            return EventsExecutor(context=context)
         except ImportError:
             pass
     from rclpy.executors import SingleThreadedExecutor
 
-    return SingleThreadedExecutor()
+    return SingleThreadedExecutor(context=context)
 
 
 def spin_round(executor: Any, transport: Any, poll_s: float) -> None:
