@@ -19,7 +19,7 @@ from ..pcm.views import PcmViews
 from .config import MarkersConfig
 from .ik import solve_ik
 from .init_report import camera_mask
-from .landmarks import LandmarkModel
+from .landmarks import LandmarkModel, trunk_axes
 from .results import N_KP, Markers, nan_markers
 from .skeleton import BodyDimensions, Skeleton
 from .triangulation import triangulate_robust
@@ -66,23 +66,12 @@ def with_midpoints(p: np.ndarray) -> np.ndarray:
     return p
 
 
-def _trunk_axes(p: np.ndarray, top: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Forward and up axes (N, 3) of the trunk frames of p (N, 25, 3): y along the shoulders
-    (right to left), z from the pelvis towards `top` (N, 3) orthogonal to y, x = y x z."""
-    y = p[:, INDEX["left_shoulder"]] - p[:, INDEX["right_shoulder"]]
-    y /= np.linalg.norm(y, axis=1, keepdims=True)
-    z = top - p[:, INDEX["pelvis"]]
-    z -= y * np.sum(z * y, axis=1, keepdims=True)
-    z /= np.linalg.norm(z, axis=1, keepdims=True)
-    return np.cross(y, z), z
-
-
 def _shoulder_offsets(p: np.ndarray) -> tuple[float, float]:
     """Shoulder centre relative to the neck in the trunk frame (x forward, z from the pelvis
     to the neck): (forward, drop), medians over frames."""
-    neck = p[:, INDEX["neck"]]
-    x, z = _trunk_axes(p, neck)
-    d = 0.5 * (p[:, INDEX["left_shoulder"]] + p[:, INDEX["right_shoulder"]]) - neck
+    neck, ls, rs = p[:, INDEX["neck"]], p[:, INDEX["left_shoulder"]], p[:, INDEX["right_shoulder"]]
+    x, _, z = trunk_axes(ls, rs, p[:, INDEX["pelvis"]], neck)
+    d = 0.5 * (ls + rs) - neck
     fwd = np.sum(d * x, axis=1)
     up = np.sum(d * z, axis=1)
     ok = np.isfinite(fwd) & np.isfinite(up)
@@ -98,8 +87,9 @@ def _landmark_neck(p: np.ndarray, landmarks: LandmarkModel) -> np.ndarray:
     centres' midpoint, it would put the skeleton's shoulders the offset's z too high, and the IK
     would bend the waist in every pose to bring them down."""
     x_off, _, z_off = landmarks.offsets[INDEX["left_shoulder"]]
-    mid = 0.5 * (p[:, INDEX["left_shoulder"]] + p[:, INDEX["right_shoulder"]])
-    x, z = _trunk_axes(p, mid)
+    ls, rs = p[:, INDEX["left_shoulder"]], p[:, INDEX["right_shoulder"]]
+    mid = 0.5 * (ls + rs)
+    x, _, z = trunk_axes(ls, rs, p[:, INDEX["pelvis"]], mid)
     return mid + x_off * x + z_off * z
 
 

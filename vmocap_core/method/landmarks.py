@@ -94,15 +94,15 @@ def _segment_ids() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return ids, rows, pairs
 
 
-def trunk_frames(keypoints: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) rotations of trunk frames of keypoints (25, 3): y along each (left, right)
-    pair of `pairs` (n, 2), z from the pelvis towards the neck orthogonal to y, x = y x z."""
-    y = keypoints[pairs[:, 0]] - keypoints[pairs[:, 1]]
-    y /= np.linalg.norm(y, axis=1, keepdims=True)
-    z = keypoints[INDEX["neck"]] - keypoints[INDEX["pelvis"]]
-    z = z[None] - y * (y @ z)[:, None]
-    z /= np.linalg.norm(z, axis=1, keepdims=True)
-    return np.stack([np.cross(y, z), y, z], axis=2)
+def trunk_axes(left: np.ndarray, right: np.ndarray, pelvis: np.ndarray, top: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Axes x, y, z (..., 3) of trunk frames: y from `right` to `left` (a hip or shoulder
+    pair), z from `pelvis` towards `top` orthogonal to y, x = y x z (forward); broadcasting."""
+    y = left - right
+    y = y / np.linalg.norm(y, axis=-1, keepdims=True)
+    z = top - pelvis
+    z = z - y * np.sum(z * y, axis=-1, keepdims=True)
+    z = z / np.linalg.norm(z, axis=-1, keepdims=True)
+    return np.cross(y, z), y, z
 
 
 def segment_rotations(skeleton: Skeleton, q: np.ndarray) -> np.ndarray:
@@ -111,7 +111,8 @@ def segment_rotations(skeleton: Skeleton, q: np.ndarray) -> np.ndarray:
     pin.forwardKinematics(skeleton.model, skeleton.data, q)
     R, _ = skeleton._placements()
     out = R[ids]
-    out[rows] = trunk_frames(skeleton._keypoints_of_data(), pairs)
+    kp = skeleton._keypoints_of_data()
+    out[rows] = np.stack(trunk_axes(kp[pairs[:, 0]], kp[pairs[:, 1]], kp[INDEX["pelvis"]], kp[INDEX["neck"]]), axis=2)
     return out
 
 
