@@ -343,12 +343,12 @@ class GraphConfig:
         """stage_config of a skeleton node, its `landmarks: auto` resolved by this graph's PCM
         source (vmocap_pcm: the CNN's landmarks, or joint centres for synthetic heatmaps and
         PCM bags)."""
-        from .method.landmarks import resolve
+        from .method.landmarks import CNN_LANDMARKS, resolve
 
         cfg = self.stage_config(node, params)
         pcm = self.node_params("vmocap_pcm")
         cnn = pcm["source"] == "model" and not str(pcm["model"]).endswith(".mcap")
-        return cfg.replace(landmarks=resolve(cfg.landmarks, "blazepose" if cnn else "none"))
+        return cfg.replace(landmarks=resolve(cfg.landmarks, CNN_LANDMARKS if cnn else "none"))
 
     def pipeline_config(self) -> Any:
         """Both stages' configs (method.config.PipelineConfig): what `vmocap process`, the

@@ -30,6 +30,7 @@ from ..keypoints import INDEX, KEYPOINTS
 from .skeleton import Skeleton
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "landmarks"
+CNN_LANDMARKS = "blazepose"  # the shipped model of the CNN's keypoints (pcm/blazepose.py, both variants)
 
 # The frame that carries each keypoint's landmark offset (left side; right mirrors): the
 # segment the landmark lies on. Limb landmarks ride on their joint's frame: elbows on the upper

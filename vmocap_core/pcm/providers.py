@@ -92,7 +92,9 @@ class ModelPcmProvider:
         from .pipeline import BlazePosePcm
 
         variant = "lite" if model.endswith("lite") else "full"
-        self.landmarks = "blazepose"  # both variants share the landmark definition
+        from ..method.landmarks import CNN_LANDMARKS
+
+        self.landmarks = CNN_LANDMARKS
         self.rig = rig
         self.binning = int(binning)
         self.seen = rig.binned(self.binning) if self.binning > 1 else rig  # the cameras the images come from

@@ -42,10 +42,11 @@ class _Provider:
     process.ModelPcmProvider (detector until a skeleton is fed back)."""
 
     def __init__(self, rig, rotation: str, precision: str, threads: int = 2) -> None:
+        from ...method.landmarks import CNN_LANDMARKS
         from ...pcm.pipeline import BlazePosePcm
 
         self.rig = rig
-        self.landmarks = "blazepose"
+        self.landmarks = CNN_LANDMARKS
         self.pcm = BlazePosePcm(rig, rotation=rotation, threads=threads, precision=precision)
         self.name = f"blazepose-full {precision} (rotation {rotation})"
 
@@ -310,11 +311,11 @@ def run(args: argparse.Namespace) -> int:
 
 def landmarks_used(args: argparse.Namespace, clips: list[str]) -> str:
     """Which landmark model the CNN's runs used, and whether it saw the scored clips."""
-    from ...method.landmarks import load_landmarks, resolve
+    from ...method.landmarks import CNN_LANDMARKS, load_landmarks, resolve
 
     if args.leave_one_out:
         return "leave-one-out: each clip with a model learnt on the others (OUT/landmarks)"
-    model = load_landmarks(resolve(args.tracker.get("landmarks", "auto"), "blazepose"))
+    model = load_landmarks(resolve(args.tracker.get("landmarks", "auto"), CNN_LANDMARKS))
     if model is None:
         return "none (joint centres)"
     seen = [c for c in clips if c in model.learnt_on]

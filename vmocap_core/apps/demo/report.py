@@ -105,14 +105,14 @@ def render_overlays(bag: Path, rig: Rig, rec: dict, out_dir: Path, scale: float 
 def write_report(rig: Rig, rec: dict, out_dir: Path, info: dict) -> dict:
     import matplotlib
 
-    from ...method.landmarks import resolve
+    from ...method.landmarks import CNN_LANDMARKS, resolve
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from ...method.skeleton import BONES
 
-    landmarks = resolve(info.get("tracker_settings", {}).get("landmarks", "auto"), "blazepose")  # the CNN ran
+    landmarks = resolve(info.get("tracker_settings", {}).get("landmarks", "auto"), CNN_LANDMARKS)  # the CNN ran
     t = (rec["stamp"] - rec["stamp"][0]) / 1e9
     tracking = np.array([s == "tracking" for s in rec["status"]])
     kp = rec["keypoints"]
