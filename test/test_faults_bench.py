@@ -116,7 +116,7 @@ def test_pcm_node_leaves_out_black_and_wrong_size_images(tmp_path: Path, monkeyp
     from vmocap_core import graph_config
     from vmocap_core.apps.demo.data import bag_frame_sets
     from vmocap_core.bag import messages as M
-    from vmocap_ros import fault_harness as H
+    from vmocap_ros.bench import fault_harness as H
 
     demo = H.demo_bag(tmp_path / "demo.mcap", 3)
     if demo is None:

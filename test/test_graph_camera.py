@@ -251,7 +251,7 @@ def test_camera_whose_recording_breaks_turns_diagnostics_error(tmp_path: Path) -
     then its cameras' threads end, and /diagnostics says ERROR (level 2) with the reason: the
     node no longer does its job, unlike a skipped frame (WARN)."""
     from vmocap_core.cameras.rig_file import save_rig
-    from vmocap_ros.fault_harness import damage
+    from vmocap_ros.bench.fault_harness import damage
 
     rig = small_rig()
     bag = tmp_path / "c.mcap"

@@ -196,7 +196,7 @@ def test_graph_with_cnn_equals_offline_and_demo(tmp_path: Path, listener) -> Non
     except Exception as exc:  # noqa: BLE001 - models / demo videos not on this machine
         pytest.skip(f"CNN or Pose2Sim demo not available ({exc})")
     from vmocap_core.apps.process import joint_trajectory, process_bag
-    from vmocap_ros.bench_graph_setup import pose2sim_bag
+    from vmocap_ros.bench.graph_setup import pose2sim_bag
 
     env, counter = listener
     counter.reset()

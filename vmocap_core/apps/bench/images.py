@@ -228,7 +228,7 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
         graph = "none" if args.tracker.get("offline") else args.graph
         if graph == "all" or (graph == "first" and name == args.configs[0]):
             # vmocap_ros is imported by name (as cli.py does): vmocap_core itself never imports rclpy
-            g = importlib.import_module("vmocap_ros.bench_images_graph")
+            g = importlib.import_module("vmocap_ros.bench.images_graph")
             est_g, counts = g.run_graph(rec, args.rig_file, stamps, rotation, precision, args.tracker, args.graph_rate,
                                         args.out)
             row[f"graph:{name}"] = {**score(est_g, truth), **counts}

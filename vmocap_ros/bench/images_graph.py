@@ -51,8 +51,8 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     from vmocap_core.bag import cdr
     from vmocap_core.bag import messages as M
 
-    from .common import msg_class, prepare_env, qos
-    from .run_node import make_executor
+    from ..common import msg_class, prepare_env, qos
+    from ..run_node import make_executor
 
     cfg = graph_config(work, rec, rig_path, rotation, tracker, rate)
     fps = float(tracker["fps"])

@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .bench_graph_setup import NODES, graph_config, graph_env, pose2sim_bag, synthetic_bag
-from .bench_probe import Probe, callback_cpu, in_window, latency, missing_periods, node_age
+from .graph_setup import NODES, graph_config, graph_env, pose2sim_bag, synthetic_bag
+from .probe import Probe, callback_cpu, in_window, latency, missing_periods, node_age
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -199,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         rig, bag, rig_path, kps, motion = synthetic_bag(work, args)
     env = graph_env()
-    from .common import init_rclpy
+    from ..common import init_rclpy
 
     rclpy = init_rclpy()
     probe = Probe(rclpy, rig.names, input_topic=args.feed == "player")

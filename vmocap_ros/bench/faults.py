@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from . import fault_harness as H
-from .bench_faults_camera import CAMERA_FAULTS, IMAGE_FAULTS, IMAGE_FRAMES, aravis_fault, image_fault
+from .faults_camera import CAMERA_FAULTS, IMAGE_FAULTS, IMAGE_FRAMES, aravis_fault, image_fault
 
 BAG_FAULTS = ["truncated_bag:process", "truncated_bag:play", "corrupted_bag:process", "corrupted_bag:play"]
 PCM_FAULTS = ["heatmaps_nan", "heatmaps_inf", "heatmaps_negative", "person_leaves", "camera_pause", "calibration_rotated",
@@ -335,9 +335,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _probe(env: dict[str, str]):
-    """A node in this process receiving joint_states (bench_probe.Probe), on the graph's domain."""
-    from .bench_probe import Probe
-    from .common import init_rclpy
+    """A node in this process receiving joint_states (probe.Probe), on the graph's domain."""
+    from ..common import init_rclpy
+    from .probe import Probe
 
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION") if k in env})
     if "FASTRTPS_DEFAULT_PROFILES_FILE" in env:

@@ -1,4 +1,4 @@
-"""The camera-side faults of `vmocap bench faults` (bench_faults.py): bad images through the
+"""The camera-side faults of `vmocap bench faults` (faults.py): bad images through the
 CNN graph, and an Aravis camera unplugged and plugged back. What each fault does and what
 survived / diagnosed mean: docs/faults.md."""
 
@@ -91,7 +91,7 @@ def aravis_fault(work: Path, env: dict[str, str]) -> dict:
                                "rate": 0.0, "reconnect_s": 0.5, "reconnect_attempts": 20}}
     cfg = H.write_config(work / "aravis.yaml", rig_path, [], ["vmocap_camera"], "single_process", work / "unused.mcap",
                          extra=extra)
-    run = subprocess.run([sys.executable, "-m", "vmocap_ros.fault_harness", "aravis", str(cfg), cam, str(after), str(away),
+    run = subprocess.run([sys.executable, "-m", "vmocap_ros.bench.fault_harness", "aravis", str(cfg), cam, str(after), str(away),
                           str(total)], env=env, cwd=H.REPO, capture_output=True, text=True, timeout=120)
     if run.returncode != 0:
         raise RuntimeError(f"the camera node's run failed (rc {run.returncode}):\n{run.stderr[-3000:]}")

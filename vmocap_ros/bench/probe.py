@@ -2,7 +2,7 @@
 
 `Probe` is a node in the benchmark's own process that receives the graph's small outputs and the
 nodes' /diagnostics; `latency`, `missing_periods`, `node_age` and `callback_cpu` turn those
-records into the reported figures (bench_graph.py, bench_soak.py, bench_faults.py).
+records into the reported figures (graph.py, soak.py, faults.py).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ class Probe:
     def __init__(self, rclpy, cameras: list[str], input_topic: bool) -> None:
         from vmocap_core.bag import cdr
 
-        from .common import Topics, msg_class, qos
+        from ..common import Topics, msg_class, qos
 
         self.rclpy = rclpy
         self.node = rclpy.create_node("vmocap_bench_probe")
@@ -61,7 +61,7 @@ class Probe:
                     self.diag.setdefault(s["name"], []).append((time.monotonic_ns(), vals))
 
         self.node.create_subscription(msg_class("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", on_diag, qos(50), raw=True)
-        from .run_node import make_executor
+        from ..run_node import make_executor
 
         self.executor = make_executor()  # the probe shares the CPU with the graph: keep it cheap
         self.executor.add_node(self.node)

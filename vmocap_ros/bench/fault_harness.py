@@ -249,7 +249,7 @@ class Outputs:
 
 
 def env_for(domain: int) -> dict[str, str]:
-    from .common import prepare_env
+    from ..common import prepare_env
 
     env = dict(os.environ)
     prepare_env(env)
@@ -321,8 +321,8 @@ def aravis_camera_run(config: Path, camera: str, after_s: float, away_s: float, 
     from vmocap_core.cameras import aravis as arv
     from vmocap_core.outputs.messages import DIAG, INFO
 
-    from .common import Topics, init_rclpy, msg_class, qos
-    from .nodes.camera import CameraNode
+    from ..common import Topics, init_rclpy, msg_class, qos
+    from ..nodes.camera import CameraNode
 
     Ar = arv.setup_interfaces(("Fake",))  # before any device list update; open() keeps this setting
     rclpy = init_rclpy()
@@ -371,7 +371,7 @@ def aravis_camera_run(config: Path, camera: str, after_s: float, away_s: float, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m vmocap_ros.fault_harness aravis CONFIG CAMERA AFTER AWAY TOTAL`: the run above,
+    """`python -m vmocap_ros.bench.fault_harness aravis CONFIG CAMERA AFTER AWAY TOTAL`: the run above,
     its record as JSON on stdout (one line)."""
     import json
 

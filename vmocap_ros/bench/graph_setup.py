@@ -1,4 +1,4 @@
-"""What a node-graph benchmark runs (bench_graph.py, bench_soak.py): the looped bag, the graph
+"""What a node-graph benchmark runs (graph.py, soak.py): the looped bag, the graph
 config per launch mode, and the environment the graph and the probe share.
 
 - `synthetic_bag`: benchmark rig, walk clip, random-texture images and the heatmaps recorded in
@@ -120,7 +120,7 @@ def graph_config(work: Path, mode: str, rig_path: Path, kps: list[str], args: ar
                             "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
     if mode == "default":
         cfg["vmocap_launch"]["groups"] = shipped.get("groups") or []
-    from .run_node import parse_sets
+    from ..run_node import parse_sets
 
     for node, params in parse_sets(getattr(args, "set", None) or []).items():  # --set NODE.PARAM=VALUE
         cfg.setdefault(node, {"ros__parameters": {}})["ros__parameters"].update(params)
@@ -132,7 +132,7 @@ def graph_config(work: Path, mode: str, rig_path: Path, kps: list[str], args: ar
 def graph_env() -> dict[str, str]:
     """The environment of the graph a benchmark starts (localhost discovery, a domain of its own),
     also applied to this process, whose probe node joins that graph."""
-    from .common import prepare_env
+    from ..common import prepare_env
 
     env = dict(os.environ)
     prepare_env(env)

@@ -45,17 +45,17 @@ def rss_mib(pid: int) -> float:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .bench_graph import cpu_flags
-    from .bench_graph_setup import graph_config, graph_env, synthetic_bag
-    from .bench_probe import Probe, latency, missing_periods
-    from .common import init_rclpy
+    from ..common import init_rclpy
+    from .graph import cpu_flags
+    from .graph_setup import graph_config, graph_env, synthetic_bag
+    from .probe import Probe, latency, missing_periods
 
     if args.minutes <= 0:
         print("bench soak: --minutes must be > 0", file=sys.stderr)
         return 2
     work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="vmocap_soak_"))
     work.mkdir(parents=True, exist_ok=True)
-    # bench_graph's bag and config: 15 looped frame sets, PCM from the bag, the camera node feeding
+    # bench graph's bag and config: 15 looped frame sets, PCM from the bag, the camera node feeding
     g = argparse.Namespace(size=args.size, cameras=args.cameras, frames=15, fps=30.0, pcm="bag", model="", feed="camera")
     rig, bag, rig_path, kps, motion = synthetic_bag(work, g)
     cfg = graph_config(work, args.mode, rig_path, kps, g, bag, motion)
