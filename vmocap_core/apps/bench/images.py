@@ -30,6 +30,7 @@ from ...method.skeleton import BONES
 from ..metrics import acceleration_error, table_one
 from . import add_tracker_arguments, tracker_settings
 from .accuracy import RATE_HZ, default_motions
+from .clouds import read_clouds
 
 REPO = paths.REPO
 DEFAULT_CACHE = REPO / "out" / "render_cache"
@@ -56,21 +57,6 @@ class _Provider:
             full[int(c)] = img
         usable = feedback is not None and np.isfinite(feedback[[0, 1]]).all()
         return self.pcm.infer(full, keypoints=feedback if usable else None, stamp_ns=stamp_ns)
-
-
-def read_clouds(path: Path, stamps: np.ndarray, topic: str, kind: str | None = None) -> np.ndarray:
-    """(T, 25, 3) keypoint clouds of `topic` at the truth stamps (NaN where none); with `kind`,
-    only clouds of that kind (e.g. "lattice" markers), their zero-weight points NaN."""
-    out = np.full((len(stamps), len(KEYPOINTS), 3), np.nan)
-    row = {int(s): i for i, s in enumerate(stamps)}
-    with BagReader(path) as r:
-        for m in r.messages([topic]):
-            d = m.decode()
-            P, S, k = M.cloud_keypoints(d)
-            i = row.get(M.stamp_ns(d))
-            if P is not None and i is not None and kind in (None, k):
-                out[i] = P if kind is None else np.where((S > 0)[:, None], P, np.nan)
-    return out
 
 
 def read_estimates(path: Path, stamps: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ import numpy as np
 from ...graph_config import Topics
 from ...method.init import fit_skeleton, frame_poses
 from ...method.landmarks import SEGMENT, learn_offsets
+from .clouds import read_clouds
 
 Samples = dict[str, np.ndarray]  # left keypoint -> (n, 3) offsets in metres
 
@@ -22,8 +23,6 @@ Samples = dict[str, np.ndarray]  # left keypoint -> (n, 3) offsets in metres
 def read_markers(path: Path, stamps: np.ndarray) -> np.ndarray:
     """(T, 25, 3) lattice markers of a `vmocap process` output at the truth stamps (NaN: none
     or weight 0)."""
-    from .images import read_clouds
-
     return read_clouds(path, stamps, Topics().markers, kind="lattice")
 
 
