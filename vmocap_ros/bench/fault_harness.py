@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 MOTION = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
 FPS = 30.0
 T0 = 1_000_000_000_000  # the synthetic bags' first stamp (ns)

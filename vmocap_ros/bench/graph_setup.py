@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 NODES = ["vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]
 
 

@@ -22,7 +22,7 @@ import yaml
 from vmocap_core.errors import VmocapError
 from vmocap_core.keypoints import KEYPOINTS
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 NODES = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]
 
 
