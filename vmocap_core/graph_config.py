@@ -59,6 +59,11 @@ COMMON = [
     Param("binning", 1, "camera images reduced this many times, 1, 2, 4 or 8 (REP 104): vmocap_camera publishes them so "
           "(JPEGs decoded directly at that size; CameraInfo binning_x/y) and vmocap_pcm cuts its crops from them; the rig "
           "stays at full resolution. For subjects spanning more than binning x 256 px: less decoding and copying", 1, 8),
+    Param("lockstep", False, "recorded sources: vmocap_camera sends a frame set once the skeleton's feedback for the one "
+          "before came back (the paper's causal loop), so every frame set is processed in order at the speed of this "
+          "machine and the outputs equal `vmocap process`'s; `rate` is then ignored. Live cameras ignore it"),
+    Param("lockstep_timeout_ms", 10000.0, "lockstep: a frame set nobody answers (no person in any view, a node down) "
+          "releases the next one after this long; the PCM and markers nodes wait for feedback at least this long", 1.0, 1e6),
 ]
 
 NODE_PARAMS: dict[str, list[Param]] = {
@@ -325,6 +330,12 @@ class GraphConfig:
         for n, v in values.items():
             if isinstance(v, list) and v == [""]:
                 values[n] = []
+        if values["lockstep"] and values.get("restamp"):
+            raise GraphConfigError(self.path, f"{node}.lockstep", "lockstep replays the recorded stamps: not with restamp")
+        if values["lockstep"]:  # every frame set waits for its predecessor's feedback (cameras/lockstep.py)
+            for key in ("feedback_wait_ms", "feedback_timeout_ms"):
+                if key in values:
+                    values[key] = max(values[key], values["lockstep_timeout_ms"])
         return values
 
     def stage_config(self, node: str, params: dict[str, Any] | None = None) -> Any:

@@ -13,8 +13,9 @@ from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.bag import bin_image, check_binning
 from vmocap_core.cameras.clock import LoopedStamps, PlaybackClock
+from vmocap_core.cameras.lockstep import LockstepGate
 from vmocap_core.errors import VmocapError
-from vmocap_core.outputs.messages import IMAGE, INFO
+from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO
 
 from ..transport import Output, Transport
 from .base import VmocapNode
@@ -33,7 +34,9 @@ class CameraNode(VmocapNode):
         self.binning = self.p["binning"]
         check_binning(self.binning)
         self._stop = threading.Event()
-        self._playback = PlaybackClock(self.p["rate"], self.p["restamp"])
+        # lockstep: recorded frame sets go out as the graph answers them, not by the clock
+        self._gate = LockstepGate(self.p["lockstep_timeout_ms"] / 1e3) if self.p["lockstep"] else None
+        self._playback = PlaybackClock(0.0 if self._gate else self.p["rate"], self.p["restamp"])
         self._image_topics: list[str] = []
         self._matched = threading.Event()
         self._first_match: float | None = None
@@ -55,6 +58,8 @@ class CameraNode(VmocapNode):
             self._image_topics.append(self.topics.image(cam.name))
             th = threading.Thread(target=self._run, args=(src, cam, pub_img, pub_info), daemon=True)
             self._threads.append((th, src))
+        if self._gate is not None:
+            self.subscribe(CLOUD, self.topics.feedback, lambda m: self._gate.answered(M.stamp_ns(m)), depth=50, latched=True)
         for th, _ in self._threads:
             th.start()
         self._wait_end = time.monotonic() + self.p["wait_subscribers"]
@@ -138,7 +143,10 @@ class CameraNode(VmocapNode):
             if due is None:
                 if self._playback.restamp:
                     img["header"] = info["header"] = M.header(time.time_ns(), cam.name)
-                self._send(cam.name, pub_img.prepare(img), pub_info.prepare(info), pub_img, pub_info)
+                prepared = (pub_img.prepare(img), pub_info.prepare(info))
+                if self._gate is not None and cam.name not in self._live and not self._gate.enter(stamp, self._stop):
+                    return
+                self._send(cam.name, *prepared, pub_img, pub_info)
                 continue
             # a recorded frame is converted (and encoded for DDS readers) while it waits for its time
             prepared = (pub_img.prepare(img), pub_info.prepare(info))
@@ -211,8 +219,14 @@ class CameraNode(VmocapNode):
             if quiet > STALL_S and key not in self.problems and key not in self.errors:  # connected, but nothing comes
                 self.warn_for(f"stalled:{cam}", f"{cam}: no frame for {quiet:.1f} s (connected)")
         self.watch_dropped(sum(self.late_dropped.values()), "frames dropped (a period late)")
-        return {"published": self.published, "late_dropped": self.late_dropped, "wrong_size": self.wrong_size,
-                "disconnects": self.disconnects, "reconnects": self.reconnects}
+        out = {"published": self.published, "late_dropped": self.late_dropped, "wrong_size": self.wrong_size,
+               "disconnects": self.disconnects, "reconnects": self.reconnects}
+        if self._gate is not None:
+            if self._gate.timeouts:
+                self.warn_for("lockstep", f"lockstep: {self._gate.timeouts} frame sets got no feedback within "
+                              f"{self._gate.timeout_s:g} s (no person in any view, or a node not running)")
+            out["lockstep"] = {"answered": self._gate.answered_count, "timeouts": self._gate.timeouts}
+        return out
 
     def close(self) -> None:
         self._stop.set()
