@@ -32,6 +32,9 @@ class Probe:
         self.diag: dict[str, list[tuple[int, dict[str, str]]]] = {}  # node -> (monotonic ns, values)
         self.recording = False
         self.min_stamp = 0  # ignore outputs of frames captured before the current mode started
+        # ignore /diagnostics sent before the last clear(all_=True): the previous mode's graph's
+        # last reports can still wait in the reader's queue and mix its counts into this mode's
+        self.diag_since = 0
 
         def stamp_of(data: bytes) -> int:
             import struct
@@ -55,6 +58,9 @@ class Probe:
 
         def on_diag(data: bytes) -> None:
             d = cdr.decode("diagnostic_msgs/msg/DiagnosticArray", data)
+            sent = d["header"]["stamp"]
+            if sent["sec"] * 1_000_000_000 + sent["nanosec"] < self.diag_since:
+                return
             for s in d["status"]:
                 vals = {v["key"]: v["value"] for v in s["values"]}
                 if "cpu_s" in vals:
@@ -76,6 +82,7 @@ class Probe:
             v.clear()
         if all_:
             self.diag.clear()
+            self.diag_since = time.time_ns()
 
     def close(self) -> None:
         self.executor.remove_node(self.node)
