@@ -43,3 +43,20 @@ class SourceError(VmocapError):
 
 class DetectionFileError(VmocapError):
     """A 2D detection file (e.g. Shelf) that is malformed: names the file and line."""
+
+
+class OutputPathError(VmocapError):
+    """An output path that would write onto an input or replace a file not meant to be replaced."""
+
+
+class ChunkCrcError(BagError):
+    """A chunk of an MCAP file whose contents do not match its CRC (or cannot be decompressed):
+    names the file, the chunk (index, byte offset, time range) and the way to read the rest."""
+
+    def __init__(self, path: object, index: int, count: int, offset: int, start_ns: int, end_ns: int,
+                 problem: str, rel_s: tuple[float, float]) -> None:
+        self.path, self.index, self.offset = str(path), index, offset
+        self.start_ns, self.end_ns = start_ns, end_ns
+        self.what = (f"{self.path}: chunk {index} of {count} (byte offset {offset}; messages {start_ns}..{end_ns} ns, "
+                     f"{rel_s[0]:.3f}-{rel_s[1]:.3f} s into the recording) is damaged: {problem}")
+        super().__init__(f"{self.what}; read the intact chunks with --recover")

@@ -63,14 +63,23 @@ def process_bag(
     model: str = "blazepose",
     provider: Any = None,
     binning: int = 1,
+    overwrite: bool = False,
+    inputs: Iterable[str | Path] = (),
 ) -> dict[str, Any]:
     """Run the pipeline over the PCM topics of a bag (or, when it has none, over its camera
     images with the CNN `model`, or the given PCM `provider`); write the graph's outputs to
     out_path (log time = capture stamp). Returns counts and the time per frame set.
     binning: compressed camera images are decoded reduced this many times (1, 2, 4, 8) and the
     CNN cuts its crops from them (ModelPcmProvider's binning): for subjects whose crops span
-    more than binning x the CNN's 256 px, the same crops for a fraction of the decoding."""
+    more than binning x the CNN's 256 px, the same crops for a fraction of the decoding.
+    out_path is never one of in_path and `inputs` (rig, config); an existing out_path is
+    replaced only with `overwrite` (vmocap_core.files)."""
     from tqdm import tqdm
+
+    from ..files import check_output
+
+    inputs = [in_path, *inputs]
+    check_output(out_path, inputs, overwrite)  # before the model loads: a refusal costs nothing
 
     cfg = config if isinstance(config, PipelineConfig) else PipelineConfig.from_dict(config)
     # Offline: the live pass without lag; its results are kept for the whole-recording pass.
@@ -107,7 +116,7 @@ def process_bag(
         warm_up = getattr(pipe.pcm, "warm_up", None)
         if warm_up is not None:  # the CNN's first run allocates and picks kernels: start-up, as in vmocap_pcm
             warm_up()
-        with BagWriter(out_path, compression="zstd") as writer:
+        with BagWriter(out_path, compression="zstd", overwrite=overwrite, inputs=inputs) as writer:
             stamps: list[int] = []
             start = time.perf_counter()  # the model is loaded: from here on it is the recording's own cost
             first_kp: list[tuple[np.ndarray, np.ndarray]] = []
@@ -334,7 +343,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", required=True, help="MCAP file to write the graph outputs to")
     parser.add_argument("--config", default=None, help="graph config (rig, keypoints, the vmocap_markers and vmocap_skeleton sections); default config/graph.yaml")
     parser.add_argument("--rig", default=None, help="rig YAML (overrides the config's)")
-    parser.add_argument("--recover", action="store_true", help="read a truncated bag up to the damage")
+    parser.add_argument("--recover", action="store_true", help="read a damaged bag: a truncated one up to the damage, "
+                        "one with damaged chunks without them (each skipped chunk is reported)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--json", action="store_true", help="print the counts as JSON")
     parser.add_argument("--offline", action="store_true", help="offline mode: whole-recording identification, "
@@ -369,6 +380,7 @@ def run(args: argparse.Namespace) -> int:
         views=p["views"] or None, namespace=p["namespace"], tolerance_ns=int(p["sync_tolerance_ms"] * 1e6),
         min_views=p["min_cameras"], recover=args.recover, progress=not args.no_progress, binning=args.binning,
         model=cfg.node_params("vmocap_pcm")["model"] if cfg.node_params("vmocap_pcm")["source"] == "model" else "blazepose",
+        overwrite=args.overwrite, inputs=[rig_path, cfg_path],
     )
     bad = {c: n for c, n in stats.get("bad_images", {}).items() if n}
     if bad:

@@ -2,29 +2,40 @@
 messages "cdr". Readable by ros2 bag, `rosbags` and Foxglove.
 
 The writer never leaves a half-written file under the final name: it writes `NAME.partial`
-and renames it to NAME only after the MCAP footer and summary are written (on close, on an
-exception inside `with`, and on SIGINT/SIGTERM in the recorder, which closes it). A process
-killed with SIGKILL leaves only `NAME.partial`, which `BagReader(..., recover=True)` reads.
+and renames it to NAME only after the MCAP footer and summary are written (on close, and on
+SIGINT/SIGTERM in the recorder, which closes it); an exception inside `with` removes the
+partial file and leaves an existing NAME as it was. It refuses (OutputPathError) to write
+onto one of its `inputs`, or to replace an existing NAME or NAME.partial without `overwrite`
+(vmocap_core.files). A process killed with SIGKILL leaves only `NAME.partial`, which
+`BagReader(..., recover=True)` reads.
+
+The reader checks every chunk's CRC (of its uncompressed records; 0 means "not computed" in
+MCAP and is not checked) when it reads the chunk: a mismatch raises ChunkCrcError naming the
+chunk, or, with `recover=True`, skips that chunk with a warning and reads the others.
 """
 
 from __future__ import annotations
 
+import heapq
 import logging
 import mmap
 import os
 import struct
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 import numpy as np
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, ChunkIndex, Message, Schema
+from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from ..errors import BagError
+from ..errors import BagError, ChunkCrcError, OutputPathError
+from ..files import check_output
 from . import cdr
 
 log = logging.getLogger(__name__)
@@ -61,11 +72,15 @@ class BagMessage:
 class BagWriter:
     """Write messages (dicts or CDR bytes) into a rosbag2-compatible MCAP file."""
 
-    def __init__(self, path: str | os.PathLike, compression: str = "none", chunk_size: int = 4 << 20) -> None:
+    def __init__(self, path: str | os.PathLike, compression: str = "none", chunk_size: int = 4 << 20, *,
+                 overwrite: bool = False, inputs: Iterable[str | os.PathLike] = ()) -> None:
         self.path = Path(path)
         if compression not in _COMPRESSION:
             raise BagError(f"{self.path}: unknown compression {compression!r} (none, zstd, lz4)")
+        self.overwrite = overwrite
+        self.inputs = list(inputs)
         self.tmp_path = self.path.with_name(self.path.name + PARTIAL_SUFFIX)
+        self._final = self.path
         self._compression = _COMPRESSION[compression]
         self._chunk_size = chunk_size
         self._file: Any = None
@@ -78,11 +93,20 @@ class BagWriter:
     def open(self) -> "BagWriter":
         if self._writer is not None:
             return self
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        final = check_output(self.path, self.inputs, self.overwrite)
+        self.tmp_path = final.with_name(final.name + PARTIAL_SUFFIX)
+        check_output(self.tmp_path, self.inputs, overwrite=True)
+        final.parent.mkdir(parents=True, exist_ok=True)
         try:
-            self._file = open(self.tmp_path, "wb")
+            # exclusive unless told to overwrite: a partial file is a recording not closed properly
+            self._file = open(self.tmp_path, "wb" if self.overwrite else "xb")
+        except FileExistsError:
+            raise OutputPathError(f"{self.tmp_path}: exists (a recording that was not closed properly, or another "
+                                  "writer): refusing to replace it; read it with --recover, move it away or pass "
+                                  "--overwrite") from None
         except OSError as exc:
             raise BagError(f"{self.path}: cannot create ({exc})") from None
+        self._final = final
         self._writer = Writer(self._file, chunk_size=self._chunk_size, compression=self._compression)
         self._writer.start(profile="ros2", library="vmocap")
         return self
@@ -139,13 +163,27 @@ class BagWriter:
             os.fsync(f.fileno())
         finally:
             f.close()
-        os.replace(self.tmp_path, self.path)
+        if not self.overwrite and os.path.lexists(self._final):  # appeared while we wrote: keep both
+            raise OutputPathError(f"{self.path}: appeared while writing; refusing to replace it (the recording "
+                                  f"is complete in {self.tmp_path})")
+        os.replace(self.tmp_path, self._final)
+
+    def abort(self) -> None:
+        """Drop what was written: the partial file goes, an existing NAME stays as it was."""
+        if self._writer is None:
+            return
+        self._writer = None
+        self._file.close()
+        self.tmp_path.unlink(missing_ok=True)
 
     def __enter__(self) -> "BagWriter":
         return self.open()
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:  # a failed run leaves no output that looks complete
+            self.abort()
 
 
 class BagReader:
@@ -157,6 +195,7 @@ class BagReader:
         self.path = Path(path)
         self.recover = recover
         self.damaged: str | None = None  # why the summary could not be read
+        self.damaged_chunks: list[str] = []  # recover=True: the chunks skipped, why
         self.topics: dict[str, str] = {}  # topic -> "pkg/msg/Type"
         self.message_counts: dict[str, int] = {}
         self.start_ns = 0
@@ -248,27 +287,69 @@ class BagReader:
             missing = wanted - set(self.topics)
             if missing:
                 raise BagError(f"{self.path}: no topic(s) {sorted(missing)}; the bag has {sorted(self.topics)}")
-        # recovery reads linearly with CRC checks even when the summary is intact: a corrupted
-        # chunk in the middle then ends the read there instead of failing it
-        if self.damaged is not None or self.recover:
-            for m in self._stream_messages(wanted):
+        if self.damaged is not None or not self._summary.chunk_indexes:  # no index: read linearly
+            for m in self._stream_messages(wanted, strict=self.damaged is None and not self.recover):
                 if (start_ns is None or m.log_time_ns >= start_ns) and (end_ns is None or m.log_time_ns < end_ns):
                     yield m
             return
         indexed = self._indexed(wanted, start_ns, end_ns)
         if indexed is not None:
             yield from self._read_indexed(indexed, zero_copy)
-            return
-        try:
-            self._f.seek(0)
-            reader = SeekingReader(self._f)
-            reader._summary = self._summary
-            for _schema, ch, rec in reader.iter_messages(
-                topics=None if wanted is None else sorted(wanted), starting_at=start_ns, ending_before=end_ns, log_time_order=True
-            ):
-                yield BagMessage(ch.topic, self.topics[ch.topic], rec.log_time, rec.data)
-        except (McapError, ValueError, OSError, EOFError) as exc:
-            raise BagError(f"{self.path}: corrupt MCAP data ({type(exc).__name__}: {exc})") from None
+        else:
+            yield from self._read_chunks(wanted, start_ns, end_ns)
+
+    def _chunk_damaged(self, k: int, ci: ChunkIndex, problem: str) -> None:
+        """A chunk that failed its check: ChunkCrcError, or (recover=True) a warning and a note."""
+        s0 = self.start_ns or ci.message_start_time
+        err = ChunkCrcError(self.path, k, len(self._summary.chunk_indexes), ci.chunk_start_offset,
+                            ci.message_start_time, ci.message_end_time, problem,
+                            ((ci.message_start_time - s0) / 1e9, (ci.message_end_time - s0) / 1e9))
+        if not self.recover:
+            raise err
+        log.warning("%s; skipped (recover)", err.what)
+        self.damaged_chunks.append(err.what)
+
+    def _chunks(self, chans: set[int], start_ns: int | None, end_ns: int | None) -> list[tuple[int, ChunkIndex]]:
+        """(index, chunk index) of the chunks holding messages of `chans` within the time range."""
+        return [(k, ci) for k, ci in enumerate(self._summary.chunk_indexes) if chans & set(ci.message_index_offsets)
+                and (end_ns is None or ci.message_start_time < end_ns)
+                and (start_ns is None or ci.message_end_time >= start_ns)]
+
+    def _channels(self, wanted: set[str] | None) -> set[int]:
+        return {cid for cid, ch in self._summary.channels.items() if wanted is None or ch.topic in wanted}
+
+    def _read_chunks(self, wanted: set[str] | None, start_ns: int | None, end_ns: int | None) -> Iterator[BagMessage]:
+        """Compressed chunks: each decompressed and CRC-checked when the log-time merge reaches
+        it (a heap of chunk starts and decoded messages, so one chunk at a time is in memory
+        unless chunks overlap in time)."""
+        chans = self._channels(wanted)
+        channels = self._summary.channels
+        heap: list[tuple[int, int, int, int]] = [(ci.message_start_time, ci.chunk_start_offset, -1, k)
+                                                 for k, ci in self._chunks(chans, start_ns, end_ns)]
+        heapq.heapify(heap)
+        pending: dict[tuple[int, int], Message] = {}
+        while heap:
+            t, off, j, k = heapq.heappop(heap)
+            if j >= 0:
+                rec = pending.pop((off, j))
+                topic = channels[rec.channel_id].topic
+                yield BagMessage(topic, self.topics[topic], rec.log_time, rec.data)
+                continue
+            ci = self._summary.chunk_indexes[k]
+            try:
+                self._f.seek(ci.chunk_start_offset + 9)
+                records = breakup_chunk(Chunk.read(ReadDataStream(self._f)), validate_crc=True)
+            except CRCValidationError as exc:
+                self._chunk_damaged(k, ci, f"CRC {exc.actual:08x}, expected {exc.expected:08x}")
+                continue
+            except Exception as exc:  # noqa: BLE001 - damaged compressed bytes fail in the decompressor
+                self._chunk_damaged(k, ci, f"cannot be decoded ({type(exc).__name__}: {exc})")
+                continue
+            for j, r in enumerate(records):
+                if (isinstance(r, Message) and r.channel_id in chans and (start_ns is None or r.log_time >= start_ns)
+                        and (end_ns is None or r.log_time < end_ns)):
+                    pending[(off, j)] = r
+                    heapq.heappush(heap, (r.log_time, off, j, k))
 
     # Uncompressed chunks are read in place: the summary's message indexes give every message's
     # offset, and a memory map hands its bytes out with one copy (or none) instead of the
@@ -276,23 +357,18 @@ class BagReader:
     _MSG = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log time, publish time
 
     def _indexed(self, wanted: set[str] | None, start_ns: int | None, end_ns: int | None) -> list | None:
-        """(log_time, file offset, channel id) of the wanted messages in log-time (then file)
-        order, or None when the mcap library has to read (compressed or unindexed chunks)."""
-        s = self._summary
-        if s is None or not s.chunk_indexes:
-            return None
-        chans = {cid for cid, ch in s.channels.items() if wanted is None or ch.topic in wanted}
-        chunks = [ci for ci in s.chunk_indexes if chans & set(ci.message_index_offsets)
-                  and (end_ns is None or ci.message_start_time < end_ns)
-                  and (start_ns is None or ci.message_end_time >= start_ns)]
-        if any(ci.compression not in ("", "none") for ci in chunks):
+        """(log_time, file offset, channel id, chunk) of the wanted messages in log-time (then
+        file) order, or None when the chunks are compressed (_read_chunks reads them)."""
+        chans = self._channels(wanted)
+        chunks = self._chunks(chans, start_ns, end_ns)
+        if any(ci.compression not in ("", "none") for _, ci in chunks):
             return None
         try:
             if self._mm is None:
                 self._mm = mmap.mmap(self._f.fileno(), 0, access=mmap.ACCESS_READ)
             mm = self._mm
-            entries: list[tuple[int, int, int]] = []  # (log time, record offset, channel id)
-            for ci in chunks:
+            entries: list[tuple[int, int, int, int]] = []  # (log time, record offset, channel id, chunk)
+            for k, ci in chunks:
                 # chunk record: opcode, length, start/end time, uncompressed size, crc, compression, records
                 (comp_len,) = struct.unpack_from("<I", mm, ci.chunk_start_offset + 37)
                 records = ci.chunk_start_offset + 41 + comp_len + 8
@@ -303,7 +379,7 @@ class BagReader:
                     if op != 0x07 or ch != cid:
                         raise BagError(f"{self.path}: corrupt MCAP message index at offset {off}")
                     idx = np.frombuffer(mm, dtype="<u8", count=2 * (n // 16), offset=off + 15).reshape(-1, 2)
-                    entries.extend((int(t), records + int(o), cid) for t, o in idx
+                    entries.extend((int(t), records + int(o), cid, k) for t, o in idx
                                    if (start_ns is None or t >= start_ns) and (end_ns is None or t < end_ns))
         except (ValueError, struct.error, OSError) as exc:
             raise BagError(f"{self.path}: corrupt MCAP index ({type(exc).__name__}: {exc})") from None
@@ -315,7 +391,13 @@ class BagReader:
         view = memoryview(mm).toreadonly()
         channels = self._summary.channels
         size = len(mm)
-        for t, pos, cid in entries:
+        intact: dict[int, bool] = {}  # chunk -> its CRC matched (checked when its first message is read)
+        for t, pos, cid, k in entries:
+            ok = intact.get(k)
+            if ok is None:
+                ok = intact[k] = self._crc_ok(k, view)
+            if not ok:
+                continue
             try:
                 op, length, ch, _, log_time, _ = self._MSG.unpack_from(mm, pos)
             except struct.error:
@@ -327,8 +409,30 @@ class BagReader:
             topic = channels[cid].topic
             yield BagMessage(topic, self.topics[topic], log_time, data if zero_copy else bytes(data))
 
-    def _stream_messages(self, wanted: set[str] | None) -> Iterator[BagMessage]:
-        """Linear read that stops quietly at the first damaged record (recovery mode)."""
+    def _crc_ok(self, k: int, view: memoryview) -> bool:
+        """Whether uncompressed chunk `k`'s records match its CRC (0: none recorded)."""
+        ci = self._summary.chunk_indexes[k]
+        off = ci.chunk_start_offset
+        try:
+            (crc,) = struct.unpack_from("<I", view, off + 33)
+            (comp_len,) = struct.unpack_from("<I", view, off + 37)
+            (length,) = struct.unpack_from("<Q", view, off + 41 + comp_len)
+        except struct.error:
+            self._chunk_damaged(k, ci, "its header lies beyond the end of the file")
+            return False
+        start = off + 41 + comp_len + 8
+        if start + length > len(view):
+            self._chunk_damaged(k, ci, "its records run beyond the end of the file")
+            return False
+        actual = zlib.crc32(view[start : start + length]) if crc else 0
+        if actual != crc:
+            self._chunk_damaged(k, ci, f"CRC {actual:08x}, expected {crc:08x}")
+            return False
+        return True
+
+    def _stream_messages(self, wanted: set[str] | None, strict: bool = False) -> Iterator[BagMessage]:
+        """Linear read (no chunk index) with CRC checks: at the first damaged record it raises
+        BagError when `strict`, else (recovery) it stops there with a warning."""
         self._f.seek(0)
         channels: dict[int, Channel] = {}
         schemas: dict[int, Schema] = {}
@@ -338,8 +442,11 @@ class BagReader:
                 rec = next(records)
             except StopIteration:
                 return
-            except Exception as exc:  # noqa: BLE001 - any decode failure ends recovery here
-                log.info("%s: stopped reading at damaged data (%s: %s)", self.path, type(exc).__name__, exc)
+            except Exception as exc:  # noqa: BLE001 - any decode failure ends the read here
+                why = f"damaged data at byte {self._f.tell()} ({type(exc).__name__}: {exc})"
+                if strict:
+                    raise BagError(f"{self.path}: {why}; read the messages before it with --recover") from None
+                log.warning("%s: stopped reading at %s", self.path, why)
                 return
             if isinstance(rec, Schema):
                 schemas[rec.id] = rec

@@ -45,7 +45,7 @@ def write_synthetic_bag(
     rng = np.random.default_rng(seed)
     # one random texture per camera; frames differ by a cheap roll so bytes change
     textures = [rng.integers(0, 255, (c.height, c.width, 3), dtype=np.uint8) for c in rig] if images else []
-    with BagWriter(path, compression=compression) as w:
+    with BagWriter(path, compression=compression, overwrite=True) as w:  # scratch data: rewritten freely
         for k in range(n_frames):
             t = t0_ns + int(round(k * 1e9 / fps))
             views = src.render(k % len(src)) if pcm else None
