@@ -10,7 +10,8 @@ from vmocap_core.cameras.projection import Camera, Rig, look_at
 from vmocap_core.errors import ModelError
 from vmocap_core.keypoints import INDEX, KEYPOINTS, LOWER_BODY
 from vmocap_core.method.rotation import trunk_tilt
-from vmocap_core.pcm.blazepose import CROP_TO_MAP, rotated_crops
+from vmocap_core.pcm.blazepose import rotated_crops
+from vmocap_core.pcm.blazepose_net import CROP_TO_MAP
 from vmocap_core.pcm.crops import (
     BODY_FRACTION,
     Crops,
@@ -61,7 +62,7 @@ def test_warp_affine_agrees_with_the_affine(rotation: float, side: float) -> Non
 
 
 def test_blazepose_half_cell_convention() -> None:
-    """Map cell (x, y) is centred on crop pixel (4x - 0.5, 4y - 0.5) (measured, see blazepose.py)."""
+    """Map cell (x, y) is centred on crop pixel (4x - 0.5, 4y - 0.5) (measured, see blazepose_net.py)."""
     c, side, rot = np.array([500.0, 400.0]), 600.0, 0.3
     image_to_crop = crop_affine(c, side, rot, N)[0]
     image_to_map = compose_affine(CROP_TO_MAP, image_to_crop)

@@ -211,12 +211,12 @@ def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tup
     import onnxruntime as ort
 
     from . import fetch
-    from .blazepose import BlazePoseLandmark
+    from .blazepose_net import BlazePoseNet
 
     cpu = cpu_info()
     batch = reference_crops()
-    flt = BlazePoseLandmark(fetch.model_path(f"pose_landmark_{variant}"), threads=1, variant=variant, precision="float",
-                            input_size=CROP)
+    flt = BlazePoseNet(fetch.model_path(f"pose_landmark_{variant}"), threads=1, variant=variant, precision="float",
+                       input_size=CROP)
     ref = flt.decode(flt.run(batch))
 
     def result(precision: str, reason: str, used: str | None = None, ms: dict | None = None) -> CheckResult:
@@ -233,8 +233,8 @@ def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tup
         except ModelError as exc:
             missing.append(f"no int8 model for {name} ({exc})")
             continue
-        q = BlazePoseLandmark(int8_path, threads=1, variant=variant, precision="int8", session_config=config,
-                              input_size=CROP)
+        q = BlazePoseNet(int8_path, threads=1, variant=variant, precision="int8", session_config=config,
+                         input_size=CROP)
         tried[name] = agreement(ref, q.decode(q.run(batch)), flt.channel_valid)
         if tried[name].ok:
             break
