@@ -55,6 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             help=f"output of `vmocap {' '.join(COMMANDS[name][:-1] if name == 'shelf' else COMMANDS[name])}` (run it when absent)")
     parser.add_argument("--no-run", action="store_true", help="do not run missing benchmarks; leave them out")
     parser.add_argument("--out", type=Path, default=REPO / "reports" / "report.md", help="Markdown file to write")
+    parser.add_argument("--overwrite", action="store_true", help="replace the report file if it exists")
 
 
 def _load_or_run(name: str, path: Path | None, allow_run: bool) -> dict[str, Any] | None:
@@ -196,14 +197,17 @@ def build(acc, speed, pcm, shelf) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..files import check_output, write_text
+
+    inputs = [p for p in (args.accuracy_json, args.speed_json, args.pcm_json, args.shelf_json) if p]
+    check_output(args.out, inputs, args.overwrite)  # before the benchmarks run: a refusal costs nothing
     allow = not args.no_run
     acc = _load_or_run("accuracy", args.accuracy_json, allow)
     speed = _load_or_run("speed", args.speed_json, allow)
     pcm = _load_or_run("pcm", args.pcm_json, allow)
     shelf = _load_or_run("shelf", args.shelf_json, allow)
     text = build(acc, speed, pcm, shelf)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text + "\n")
+    write_text(args.out, text + "\n", inputs, args.overwrite)
     print(text)
     print(f"\n(written to {args.out})", file=sys.stderr)
     return 0

@@ -52,6 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-views", type=int, default=8, help="warn for cameras with fewer board views")
     p.add_argument("--out", default=None, help="write the rig file here")
     p.add_argument("--camera-info-dir", default=None, help="write one ROS camera_info YAML per camera here")
+    p.add_argument("--overwrite", action="store_true", help="replace the rig file and camera_info files if they exist")
     p.add_argument("--reference", default=None, help="compare with this calibration (caliscope .toml, Qualisys .qca.txt, vmocap .yaml)")
     p.add_argument("--check", action="store_true", help="exit 1 when the reference comparison exceeds the thresholds")
     p.add_argument("--max-position-err", type=float, default=0.02, help="metres, relative camera positions")
@@ -111,6 +112,7 @@ def _run(args: argparse.Namespace) -> int:
     if not cams:
         raise CalibrationError("no camera given (use --camera NAME=PATH)")
     names = [n for n, _ in cams]
+    _check_outputs(args, names, [p for _, p in cams])  # before the videos are read: a refusal costs nothing
     offsets = dict((k, int(v)) for k, v in _pairs(args.offset, "--offset"))
     log = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
     log(f"board: {board.describe()}")
@@ -154,18 +156,33 @@ def _print_result(res: CalibrationResult, log) -> None:
         log(f"bundle adjustment: {res.frames} board poses, RMS {res.rms_before:.3f} -> {res.rms_after:.3f} px")
 
 
+def _inputs(args: argparse.Namespace, videos: list[str]) -> list[str]:
+    return [p for p in (args.board, args.intrinsics, args.reference, args.scene_points, *videos) if p]
+
+
+def _check_outputs(args: argparse.Namespace, names: list[str], videos: list[str]) -> None:
+    from ..files import check_output
+
+    inputs = _inputs(args, videos)
+    if args.out:
+        check_output(args.out, inputs, args.overwrite)
+    if args.camera_info_dir:
+        for n in names:
+            check_output(Path(args.camera_info_dir) / f"{n}.yaml", inputs, args.overwrite)
+
+
 def _write(res: CalibrationResult, args: argparse.Namespace, log) -> None:
     from ..cameras.rig_file import camera_info_dict, save_rig
+    from ..files import write_text
 
+    inputs = _inputs(args, [p for _, p in _pairs(args.camera, "--camera")])
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        save_rig(res.rig, args.out)
+        save_rig(res.rig, args.out, args.overwrite, inputs)
         log(f"wrote {args.out}")
     if args.camera_info_dir:
         d = Path(args.camera_info_dir)
-        d.mkdir(parents=True, exist_ok=True)
         for cam in res.rig:
-            (d / f"{cam.name}.yaml").write_text(yaml.safe_dump(camera_info_dict(cam), sort_keys=False))
+            write_text(d / f"{cam.name}.yaml", yaml.safe_dump(camera_info_dict(cam), sort_keys=False), inputs, args.overwrite)
         log(f"wrote {len(res.rig)} camera_info files to {d}")
 
 

@@ -62,12 +62,12 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
     return {"cameras": cams}
 
 
-def save_rig(rig: Rig, path: str | Path) -> None:
-    """Write a rig file (atomically: a reader never sees a half-written file)."""
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(yaml.safe_dump(rig_to_dict(rig), sort_keys=False))
-    tmp.replace(path)
+def save_rig(rig: Rig, path: str | Path, overwrite: bool = True, inputs: Iterable[str | Path] = ()) -> None:
+    """Write a rig file atomically (vmocap_core.files: a reader never sees a half-written file);
+    `vmocap calibrate` passes overwrite=False unless told otherwise."""
+    from ..files import write_text
+
+    write_text(path, yaml.safe_dump(rig_to_dict(rig), sort_keys=False), inputs, overwrite)
 
 
 def _field(path: Path, d: Any, key: str, where: str) -> Any:

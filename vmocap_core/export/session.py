@@ -61,7 +61,7 @@ class Session:
         return before[-1] if before else self.subjects[0][1]
 
 
-def load_session(path: str | Path, namespace: str = "/vmocap") -> Session:
+def load_session(path: str | Path, namespace: str = "/vmocap", recover: bool = False) -> Session:
     """Read the keypoints, joint_states and subject diagnostics of a processed bag."""
     topics = Topics(namespace)
     kp: dict[int, np.ndarray | None] = {}
@@ -69,7 +69,7 @@ def load_session(path: str | Path, namespace: str = "/vmocap") -> Session:
     poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     names: list[str] = []
     subjects: list[tuple[int, BodyDimensions]] = []
-    with BagReader(path) as reader:
+    with BagReader(path, recover=recover) as reader:  # recover: a truncated bag, damaged chunks
         if topics.keypoints not in reader.topics:
             raise BagError(f"{path}: no {topics.keypoints} topic (not a processed bag: run `vmocap process`)")
         want = [topics.keypoints] + [t for t in (topics.joint_states, topics.root_pose, Topics.diagnostics)

@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -23,6 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--namespace", default="/vmocap")
     parser.add_argument("--name", default="vmocap_subject", help="robot name in the URDF")
     parser.add_argument("-o", "--output", required=True, help="URDF file to write ('-': standard output)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
     parser.add_argument("--json", action="store_true", help="print the link lengths as JSON")
 
 
@@ -64,12 +64,16 @@ def _identified(path: str, topic: str):
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..files import check_output, write_text
     from ..graph_config import Topics
     from ..method.skeleton import BodyDimensions
     from .tf import UrdfKinematics
     from .urdf import SubjectModel
 
     topics = Topics(args.namespace)
+    inputs = [p for p in (args.bag, args.keypoints) if p]
+    if args.output != "-":
+        check_output(args.output, inputs, args.overwrite)  # before reading: a refusal costs nothing
     dims = None
     if args.bag:
         xml = _from_bag(args.bag, topics.robot_description, args.at)
@@ -80,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     if args.output == "-":
         sys.stdout.write(xml)
     else:
-        Path(args.output).write_text(xml)
+        write_text(args.output, xml, inputs, args.overwrite)
     info = {"output": args.output, "joints": len(kin.joint_names), "fixed_frames": len(kin.static_transforms())}
     if dims is not None:
         info["link_lengths"] = {k: round(v, 4) for k, v in dims.bone_lengths().items()}
