@@ -49,7 +49,8 @@ class Stat:
         if not self.v:
             return {}
         a = np.fromiter(self.v, float)
-        return {"p50": f"{np.percentile(a, 50):.3f}", "p95": f"{np.percentile(a, 95):.3f}", "n": str(len(a))}
+        return {"p50": f"{np.percentile(a, 50):.3f}", "p95": f"{np.percentile(a, 95):.3f}", "mean": f"{a.mean():.3f}",
+                "n": str(len(a))}
 
 
 

@@ -141,7 +141,7 @@ def write_report(rig: Rig, rec: dict, out_dir: Path, info: dict) -> dict:
             bones[name] = {"mean_m": float(L.mean()), "std_mm": float(L.std() * 1000), "range_mm": float(np.ptp(L) * 1000)}
     # Timing.
     if rec.get("node_timing"):
-        timing = {f"node {k}": {"mean_ms": float("nan"), "median_ms": v["median_ms"], "p95_ms": v["p95_ms"]}
+        timing = {f"node {k}": {"mean_ms": v["mean_ms"], "median_ms": v["median_ms"], "p95_ms": v["p95_ms"]}
                   for k, v in rec["node_timing"].items()}
     else:
         timing = {k[2:]: {"mean_ms": float(np.mean(rec[k]) * 1000), "median_ms": float(np.median(rec[k]) * 1000),
@@ -234,7 +234,8 @@ def write_report(rig: Rig, rec: dict, out_dir: Path, info: dict) -> dict:
         *[f"| {k} | {v['mean_m']:.3f} | {v['std_mm']:.2f} | {v['range_mm']:.2f} |" for k, v in bones.items()], "",
         "Time per frame set (this machine, shared CPU):", "",
         "| stage | mean ms | median ms | p95 ms |", "|---|---|---|---|",
-        *[f"| {k} | {v['mean_ms']:.1f} | {v['median_ms']:.1f} | {v['p95_ms']:.1f} |" for k, v in timing.items()], "",
+        *[f"| {k} | " + " | ".join(f"{v[c]:.1f}" if np.isfinite(v[c]) else "n/a" for c in ("mean_ms", "median_ms", "p95_ms")) + " |"
+          for k, v in timing.items()], "",
         "Files: " + ", ".join(sorted(p.name for p in out_dir.iterdir() if p.is_file())) + ".",
     ]
     (out_dir / "report.md").write_text("\n".join(md) + "\n")

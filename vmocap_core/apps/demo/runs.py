@@ -217,7 +217,8 @@ def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
                 for st in msg.get("status", []):  # the nodes' own processing time (last report wins)
                     kv = {e["key"]: e["value"] for e in st.get("values", [])}
                     if "proc_ms_p50" in kv:
-                        node_timing[st["name"]] = {"median_ms": float(kv["proc_ms_p50"]), "p95_ms": float(kv["proc_ms_p95"]),
+                        node_timing[st["name"]] = {"mean_ms": float(kv.get("proc_ms_mean", "nan")),
+                                                   "median_ms": float(kv["proc_ms_p50"]), "p95_ms": float(kv["proc_ms_p95"]),
                                                    "frames": float(kv.get("proc_ms_n", "nan"))}
                 continue
             f = index.get(M.stamp_ns(msg)) if isinstance(msg, dict) and "header" in msg else None
