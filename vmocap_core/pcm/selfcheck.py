@@ -46,6 +46,9 @@ INT8_KERNELS: dict[str, tuple[str, dict[str, str]]] = {
     "u8s8-w7": ("_int8w7", {}),
     "u8u8": ("_int8", {"session.x64quantprecision": "1"}),
 }
+# Restricts the int8 kernels tried (comma-separated INT8_KERNELS names), e.g. "u8s8-w7" gives a VNNI
+# CPU what a CPU without VNNI gets: how CI and developers reproduce the slower class.
+KERNELS_ENV = "VMOCAP_INT8_KERNELS"
 X86_FLAGS = ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16")
 ARM_FLAGS = ("asimd", "asimddp", "i8mm")
 
@@ -204,10 +207,24 @@ def _time_batch(model, batch: np.ndarray) -> float:
     return time.perf_counter() - t0
 
 
-def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tuple[str, ...] = tuple(INT8_KERNELS)) -> CheckResult:
-    """Run float and int8 (each of the INT8_KERNELS `kernels` in turn until one agrees) on the reference crops,
-    one thread each, and time the float and the correct int8 model (minimum of `repeats`
-    interleaved runs)."""
+def allowed_kernels() -> tuple[str, ...]:
+    """The INT8_KERNELS entries the check may try: all, or those named in $VMOCAP_INT8_KERNELS."""
+    import os
+
+    raw = os.environ.get(KERNELS_ENV, "").strip()
+    if not raw:
+        return tuple(INT8_KERNELS)
+    names = tuple(k.strip() for k in raw.split(",") if k.strip())
+    unknown = [k for k in names if k not in INT8_KERNELS]
+    if unknown:
+        raise ModelError(f"{KERNELS_ENV}: unknown int8 kernels {unknown} (known: {', '.join(INT8_KERNELS)})")
+    return names
+
+
+def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tuple[str, ...] | None = None) -> CheckResult:
+    """Run float and int8 (each of the INT8_KERNELS `kernels` in turn until one agrees; default
+    `allowed_kernels()`) on the reference crops, one thread each, and time the float and the
+    correct int8 model (minimum of `repeats` interleaved runs)."""
     import onnxruntime as ort
 
     from . import fetch
@@ -226,7 +243,7 @@ def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tup
     tried: dict[str, Agreement] = {}
     missing: list[str] = []
     q = None
-    for name in kernels:
+    for name in kernels if kernels is not None else allowed_kernels():
         suffix, config = INT8_KERNELS[name]
         try:
             int8_path = fetch.model_path(f"pose_landmark_{variant}{suffix}")
