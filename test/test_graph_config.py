@@ -85,7 +85,17 @@ def test_live_config_and_config_check_command(tmp_path):
     cfg = graph_config.load(REPO / "config" / "live.yaml")
     assert cfg.process_groups() == [["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"], ["vmocap_recorder"]]
     assert cfg.node_params("vmocap_pcm")["model"] == "blazepose"
-    ok = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "config", "check", str(REPO / "config" / "live.yaml")],
+    # the template names a rig the user writes (`vmocap calibrate --out`): checked, it is missing
+    tpl = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "config", "check", str(REPO / "config" / "live.yaml")],
+                         capture_output=True, text=True, timeout=60)
+    assert tpl.returncode == 2 and "my_rig.yaml: no such rig file" in tpl.stderr, tpl.stderr
+    from vmocap_core.cameras.rig_file import save_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
+
+    save_rig(benchmark_rig(), tmp_path / "my_rig.yaml")
+    live = tmp_path / "live.yaml"
+    live.write_text((REPO / "config" / "live.yaml").read_text())
+    ok = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "config", "check", str(live)],
                         capture_output=True, text=True, timeout=60)
     assert ok.returncode == 0 and "vmocap_camera + vmocap_pcm" in ok.stdout and "threads: 2" in ok.stdout, ok.stderr
     bad = _cfg(tmp_path, {"vmocap_pcm_cam0": {"cameras": ["cam0"], "threads": "two"}})

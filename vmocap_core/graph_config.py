@@ -124,6 +124,7 @@ NODE_PARAMS: dict[str, list[Param]] = {
     "vmocap_recorder": [
         Param("output", "", "MCAP file to write (renamed from .partial when closed)", path=True),
         Param("topics", [""], "topics to record; empty: the graph outputs"),
+        Param("overwrite", False, "replace an existing output file (without it the recorder refuses to start)"),
         Param("compression", "none", "MCAP chunk compression", choices=("none", "zstd", "lz4")),
         Param("chunk_kb", 256, "MCAP chunk size (KiB): a killed recorder loses at most the chunk being filled "
               "(the graph's outputs fill 256 KiB in about a second; images much faster)", 16, 65536),

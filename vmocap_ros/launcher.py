@@ -50,8 +50,9 @@ def run(args: argparse.Namespace) -> int:
     cfg = graph_config.load(args.config)
     nodes = args.nodes or cfg.node_names()
     sets = parse_sets(args.set)
-    for n in nodes:  # validate overrides before starting anything
-        cfg.node_params(n, sets.get(n))
+    from vmocap_core.graph_check import check_graph
+
+    check_graph(cfg, nodes, sets)  # overrides included; before anything starts
     single = args.single_process or (cfg.launch["mode"] == "single_process" and not args.processes)
     env = child_env(cfg.launch.get("fastdds_profile"))
     for k, v in (cfg.launch.get("env") or {}).items():

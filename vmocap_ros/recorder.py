@@ -15,6 +15,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", required=True, help="MCAP file to write")
     parser.add_argument("--namespace", default="/vmocap", help="graph namespace (for the default topics)")
     parser.add_argument("--compression", default="none", choices=("none", "zstd", "lz4"))
+    parser.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
     parser.add_argument("--config", default=str(CONFIG_DIR / "graph.yaml"), help="graph config (for shared parameters)")
 
 
@@ -24,9 +25,10 @@ def run(args: argparse.Namespace) -> int:
     from .run_node import spin_nodes
 
     overrides = {"vmocap_recorder": {"output": args.output, "topics": list(args.topics) or [""],
-                                     "compression": args.compression, "namespace": args.namespace}}
+                                     "compression": args.compression, "namespace": args.namespace,
+                                     "overwrite": args.overwrite}}
     try:
         return spin_nodes(args.config, ["vmocap_recorder"], overrides)
     except VmocapError as exc:
         print(f"vmocap record: {exc}", file=sys.stderr)
-        return 1
+        return 2  # bad input, as every vmocap command

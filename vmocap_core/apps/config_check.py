@@ -8,6 +8,7 @@ import argparse
 import json
 
 from .. import graph_config
+from ..graph_check import check_graph
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -17,6 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = graph_config.load(args.config)  # GraphConfigError names the file, section and key
+    check_graph(cfg)  # values that cannot work with the rig or the files
     nodes = {n: cfg.node_params(n) for n in cfg.node_names()}
     single = cfg.launch["mode"] == "single_process"
     processes = [cfg.node_names()] if single else cfg.process_groups()

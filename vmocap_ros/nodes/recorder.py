@@ -51,7 +51,8 @@ class RecorderNode(VmocapNode):
             self.get_logger().warning(msg)
             self.warn_for("kept", msg, hold_s=30.0)
         # small chunks: on SIGKILL only the chunk being filled is lost (`--recover` reads the rest)
-        self.writer = BagWriter(self.p["output"], compression=self.p["compression"], chunk_size=self.p["chunk_kb"] << 10).open()
+        self.writer = BagWriter(self.p["output"], compression=self.p["compression"], chunk_size=self.p["chunk_kb"] << 10,
+                                overwrite=self.p["overwrite"]).open()
         self.known = recorded_outputs(self.topics)
         self.wanted = list(self.p["topics"]) or list(self.known)
         self.subscribed: set[str] = set()
