@@ -50,32 +50,10 @@ BLAZEPOSE_NAMES: tuple[str, ...] = (
     "right_heel", "left_foot_index", "right_foot_index",
 )  # fmt: skip
 
-# vmocap keypoint -> BlazePose landmark name (absent: no heatmap for it)
-TO_BLAZEPOSE: dict[str, str] = {
-    "nose": "nose",
-    "left_eye": "left_eye",
-    "right_eye": "right_eye",
-    "left_ear": "left_ear",
-    "right_ear": "right_ear",
-    "left_shoulder": "left_shoulder",
-    "right_shoulder": "right_shoulder",
-    "left_elbow": "left_elbow",
-    "right_elbow": "right_elbow",
-    "left_wrist": "left_wrist",
-    "right_wrist": "right_wrist",
-    "left_hand": "left_index",
-    "right_hand": "right_index",
-    "left_hip": "left_hip",
-    "right_hip": "right_hip",
-    "left_knee": "left_knee",
-    "right_knee": "right_knee",
-    "left_ankle": "left_ankle",
-    "right_ankle": "right_ankle",
-    "left_heel": "left_heel",
-    "right_heel": "right_heel",
-    "left_toe": "left_foot_index",
-    "right_toe": "right_foot_index",
-}
+# vmocap keypoint -> BlazePose landmark name (absent: no heatmap for it); the others keep their name
+_RENAMED = {"left_hand": "left_index", "right_hand": "right_index", "left_toe": "left_foot_index",
+            "right_toe": "right_foot_index"}
+TO_BLAZEPOSE: dict[str, str] = {k: _RENAMED.get(k, k) for k in KEYPOINTS if _RENAMED.get(k, k) in BLAZEPOSE_NAMES}
 # for each of our 25 channels, the BlazePose heatmap channel (-1: none)
 CHANNEL: np.ndarray = np.array([BLAZEPOSE_NAMES.index(TO_BLAZEPOSE[k]) if k in TO_BLAZEPOSE else -1 for k in KEYPOINTS])
 
