@@ -1,7 +1,9 @@
 """The image benchmark's recordings through the ROS 2 node graph (`vmocap bench images --graph`).
 
-The graph's own vmocap_camera node plays the rendered MCAP (original stamps, slowed down by
-`rate` so the CNN keeps up on a small machine), vmocap_pcm runs the CNN (rotation and
+The graph's own vmocap_camera node plays the rendered MCAP (original stamps) in lockstep: each
+frame set once the previous one's feedback came back, so every frame set is processed whatever
+this CPU's speed (`rate` > 0 plays at that fraction of real time instead, as a live camera
+would feed it, dropping what the CNN cannot keep up with), vmocap_pcm runs the CNN (rotation and
 precision as asked), vmocap_markers and vmocap_skeleton track; all nodes in one process
 (`vmocap launch`, single_process). A subscriber here collects /vmocap/keypoints by capture
 stamp until the recording's last frame set came out (or the graph fell silent).
@@ -27,13 +29,15 @@ NODES = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]
 
 
 def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: dict, rate: float) -> Path:
-    """tracker: flat tracker settings (PipelineConfig keys, `fps` among them) for the nodes."""
+    """tracker: flat tracker settings (PipelineConfig keys, `fps` among them) for the nodes;
+    rate <= 0: lockstep."""
     from vmocap_core.graph_config import stage_sections
 
     cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
     cfg["/**"]["ros__parameters"].update(rig=str(rig_path), pcm_keypoints=[""])  # the CNN's 25 channels
-    cfg["vmocap_camera"]["ros__parameters"].update(source="bag", uri=str(rec), rate=float(rate), loop=False,
+    cfg["vmocap_camera"]["ros__parameters"].update(source="bag", uri=str(rec), rate=max(float(rate), 0.0), loop=False,
                                                     restamp=False, wait_subscribers=120.0)
+    cfg["/**"]["ros__parameters"]["lockstep"] = rate <= 0
     cfg["vmocap_pcm"]["ros__parameters"].update(source="model", model="blazepose", rotation=rotation)
     for section, values in stage_sections(tracker).items():
         cfg.setdefault(section, {}).setdefault("ros__parameters", {}).update(values)
@@ -89,7 +93,8 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
                               stdout=log, stderr=subprocess.STDOUT)
     last = int(stamps[-1])
-    expected_s = len(stamps) / fps / rate
+    # lockstep goes at the graph's pace, which only the silence check bounds
+    expected_s = len(stamps) / fps / rate if rate > 0 else len(stamps) * 1.0
     deadline = time.monotonic() + 180.0 + 3.0 * expected_s
     try:
         while time.monotonic() < deadline and last not in got:

@@ -140,8 +140,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=REPO / "out" / "image_bench", help="report, overlays, graph outputs")
     parser.add_argument("--graph", default="first", choices=("first", "all", "none"),
                         help="replay through the ROS 2 node graph too: for the first config (default), all, or none")
-    parser.add_argument("--graph-rate", type=float, default=0.2,
-                        help="playback speed of the recording in the graph (0.2: 12 Hz, so the CNN keeps up)")
+    parser.add_argument("--graph-rate", type=float, default=0.0,
+                        help="playback speed of the recording in the graph; 0 (default): lockstep, each frame set "
+                             "once the previous one's feedback came back (every frame set processed on any CPU)")
     parser.add_argument("--no-synthetic", action="store_true", help="skip the synthetic benchmark's figure")
     parser.add_argument("--leave-one-out", action="store_true",
                         help="score each clip with a landmark model learnt on the other clips (the shipped one was "
@@ -181,7 +182,7 @@ def leave_one_out_models(files: list[Path], rig, args: argparse.Namespace) -> di
         _, rec, stamps, truth = render(path, rig, args)
         out = folder / f"{path.stem}_markers.mcap"
         process_bag(rec, out, rig, config={**args.tracker, "landmarks": "none"}, progress=False,
-                    provider=_Provider(rig, "all", "int8"))
+                    provider=_Provider(rig, "all", "int8"), overwrite=True)
         samples[path.stem] = clip_samples(truth, read_markers(out, stamps))
     models = {}
     for held in samples:
@@ -204,8 +205,9 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
     for name in args.configs:
         rotation, precision = CONFIGS[name]
         out = args.out / f"{path.stem}_{name}.mcap"
+        # the benchmark's own product in its --out folder: a rerun replaces it
         process_bag(rec, out, rig, config=args.tracker, progress=not args.json,
-                    provider=_Provider(rig, rotation, precision))
+                    provider=_Provider(rig, rotation, precision), overwrite=True)
         est = read_estimates(out, stamps)
         row[name] = score(est, truth)
         curves[name] = frame_mpjpe(est, truth)
