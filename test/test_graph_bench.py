@@ -5,9 +5,11 @@ import json
 import subprocess
 import sys
 
+import pytest
 from graph_helpers import REPO, domain_env
 
 
+@pytest.mark.graph_replay
 def test_bench_graph_json(tmp_path):
     env = domain_env(21)
     r = subprocess.run(
