@@ -12,6 +12,7 @@ import sys
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -38,14 +39,22 @@ class ClipSpec:
     frames: int
     rate_hz: float
     seed: int
+    variant: int = 0  # 0: the clip's own body and look; k > 0: the k-th next shape, another look
 
     def shape(self) -> str:
-        """Body shape of the clip: cycles through SHAPES by clip name (all shapes over the set)."""
+        """Body shape of the clip: cycles through SHAPES by clip name (all shapes over the set);
+        variant k takes the k-th shape after that one."""
         names = sorted(SHAPES)
-        return names[(zlib.crc32(self.path.stem.encode()) + self.seed) % len(names)]
+        return names[(zlib.crc32(self.path.stem.encode()) + self.seed + self.variant) % len(names)]
 
     def rng_seed(self) -> int:
-        return zlib.crc32(f"{self.path.stem}:{self.seed}".encode())
+        # variant 0 keeps the key it had before variants existed: the same bytes as before
+        tail = f":{self.variant}" if self.variant else ""
+        return zlib.crc32(f"{self.path.stem}:{self.seed}{tail}".encode())
+
+    def label(self) -> str:
+        """The clip's name, with the shape for variants (report rows, output files)."""
+        return self.path.stem if self.variant == 0 else f"{self.path.stem}-{self.shape()}"
 
 
 def scale_rig(rig: Rig, factor: float) -> Rig:
@@ -74,7 +83,10 @@ def prepare_motion(spec: ClipSpec) -> Motion:
 def cache_key(spec: ClipSpec, rig: Rig) -> str:
     h = hashlib.sha256()
     h.update(Path(spec.path).read_bytes())
-    h.update(json.dumps({"frames": spec.frames, "rate": spec.rate_hz, "seed": spec.seed, "v": RENDER_VERSION}).encode())
+    key = {"frames": spec.frames, "rate": spec.rate_hz, "seed": spec.seed, "v": RENDER_VERSION}
+    if spec.variant:  # variant 0 keeps its old key (and cached file)
+        key["variant"] = spec.variant
+    h.update(json.dumps(key).encode())
     for c in rig:
         h.update(c.name.encode())
         for a in (c.K, c.dist, c.R, c.t, np.array([c.width, c.height], float)):
@@ -87,28 +99,33 @@ def render_recording(spec: ClipSpec, rig: Rig, cache_dir: Path, progress: bool =
     from tqdm import tqdm
 
     cache_dir.mkdir(parents=True, exist_ok=True)
-    out = cache_dir / f"{spec.path.stem}_{cache_key(spec, rig)}.mcap"
+    out = cache_dir / f"{spec.label()}_{cache_key(spec, rig)}.mcap"
     if out.exists():
         return out
     motion = prepare_motion(spec)
     J = clip_joints(motion.positions, KEYPOINTS)
     body = load_body(spec.shape())
     A, b = segment_transforms(body, J)
-    verts = [skin(body, A[t], b[t]) for t in range(len(A))]
-    lowest = np.array([v[:, 2].min() for v in verts])
+
+    def posed() -> Iterator[np.ndarray]:
+        # one posed body at a time (skinning again per pass): memory does not grow with the clip
+        return (skin(body, A[t], b[t]) for t in range(len(A)))
+
+    lowest = np.array([v[:, 2].min() for v in posed()])
     # the floor under the soles: at z = 0 unless the body lies lower (then it sinks into it less)
     floor_z = float(min(0.0, np.percentile(lowest, 5)))
     rng = np.random.default_rng(spec.rng_seed())
     scene = SceneRenderer(rig, body, Appearance.draw(rng), spec.rng_seed(), floor_z)
-    scene.fit_box(verts)
+    scene.fit_box(posed())
     topics = Topics()
     tmp = out.with_suffix(".part")
     try:
-        with BagWriter(tmp, compression="zstd") as w:
-            for k in tqdm(range(len(verts)), desc=f"render {spec.path.stem}", unit="frame", disable=not progress,
-                          file=sys.stderr, leave=False):
+        # the .part file is this cache's own scratch: one left by an interrupted render is replaced
+        with BagWriter(tmp, compression="zstd", overwrite=True) as w:
+            for k, verts in enumerate(tqdm(posed(), total=len(A), desc=f"render {spec.label()}", unit="frame",
+                                           disable=not progress, file=sys.stderr, leave=False)):
                 t = T0_NS + int(round(k * 1e9 / spec.rate_hz))
-                for cam, img in zip(rig, scene.render(verts[k])):
+                for cam, img in zip(rig, scene.render(verts)):
                     w.write(topics.camera_info(cam.name), "sensor_msgs/msg/CameraInfo", M.camera_info_msg(cam, t), t)
                     w.write(topics.image(cam.name), "sensor_msgs/msg/Image", M.image_msg(img, t, cam.name), t)
                 w.write(TRUTH_TOPIC, "sensor_msgs/msg/PointCloud2", M.keypoint_cloud(t, motion.positions[k]), t)
