@@ -88,7 +88,7 @@ def sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _read_manifest(directory: Path) -> dict:
+def read_manifest(directory: Path) -> dict:
     try:
         return json.loads((directory / MANIFEST).read_text())
     except (OSError, ValueError):
@@ -98,7 +98,7 @@ def _read_manifest(directory: Path) -> dict:
 def verify(directory: Path | None = None) -> dict[str, str]:
     """Problems of the cache per file name ({} when every cached file matches its checksum)."""
     directory = directory or model_dir()
-    manifest = _read_manifest(directory)
+    manifest = read_manifest(directory)
     if manifest.get("converter_version") != _converter_version():
         return {MANIFEST: "missing or written by another converter version"}
     problems = {}
@@ -133,7 +133,7 @@ def model_path(name: str, kind: str = "onnx", directory: Path | None = None) -> 
         raise ModelError(f"model file {path} is missing; run `{cmd}` to build the model cache")
     key = (str(path), path.stat().st_mtime)
     if key not in _verified:
-        manifest = _read_manifest(directory)
+        manifest = read_manifest(directory)
         digest = manifest.get("files", {}).get(fname)
         if manifest.get("converter_version") != _converter_version() or digest is None:
             raise ModelError(f"model cache {directory} is outdated; run `{REBUILD_COMMAND}` to rebuild it")

@@ -274,11 +274,55 @@ _verdicts: dict[str, CheckResult] = {}
 _lock = threading.Lock()
 
 
+def from_dict(d: dict) -> CheckResult:
+    """The CheckResult that `to_dict` wrote."""
+    cpu = CpuInfo(d["cpu"]["arch"], d["cpu"]["model"], tuple(d["cpu"]["flags"]))
+    tried = {k: Agreement(**{f: a[f] for f in ("median_cells", "p95_cells", "max_cells", "presence_diff", "peaks")})
+             for k, a in d["tried"].items()}
+    return CheckResult(cpu, d["onnxruntime"], d["precision"], d["reason"], d["int8_kernels"], tried,
+                       {k: float(v) for k, v in d["ms_per_crop"].items()})
+
+
+def verdict_path(variant: str = "full") -> Path:
+    """Where this machine's verdict is kept: one file per CPU (model and flags), onnxruntime
+    version, model files (their checksums) and allowed kernels, in the model cache."""
+    import hashlib
+
+    import onnxruntime as ort
+
+    from . import fetch
+
+    cpu = cpu_info()
+    files = fetch.read_manifest(fetch.model_dir()).get("files", {})
+    models = sorted((k, str(v)) for k, v in files.items() if str(k).startswith(f"pose_landmark_{variant}"))
+    key = json.dumps([cpu.arch, cpu.model, list(cpu.flags), ort.__version__, models, list(allowed_kernels())])
+    return fetch.model_dir() / f"selfcheck_{variant}_{hashlib.sha256(key.encode()).hexdigest()[:16]}.json"
+
+
+def save_verdict(result: CheckResult, variant: str = "full") -> None:
+    from ..files import write_text
+
+    write_text(verdict_path(variant), json.dumps(result.to_dict(), indent=1), overwrite=True)
+
+
 def verdict(variant: str = "full") -> CheckResult:
-    """`run_check` once per process and variant; logs one warning when int8 is unusable."""
+    """The check's verdict, once per machine: read from the model cache when this CPU,
+    onnxruntime and model files were checked before, else `run_check` and kept there. Every
+    process on the machine then runs the same precision (int8's speed margin over float can
+    be small enough for a timing under load to decide otherwise in one process, which would
+    make the graph's results differ from `vmocap process`'s). `vmocap models check` runs it
+    again and replaces the kept verdict. Logs one warning when int8 is unusable."""
     with _lock:
         if variant not in _verdicts:
-            result = run_check(variant)
+            path = verdict_path(variant)
+            try:
+                result = from_dict(json.loads(path.read_text()))
+            except (OSError, ValueError, KeyError, TypeError):
+                result = run_check(variant)
+                try:
+                    save_verdict(result, variant)
+                except OSError as exc:  # a read-only model cache: checked again by the next process
+                    log.info("vmocap: self-check verdict not kept (%s)", exc)
             if result.warning:
                 log.warning("vmocap: %s", result.warning)
             _verdicts[variant] = result
@@ -303,6 +347,10 @@ def run(args: argparse.Namespace) -> int:
     except ModelError as exc:
         print(f"vmocap models check: {exc}")
         return 1
+    try:
+        save_verdict(result, args.variant)  # what every vmocap process on this machine uses from now on
+    except OSError as exc:
+        print(f"vmocap models check: verdict not kept ({exc})")
     if args.json:
         print(json.dumps(result.to_dict(), indent=1))
         return 0
