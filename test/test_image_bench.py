@@ -180,3 +180,74 @@ def test_leave_one_out_learns_each_clips_landmarks_from_the_others(rig, tmp_path
         model = load_landmarks(str(path))
         assert model is not None and held not in model.note and ({"walk", "punch"} - {held}).pop() in model.note
         assert np.isfinite(model.offsets).all() and 0.005 < np.abs(model.offsets).max() < 0.1, model.offsets
+
+
+def test_shader_programs_are_compiled_once(rig):
+    """Rendering frame after frame compiles no new shader program: pyrender's own cache missed
+    on every render under OSMesa and kept ~13 MB per frame set, so a clip's length was bounded
+    by RAM."""
+    from vmocap_core.apps.render.body import load_body
+    from vmocap_core.apps.render.pose import clip_joints, segment_transforms, skin
+    from vmocap_core.apps.render.recording import ClipSpec, prepare_motion
+    from vmocap_core.apps.render.scene import Appearance, SceneRenderer
+    from vmocap_core.keypoints import KEYPOINTS
+
+    m = prepare_motion(ClipSpec(CLIP, 4, 60.0, 0))
+    body = load_body("average")
+    A, b = segment_transforms(body, clip_joints(m.positions, KEYPOINTS))
+    scene = SceneRenderer(rig, body, Appearance.draw(np.random.default_rng(2)), 2)
+    scene.fit_box(skin(body, A[k], b[k]) for k in range(4))  # a generator: one posed body at a time
+    try:
+        scene.render(skin(body, A[0], b[0]))
+        compiled = scene._renderer()._renderer._program_cache.inner._program_cache
+        first = len(compiled)
+        for k in range(1, 4):
+            scene.render(skin(body, A[k], b[k]))
+        assert first > 0 and len(compiled) == first, (first, len(compiled))
+    finally:
+        scene.close()
+
+
+def test_body_variants_and_motion_groups():
+    """Variant 0 is the clip's own shape and name; variant 1 another shape, look and cache
+    entry. Groups come from the keypoints: upright, upside down, low to the ground."""
+    from vmocap_core.apps.bench import images
+    from vmocap_core.apps.bench.motion_groups import motion_group
+    from vmocap_core.apps.render.recording import ClipSpec, cache_key
+    from vmocap_core.cameras.rig_file import load_rig
+    from vmocap_core.motion import load_motion
+
+    a, b = ClipSpec(CLIP, 3, 60.0, 0), ClipSpec(CLIP, 3, 60.0, 0, variant=1)
+    assert a.label() == "walk" and b.label() == f"walk-{b.shape()}" and a.shape() != b.shape()
+    assert a.rng_seed() != b.rng_seed()
+    full = load_rig(REPO / "config" / "benchmark_rig.yaml")
+    assert cache_key(a, full) != cache_key(b, full)
+    files = {p.stem: p for p in images.clip_files([Path("all")])}
+    assert len(files) == 15 and {"backflip", "roll", "walk", "getup_faceup"} <= set(files)
+    want = {"walk": "regular", "spin": "regular", "cartwheel": "inverted", "backflip": "inverted",
+            "crawl": "floor", "roll": "floor", "getup_faceup": "floor"}
+    assert {n: motion_group(load_motion(files[n]).positions) for n in want} == want
+
+
+def test_false_tracking_counts_tracked_frames_over_100_mm():
+    """false_tracking_pct: of the frames reported `tracking` (keypoints out), the share whose
+    MPJPE is over 100 mm; frames identifying, uncertain or lost carry no keypoints and do not count."""
+    from vmocap_core.apps.bench import images
+
+    status = ["identifying", "tracking", "tracking", "uncertain", "tracking", "lost", "tracking", "tracking"]
+    error_mm = np.array([500.0, 40.0, 150.0, 300.0, 99.0, 800.0, 101.0, 20.0])
+    tracked = np.array([s == "tracking" for s in status])
+    assert images.false_tracking(tracked, error_mm) == {"tracked_frames": 5, "false_tracked_frames": 2,
+                                                        "false_tracking_pct": 40.0}
+    # the same series through score(): truth keypoints, estimates off by error_mm along x, none when not tracking
+    rng = np.random.default_rng(0)
+    truth = np.full((len(status), 25, 3), np.nan)
+    truth[:, :14] = rng.normal(0.0, 0.5, (len(status), 14, 3))
+    est = truth + np.array([1.0, 0.0, 0.0]) * error_mm[:, None, None] / 1000
+    est[~tracked] = np.nan
+    r = images.score(est, truth)
+    assert (r["tracked_frames"], r["false_tracked_frames"]) == (5, 2) and r["false_tracking_pct"] == pytest.approx(40.0)
+    none = images.score(np.full_like(est, np.nan), truth)
+    assert none["false_tracking_pct"] is None and none["tracked_frames"] == 0
+    rows = [{"c": r}, {"c": {**none, "n": 0}}]
+    assert images._pool_false_tracking(rows, "c") == pytest.approx(40.0)

@@ -4,9 +4,11 @@ Each motion clip is rendered as a textured MakeHuman body in the benchmark rig's
 (vmocap_core.apps.render), written to an MCAP recording (images, camera_info, truth), and run
 through the offline pipeline (`vmocap process`: the real CNN on the images, crops from the
 fed-back skeleton, lattice search, IK, filter) with image rotation on/off and the CNN in
-float and int8. Reported per clip and group (regular/inverted): MPJPE and PCK@50 against the
-clip, the constant per-joint offset (mean error vector) and the MPJPE left after removing
-it, the link-length error, and the synthetic benchmark's MPJPE for the same clip.
+float and int8, each clip with `--shapes` body shapes. Reported per clip and group (regular /
+inverted / floor, motion_groups.py): MPJPE and PCK@50 against the clip, the constant per-joint
+offset (mean error vector) and the MPJPE left after removing it, the link-length error, the
+share of tracked frames that are wrong (false tracking), and the synthetic benchmark's MPJPE
+for the same clip.
 """
 
 from __future__ import annotations
@@ -29,13 +31,16 @@ from ...keypoints import INDEX, KEYPOINTS
 from ...method.skeleton import BONES
 from ..metrics import acceleration_error, table_one
 from . import add_tracker_arguments, tracker_settings
-from .accuracy import RATE_HZ, default_motions
+from .accuracy import BUNDLED, RATE_HZ, default_motions
 from .clouds import read_clouds
+from .motion_groups import GROUPS, motion_group
 
 REPO = paths.REPO
 DEFAULT_CACHE = REPO / "out" / "render_cache"
 CONFIGS = {"rot-int8": ("all", "int8"), "rot-float": ("all", "float"),
            "norot-int8": ("none", "int8"), "norot-float": ("none", "float")}
+DEVELOPMENT = BUNDLED / "development"  # the other DeepMimic clips: lying, rolling, airborne
+FALSE_TRACKING_MM = 100.0  # a frame reported tracking with a larger MPJPE is tracking something wrong
 
 
 class _Provider:
@@ -64,12 +69,24 @@ def read_estimates(path: Path, stamps: np.ndarray) -> np.ndarray:
     return read_clouds(path, stamps, Topics().keypoints)
 
 
+def false_tracking(tracked: np.ndarray, error_mm: np.ndarray, limit_mm: float = FALSE_TRACKING_MM) -> dict[str, Any]:
+    """Frames reported tracking (`tracked`, (T,) bool) whose MPJPE (`error_mm`, (T,)) is over
+    `limit_mm`: their count and their share of the tracked frames (None when none was tracked)."""
+    n = int(np.count_nonzero(tracked))
+    bad = int(np.count_nonzero(tracked & (error_mm > limit_mm)))
+    return {"tracked_frames": n, "false_tracked_frames": bad, "false_tracking_pct": 100.0 * bad / n if n else None}
+
+
 def score(est: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
-    """Figures from the first tracked frame on (the synthetic benchmark's rule)."""
+    """Figures from the first tracked frame on (the synthetic benchmark's rule). A frame counts
+    as reported tracked when its keypoint cloud has points: the outputs carry them only for the
+    status `tracking` (not while identifying, uncertain or lost)."""
     present = np.isfinite(truth).all(axis=(0, 2))
-    tracked = np.flatnonzero(np.isfinite(est[:, present]).all(axis=(1, 2)))
+    reported = np.isfinite(est[:, present]).all(axis=(1, 2))
+    false = false_tracking(reported, frame_mpjpe(est, truth))
+    tracked = np.flatnonzero(reported)
     if tracked.size == 0:
-        return {"mpjpe_mm": None, "pck50": None, "tracked_pct": 0.0, "n": 0}
+        return {"mpjpe_mm": None, "pck50": None, "tracked_pct": 0.0, "n": 0, **false}
     f = np.arange(tracked[0], len(est))
     e, g = est[f], truth[f]
     res = table_one(e, g, present)
@@ -89,6 +106,7 @@ def score(est: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
         "mpjpe_without_offset_mm": res_off["mpjpe_mm"],
         "link_length_error_mm": float(np.nanmean(np.abs(L_est - L_true)) * 1000),
         "accel_error_m_s2": acceleration_error(e, g, RATE_HZ, present),
+        **false,
     }
 
 
@@ -128,7 +146,12 @@ def overlay(rec: Path, rig, truth: np.ndarray, est: np.ndarray, frame: int, out:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--clips", nargs="+", type=Path, help="motion .npz files (default: the shared clips)")
+    parser.add_argument("--clips", nargs="+", type=Path,
+                        help="motion .npz files, or `all`: the shared clips and the development set "
+                             "(default: the shared clips)")
+    parser.add_argument("--shapes", type=int, default=2,
+                        help="body shapes per clip (default 2): the clip's own (the rendering of before) and the "
+                             "next ones, each with its own seeded look")
     parser.add_argument("--rig", type=Path, default=REPO / "config" / "benchmark_rig.yaml")
     parser.add_argument("--frames", type=int, default=0,
                         help="frames rendered per clip at 60 Hz (default 0: the whole clip, at least 90)")
@@ -151,8 +174,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_tracker_arguments(parser)  # --offline: the node graph (live by nature) is not run
 
 
-def render(path: Path, rig, args: argparse.Namespace) -> tuple[Any, Path, np.ndarray, np.ndarray]:
-    """The clip's rendered recording (cached): (ClipSpec, MCAP path, truth stamps, truth)."""
+def clip_files(clips: list[Path] | None) -> list[Path]:
+    """--clips: the given files; `all`: the shared clips and the development set; none: the
+    shared clips."""
+    if not clips:
+        return default_motions()
+    if [str(c) for c in clips] == ["all"]:
+        files = {p.stem: p for p in default_motions()}
+        for p in sorted(DEVELOPMENT.glob("*.npz")):
+            files.setdefault(p.stem, p)
+        return list(files.values())
+    return list(clips)
+
+
+def render(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> tuple[Any, Path, np.ndarray, np.ndarray]:
+    """The clip's rendered recording (cached) with body `variant` (0: the clip's own shape):
+    (ClipSpec, MCAP path, truth stamps, truth)."""
     from ...motion import load_motion
     from ..render.recording import ClipSpec, read_truth, render_recording
 
@@ -160,7 +197,7 @@ def render(path: Path, rig, args: argparse.Namespace) -> tuple[Any, Path, np.nda
     if frames <= 0:  # the whole clip at the rig rate, at least 1.5 s (0.5 s go to identification)
         m = load_motion(path)
         frames = max(int(round((m.n_frames - 1) / m.fps * RATE_HZ)) + 1, int(1.5 * RATE_HZ))
-    spec = ClipSpec(path, frames, RATE_HZ, args.seed)
+    spec = ClipSpec(path, frames, RATE_HZ, args.seed, variant)
     rec = render_recording(spec, rig, args.cache, progress=not args.json)
     stamps, truth = read_truth(rec)
     return spec, rec, stamps, truth
@@ -194,17 +231,21 @@ def leave_one_out_models(files: list[Path], rig, args: argparse.Namespace) -> di
     return models
 
 
-def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
+def run_clip(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> dict[str, Any]:
+    """One clip with body `variant`: figures per config (and graph run), its group and shape."""
     from ...motion import load_motion
     from ..process import process_bag
 
-    spec, rec, stamps, truth = render(path, rig, args)
-    row: dict[str, Any] = {"recording": str(rec), "shape": spec.shape(), "frames": len(stamps),
-                           "inverted": load_motion(path).is_inverted(), "landmarks": args.tracker.get("landmarks", "auto")}
+    spec, rec, stamps, truth = render(path, rig, args, variant)
+    motion = load_motion(path)
+    label = spec.label()
+    row: dict[str, Any] = {"clip": label, "motion": path.stem, "recording": str(rec), "shape": spec.shape(),
+                           "frames": len(stamps), "group": motion_group(motion.positions),
+                           "inverted": motion.is_inverted(), "landmarks": args.tracker.get("landmarks", "auto")}
     curves: dict[str, np.ndarray] = {}
     for name in args.configs:
         rotation, precision = CONFIGS[name]
-        out = args.out / f"{path.stem}_{name}.mcap"
+        out = args.out / f"{label}_{name}.mcap"
         # the benchmark's own product in its --out folder: a rerun replaces it
         process_bag(rec, out, rig, config=args.tracker, progress=not args.json,
                     provider=_Provider(rig, rotation, precision), overwrite=True)
@@ -212,7 +253,7 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
         row[name] = score(est, truth)
         curves[name] = frame_mpjpe(est, truth)
         if name == args.configs[0]:
-            overlay(rec, rig, truth, est, len(stamps) // 2, args.out / f"{path.stem}.png")
+            overlay(rec, rig, truth, est, len(stamps) // 2, args.out / f"{label}.png")
         graph = "none" if args.tracker.get("offline") else args.graph
         if graph == "all" or (graph == "first" and name == args.configs[0]):
             # vmocap_ros is imported by name (as cli.py does): vmocap_core itself never imports rclpy
@@ -221,9 +262,9 @@ def run_clip(path: Path, rig, args: argparse.Namespace) -> dict[str, Any]:
                                         args.out)
             row[f"graph:{name}"] = {**score(est_g, truth), **counts}
             curves[f"graph:{name}"] = frame_mpjpe(est_g, truth)
-    if not args.no_synthetic:
+    if not args.no_synthetic and variant == 0:  # no body in the synthetic benchmark: once per clip
         row["synthetic_mpjpe_mm"] = synthetic_figure(path, args.seed)
-    plot_curves(path.stem, row, curves, args.out / f"{path.stem}_mpjpe.png")
+    plot_curves(label, row, curves, args.out / f"{label}_mpjpe.png")
     return row
 
 
@@ -244,7 +285,7 @@ def plot_curves(name: str, row: dict[str, Any], curves: dict[str, np.ndarray], p
         ax.plot(np.arange(len(v)) / RATE_HZ, v, label=f"{k} ({row[k]['mpjpe_mm'] or float('nan'):.1f} mm)", lw=1)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("MPJPE (mm)")
-    ax.set_title(f"{name}{' (inverted)' if row['inverted'] else ''}: rendered images, {row['shape']} body")
+    ax.set_title(f"{name} ({row['group']}): rendered images, {row['shape']} body")
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -256,13 +297,36 @@ def _pool(rows: list[dict[str, Any]], name: str, key: str) -> float | None:
     return float(sum(a * n for a, n in v) / sum(n for _, n in v)) if v else None
 
 
+def _pool_false_tracking(rows: list[dict[str, Any]], name: str) -> float | None:
+    n = sum(r[name].get("tracked_frames", 0) for r in rows)
+    return 100.0 * sum(r[name].get("false_tracked_frames", 0) for r in rows) / n if n else None
+
+
+def summarize(clips: dict[str, dict[str, Any]], configs: list[str], key: str, labels: dict[str, Any]) -> dict[str, Any]:
+    """Figures pooled per group: rows whose `key` equals labels[group] (joint-frame weighted;
+    false tracking over the tracked frames), for the runs every row of the group has."""
+    summary = {}
+    for label, value in labels.items():
+        rows = [r for r in clips.values() if r[key] == value]
+        if rows:
+            runs = [c for c in list(configs) + [f"graph:{c}" for c in configs] if all(c in r for r in rows)]
+            summary[label] = {c: {**{k: _pool(rows, c, k) for k in ("mpjpe_mm", "pck50", "mpjpe_without_offset_mm",
+                                                                    "link_length_error_mm", "accel_error_m_s2")},
+                                  "false_tracking_pct": _pool_false_tracking(rows, c), "rows": len(rows)} for c in runs}
+    return summary
+
+
 def run(args: argparse.Namespace) -> int:
     from ...cameras.rig_file import load_rig, save_rig
+    from ..render.body import SHAPES
     from ..render.recording import scale_rig
 
-    files = args.clips or default_motions()
+    files = clip_files(args.clips)
     if not files:
         raise VmocapError("no motion clips (give --clips)")
+    if not 1 <= args.shapes <= len(SHAPES):
+        raise VmocapError(f"--shapes {args.shapes}: between 1 and {len(SHAPES)} (the body shapes {sorted(SHAPES)})")
+    variants = range(args.shapes)
     rig = scale_rig(load_rig(args.rig), args.scale)
     args.out, args.cache = args.out.resolve(), args.cache.resolve()  # the graph's config lives in --out
     args.out.mkdir(parents=True, exist_ok=True)
@@ -273,19 +337,17 @@ def run(args: argparse.Namespace) -> int:
         if len(files) < 2:
             raise VmocapError("--leave-one-out needs at least two clips")
         models = leave_one_out_models(files, rig, args)
-        clips = {p.stem: run_clip(p, rig, argparse.Namespace(**{**vars(args), "tracker": {
-            **args.tracker, "landmarks": str(models[p.stem])}})) for p in files}
+        rows = [run_clip(p, rig, argparse.Namespace(**{**vars(args), "tracker": {
+            **args.tracker, "landmarks": str(models[p.stem])}}), v) for p in files for v in variants]
     else:
-        clips = {p.stem: run_clip(p, rig, args) for p in files}
-    summary = {}
-    for label, inv in (("regular", False), ("inverted", True)):
-        rows = [r for r in clips.values() if r["inverted"] == inv]
-        if rows:
-            runs = [c for c in list(args.configs) + [f"graph:{c}" for c in args.configs] if all(c in r for r in rows)]
-            summary[label] = {c: {k: _pool(rows, c, k) for k in ("mpjpe_mm", "pck50", "mpjpe_without_offset_mm",
-                                                                 "link_length_error_mm", "accel_error_m_s2")} for c in runs}
-    result = {"clips": clips, "summary": summary, "frames": args.frames, "scale": args.scale, "seed": args.seed,
-              "tracker": args.tracker, "landmarks": landmarks_used(args, list(clips))}
+        rows = [run_clip(p, rig, args, v) for p in files for v in variants]
+    clips = {r["clip"]: r for r in rows}
+    result = {"clips": clips, "summary": summarize(clips, args.configs, "group", {g: g for g in GROUPS}),
+              # the split of before (neck below both ankles in some frame: inverted), for comparisons
+              "summary_by_inversion": summarize(clips, args.configs, "inverted", {"regular": False, "inverted": True}),
+              "false_tracking_mm": FALSE_TRACKING_MM, "shapes": args.shapes, "frames": args.frames,
+              "scale": args.scale, "seed": args.seed, "tracker": args.tracker,
+              "landmarks": landmarks_used(args, sorted({r["motion"] for r in rows}))}
     (args.out / "report.json").write_text(json.dumps(result, indent=1))
     if args.json:
         print(json.dumps(result, indent=1))
@@ -318,15 +380,17 @@ def _f(v: float | None, fmt: str = "6.1f") -> str:
 def print_table(result: dict[str, Any], configs: list[str]) -> None:
     first = next(iter(result["clips"].values()))
     runs = list(configs) + [f"graph:{c}" for c in configs if f"graph:{c}" in first]
-    print(f"{'clip':<14}{'inv':>4} {'shape':>8} | " + " | ".join(f"{c:>19}" for c in runs) + " | synthetic")
-    print(f"{'':<28} | " + " | ".join(f"{'MPJPE  PCK50  -off':>19}" for _ in runs) + " |")
+    print(f"{'clip':<24}{'group':>9} {'shape':>8} | " + " | ".join(f"{c:>25}" for c in runs) + " | synthetic")
+    print(f"{'':<42} | " + " | ".join(f"{'MPJPE  PCK50  -off  false%':>25}" for _ in runs) + " |")
     for name, r in result["clips"].items():
-        cells = [f"{_f(r[c]['mpjpe_mm'])} {_f(r[c]['pck50'], '5.1f')} {_f(r[c].get('mpjpe_without_offset_mm'))}"
-                 if c in r else f"{'':>19}" for c in runs]
-        print(f"{name:<14}{'yes' if r['inverted'] else 'no':>4} {r['shape']:>8} | " + " | ".join(cells)
+        cells = [f"{_f(r[c]['mpjpe_mm'])} {_f(r[c]['pck50'], '5.1f')} {_f(r[c].get('mpjpe_without_offset_mm'))} "
+                 f"{_f(r[c].get('false_tracking_pct'), '5.1f')}" if c in r else f"{'':>25}" for c in runs]
+        print(f"{name:<24}{r['group']:>9} {r['shape']:>8} | " + " | ".join(cells)
               + f" | {_f(r.get('synthetic_mpjpe_mm'))}")
     print(f"landmark model: {result['landmarks']}")
+    print(f"false%: share of the frames reported tracking whose MPJPE is over {result['false_tracking_mm']:g} mm")
     for label, s in result["summary"].items():
         print(f"{label.upper()}: " + "; ".join(f"{c} {_f(v['mpjpe_mm'], '.1f')} mm (PCK50 {_f(v['pck50'], '.1f')} %, "
+                                               f"false tracking {_f(v['false_tracking_pct'], '.1f')} %, "
                                                f"link {_f(v['link_length_error_mm'], '.1f')} mm, acceleration error "
                                                f"{_f(v['accel_error_m_s2'], '.1f')} m/s^2)" for c, v in s.items()))
