@@ -149,9 +149,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--clips", nargs="+", type=Path,
                         help="motion .npz files, or `all`: the shared clips and the development set "
                              "(default: the shared clips)")
-    parser.add_argument("--shapes", type=int, default=2,
-                        help="body shapes per clip (default 2): the clip's own (the rendering of before) and the "
-                             "next ones, each with its own seeded look")
+    parser.add_argument("--shapes", type=int,
+                        help="body shapes per clip: the clip's own (the rendering of before) and the next ones, each "
+                             "with its own seeded look (default: 2 with --clips all, else 1: the default run's rows, "
+                             "time and figures stay as they were)")
     parser.add_argument("--rig", type=Path, default=REPO / "config" / "benchmark_rig.yaml")
     parser.add_argument("--frames", type=int, default=0,
                         help="frames rendered per clip at 60 Hz (default 0: the whole clip, at least 90)")
@@ -174,12 +175,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_tracker_arguments(parser)  # --offline: the node graph (live by nature) is not run
 
 
+def all_clips(clips: list[Path] | None) -> bool:
+    """--clips all"""
+    return [str(c) for c in clips or []] == ["all"]
+
+
 def clip_files(clips: list[Path] | None) -> list[Path]:
     """--clips: the given files; `all`: the shared clips and the development set; none: the
     shared clips."""
     if not clips:
         return default_motions()
-    if [str(c) for c in clips] == ["all"]:
+    if all_clips(clips):
         files = {p.stem: p for p in default_motions()}
         for p in sorted(DEVELOPMENT.glob("*.npz")):
             files.setdefault(p.stem, p)
@@ -324,6 +330,8 @@ def run(args: argparse.Namespace) -> int:
     files = clip_files(args.clips)
     if not files:
         raise VmocapError("no motion clips (give --clips)")
+    if args.shapes is None:
+        args.shapes = 2 if all_clips(args.clips) else 1
     if not 1 <= args.shapes <= len(SHAPES):
         raise VmocapError(f"--shapes {args.shapes}: between 1 and {len(SHAPES)} (the body shapes {sorted(SHAPES)})")
     variants = range(args.shapes)
