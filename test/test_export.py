@@ -1,6 +1,6 @@
 """`vmocap process --offline` then `vmocap export` on a synthetic bag with dropped frame sets;
-every export read back by a parser we did not write (bvh, c3d, numpy's text reader, csv) and
-compared with the processed bag."""
+every export read back by a parser we did not write (bvh, c3d, OpenSim, numpy's text reader,
+csv) and compared with the processed bag. A recording of the live graph: test_export_live.py."""
 
 from __future__ import annotations
 
@@ -82,7 +82,7 @@ def test_trc_plain_parse_against_the_opensim_format(processed) -> None:
         vals = np.array([float(v) if v else np.nan for v in row[2:]])
         assert vals.shape == (75,)
         np.testing.assert_allclose(vals, expect[i], atol=5e-5, equal_nan=True)  # 4 decimals of mm
-    assert all(v == "" for i in GAP for v in data[i][2:])
+    assert all(v == "NaN" for i in GAP for v in data[i][2:])  # OpenSim reads NaN, not empty fields
 
 
 def test_c3d_read_by_the_c3d_package(processed) -> None:
@@ -119,21 +119,27 @@ def test_csv_read_by_numpy(processed) -> None:
     assert np.isnan(tab["root_x"][list(GAP)]).all()
 
 
-def _bvh_fk(mocap, frame: int) -> dict[str, np.ndarray]:
-    """World positions of every joint of a parsed BVH at one frame (R = Rz Rx Ry, degrees)."""
-    world: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for name in mocap.get_joints_names():
-        off = np.array(mocap.joint_offset(name), float)
-        rot = Rotation.from_euler("ZXY", mocap.frame_joint_channels(frame, name, ["Zrotation", "Xrotation", "Yrotation"]),
-                                  degrees=True).as_matrix()
-        parent = mocap.joint_parent(name)
-        if parent is None:
-            pos = np.array(mocap.frame_joint_channels(frame, name, ["Xposition", "Yposition", "Zposition"]), float) + off
-            world[name] = (rot, pos)
-        else:
-            R, p = world[parent.name]
-            world[name] = (R @ rot, p + R @ off)
-    return {n: p for n, (_, p) in world.items()}
+def bvh_keypoints(path: Path):
+    """(frame, (25, 3) keypoints) of a BVH file as the `bvh` package parses it, by forward
+    kinematics of its hierarchy (R = Rz Rx Ry, degrees): first, middle and last frame."""
+    from bvh import Bvh
+
+    mocap = Bvh(Path(path).read_text())
+    for k in (0, mocap.nframes // 2, mocap.nframes - 1):
+        world: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        for name in mocap.get_joints_names():
+            off = np.array(mocap.joint_offset(name), float)
+            rot = Rotation.from_euler("ZXY", mocap.frame_joint_channels(k, name, ["Zrotation", "Xrotation", "Yrotation"]),
+                                      degrees=True).as_matrix()
+            parent = mocap.joint_parent(name)
+            if parent is None:
+                pos = np.array(mocap.frame_joint_channels(k, name, ["Xposition", "Yposition", "Zposition"]), float) + off
+                world[name] = (rot, pos)
+            else:
+                R, p = world[parent.name]
+                world[name] = (R @ rot, p + R @ off)
+        joint_of = {"pelvis": "root"}  # keypoints at joint centres are those joints
+        yield k, np.array([world[joint_of.get(n, n)][1] for n in KEYPOINTS])
 
 
 def test_bvh_forward_kinematics_reproduces_the_keypoints(processed) -> None:
@@ -142,20 +148,34 @@ def test_bvh_forward_kinematics_reproduces_the_keypoints(processed) -> None:
     s = processed["session"]
     files = sorted(processed["dir"].glob("s*.bvh"))
     assert [f.name for f in files] == ["s.bvh", "s_part2.bvh"]  # split at the gap
-    joint_of = {"pelvis": "root"}  # keypoints at joint centres are those joints
     for seg, f in zip(s.segments(), files):
         mocap = Bvh(f.read_text())
         assert mocap.nframes == seg.stop - seg.start and mocap.frame_time == pytest.approx(1 / FPS, rel=1e-6)
-        for k in (0, mocap.nframes // 2, mocap.nframes - 1):
-            pos = _bvh_fk(mocap, k)
-            got = np.array([pos.get(joint_of.get(n, n)) for n in KEYPOINTS])
-            exp = s.keypoints[seg.start + k] @ Z_TO_Y_UP.T
-            np.testing.assert_allclose(got, exp, atol=1e-6)
+        for k, got in bvh_keypoints(f):
+            np.testing.assert_allclose(got, s.keypoints[seg.start + k] @ Z_TO_Y_UP.T, atol=1e-6)
+
+
+def opensim_markers(path: Path) -> tuple[np.ndarray, list[str], str]:
+    """(frames, markers, 3) of a TRC as OpenSim reads it, the marker names and the units."""
+    opensim = pytest.importorskip("opensim", reason="opensim not installed (pip install vmocap[opensim]; scripts/setup.sh)")
+    table = opensim.TimeSeriesTableVec3(str(path))
+    rows = [table.getRowAtIndex(i) for i in range(table.getNumRows())]
+    P = np.array([[[r[k][a] for a in range(3)] for k in range(table.getNumColumns())] for r in rows])
+    return P, list(table.getColumnLabels()), table.getTableMetaDataAsString("Units")
+
+
+def test_trc_with_gaps_read_by_opensim(processed) -> None:
+    """Untracked and dropped frames are NaN rows; every frame and marker is there."""
+    s = processed["session"]
+    P, labels, units = opensim_markers(processed["files"]["trc"])
+    assert P.shape == (s.n_frames, len(KEYPOINTS), 3) and labels == list(KEYPOINTS) and units == "mm"
+    assert np.isnan(P[list(GAP)]).all() and np.array_equal(np.isfinite(P).all(axis=(1, 2)), s.tracked)
+    np.testing.assert_allclose(P, s.keypoints @ Z_TO_Y_UP.T * 1000.0, atol=5e-5)
 
 
 def test_export_bad_input(processed, tmp_path: Path) -> None:
     raw = processed["dir"] / "gap.mcap"  # not processed: no keypoints topic
     e = _cli("export", str(raw), "--format", "csv", "-o", str(tmp_path / "x.csv"))
-    assert e.returncode == 2 and "not a processed bag" in e.stderr
+    assert e.returncode == 2 and "not a recording of the graph's outputs nor a processed bag" in e.stderr
     with pytest.raises(VmocapError):
         load_session(tmp_path / "missing.mcap")

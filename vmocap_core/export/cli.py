@@ -1,4 +1,4 @@
-"""`vmocap export BAG.mcap --format bvh|c3d|trc|csv -o FILE`: a processed bag's session in a
+"""`vmocap export BAG.mcap --format bvh|c3d|trc|csv -o FILE`: a recorded or processed session in a
 biomechanics format (units, axes and gap handling: export/markers.py, export/bvh.py)."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ FORMATS = ("bvh", "c3d", "trc", "csv")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", type=Path, help="processed MCAP bag (NS/keypoints, NS/joint_states, /diagnostics)")
+    parser.add_argument("input", type=Path, help="MCAP recording of the graph's outputs or `vmocap process` bag (NS/keypoints, NS/joint_states)")
     parser.add_argument("--format", choices=FORMATS, required=True)
     parser.add_argument("-o", "--output", type=Path, required=True, help="file to write")
     parser.add_argument("--namespace", default="/vmocap")

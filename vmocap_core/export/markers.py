@@ -2,7 +2,7 @@
 
 | format | units | axes | gaps |
 |---|---|---|---|
-| TRC | mm | Y up (OpenSim): (x, y, z)_vmocap -> (x, z, -y) | empty fields |
+| TRC | mm | Y up (OpenSim): (x, y, z)_vmocap -> (x, z, -y) | `NaN` fields |
 | C3D | mm (POINT:UNITS), float | Z up as recorded (POINT:X_SCREEN +X, Y_SCREEN +Z) | residual -1 (invalid point) |
 | CSV | m, rad | Z up as recorded | empty fields |
 """
@@ -22,9 +22,10 @@ from .session import Session
 Z_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
-def _fields(values: np.ndarray, fmt: str) -> list[str]:
-    """Formatted numbers of one row, '' for NaN (how TRC and CSV readers expect a gap)."""
-    return ["" if not np.isfinite(v) else fmt % v for v in values]
+def _fields(values: np.ndarray, fmt: str, gap: str = "") -> list[str]:
+    """Formatted numbers of one row, `gap` for NaN. TRC gaps are written `NaN`: OpenSim's reader
+    drops empty trailing fields and then rejects the row's column count (Pose2Sim reads both)."""
+    return [gap if not np.isfinite(v) else fmt % v for v in values]
 
 
 def _rows(n: int, desc: str, progress: bool) -> range | tqdm:
@@ -47,7 +48,7 @@ def write_trc(session: Session, path: str | Path, progress: bool = False) -> Non
     ]
     flat = P.reshape(N, -1)
     for i in _rows(N, "TRC", progress):
-        lines.append("\t".join([str(i + 1), f"{session.times[i]:.6f}"] + _fields(flat[i], "%.4f")))
+        lines.append("\t".join([str(i + 1), f"{session.times[i]:.6f}"] + _fields(flat[i], "%.4f", "NaN")))
     path.write_text("\n".join(lines) + "\n")
 
 
