@@ -128,9 +128,13 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
     from ...graph_config import Topics, stage_sections
 
     topics = Topics()
-    record = [topics.keypoints, topics.feedback, topics.joint_states, topics.markers, topics.skeleton, Topics.diagnostics]
+    record = [topics.keypoints, topics.feedback, topics.joint_states, topics.root_pose, topics.robot_description,
+              topics.markers, topics.skeleton, Topics.diagnostics]
     # the report needs each camera's 2D detections, not the heatmaps (1.7 MB a frame set at 60 Hz)
     record += [topics.pcm_keypoints(c.name) for c in rig]
+    # /tf as well, so the recording is complete for `vmocap export` and RViz (the recorder derives
+    # it where it does not travel over DDS; then nobody publishes it: the camera must not wait for it)
+    tf = [Topics.tf, Topics.tf_static]
     output = out_dir / "graph_outputs.mcap"
     stages = stage_sections(TRACKER_SETTINGS)
     cfg = {
@@ -146,7 +150,7 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
                                                "feedback_timeout_ms": 2000.0, "views": [""], "queue_depth": 50,
                                                **stages["vmocap_markers"]}},
         "vmocap_skeleton": {"ros__parameters": {"queue_depth": 50, **stages["vmocap_skeleton"]}},
-        "vmocap_recorder": {"ros__parameters": {"output": str(output), "topics": record, "compression": "zstd"}},
+        "vmocap_recorder": {"ros__parameters": {"output": str(output), "topics": record + tf, "compression": "zstd"}},
         "vmocap_launch": {"mode": "processes", "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml"),
                           "nodes": [*HOT_PATH, "vmocap_recorder"], "groups": [HOT_PATH]},
     }
