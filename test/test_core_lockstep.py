@@ -59,3 +59,27 @@ def test_an_unanswered_frame_set_releases_the_next_after_the_timeout_and_stop_en
 def test_timeout_must_be_positive():
     with pytest.raises(ValueError):
         LockstepGate(0.0)
+
+
+def test_in_flight_sends_a_frame_set_only_while_the_cnn_has_room():
+    from vmocap_core.cameras.flow import InFlight
+
+    period = 1 / 30
+    f = InFlight(2, period, stale_s=1.0)
+    t = [int(1e9 + k * period * 1e9) for k in range(6)]
+    # frame set 0 and 1 go out, each camera's frame alike (stamps a few ms apart)
+    assert f.admit(t[0], 0.0) and f.admit(t[0] + 2_000_000, 0.001)
+    assert f.admit(t[1], 0.033) and f.admit(t[1] - 3_000_000, 0.034)
+    # frame set 2: two in flight, not sent, on every camera
+    assert not f.admit(t[2], 0.066) and not f.admit(t[2] + 1_000_000, 0.067)
+    assert (f.sent, f.skipped, f.in_flight) == (2, 1, 2)
+    f.done(t[0])  # the CNN finished frame set 0: room for the next one
+    assert f.admit(t[3], 0.1) and f.in_flight == 2
+    f.done(t[3])  # a later frame set finished: everything before it is out of flight too
+    assert f.in_flight == 0
+    # a frame set nobody finishes (no CNN running) stops counting after stale_s
+    assert f.admit(t[4], 0.2) and f.admit(t[5], 0.25)
+    assert not f.admit(t[5] + int(period * 1e9), 0.3)
+    assert f.admit(t[5] + int(2 * period * 1e9), 1.3)
+    with pytest.raises(ValueError):
+        InFlight(0, period)

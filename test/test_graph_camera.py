@@ -268,3 +268,80 @@ def test_camera_whose_recording_breaks_turns_diagnostics_error(tmp_path: Path) -
     last = status[-1]
     level = last["level"][0] if isinstance(last["level"], (bytes, bytearray)) else int(last["level"])
     assert level == 2 and "broken.mcap" in last["message"], last["message"]
+
+
+@pytest.mark.parametrize("record_images", [False, True])
+def test_camera_sends_only_what_a_busy_cnn_can_take_unless_someone_records_the_images(tmp_path: Path,
+                                                                                     record_images: bool) -> None:
+    """Flow control (cameras/flow.py): a PCM node that finishes a frame set every 0.25 s (a node
+    named vmocap_pcm in this process, answering on NS/pcm/done) gets at most max_in_flight frame
+    sets per answer, every camera's frame of a frame set alike, and the camera node counts the
+    frame sets it did not send; with a recorder of the images in the graph every frame goes out."""
+    import os
+
+    from vmocap_core.cameras.rig_file import save_rig
+    from vmocap_ros.common import msg_class, prepare_env, qos
+    from vmocap_ros.run_node import make_executor
+
+    rig = small_rig()
+    bag = tmp_path / "c.mcap"
+    compressed_bag(bag, rig, 4)
+    rig_path = tmp_path / "rig.yaml"
+    save_rig(rig, rig_path)
+    out = tmp_path / "out.mcap"
+    nodes = ["vmocap_camera"] + (["vmocap_recorder"] if record_images else [])
+    cfg = write_config(tmp_path / "g.yaml", rig_path, [], nodes, mode="processes", output=out,
+                       extra={"vmocap_camera": {"uri": str(bag), "rate": 1.0, "loop": True, "restamp": True,
+                                                "wait_subscribers": 60.0, "max_in_flight": 2},
+                              "vmocap_recorder": {"topics": ["/vmocap/cam0/image_raw"]}})
+    env = domain_env(34 if record_images else 35)
+    prepare_env(env)
+    saved = {k: os.environ.get(k) for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION", "FASTRTPS_DEFAULT_PROFILES_FILE")}
+    os.environ.update({k: env[k] for k in saved if k in env})
+    import rclpy
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]))
+    node = rclpy.create_node("vmocap_pcm", context=context)  # what the camera node sees as the CNN
+    got: dict[str, list[int]] = {c.name: [] for c in rig}
+    for c in rig:
+        node.create_subscription(msg_class("sensor_msgs/msg/Image"), f"/vmocap/{c.name}/image_raw",
+                                 lambda data, n=c.name: got[n].append(M.stamp_ns(cdr.decode("sensor_msgs/msg/Image", data))),
+                                 qos(10), raw=True)
+    done = node.create_publisher(msg_class("std_msgs/msg/Header"), "/vmocap/pcm/done", qos(10))
+    ex = make_executor(context)
+    ex.add_node(node)
+    launch = vmocap(["launch", str(cfg)], env)
+    try:
+        assert wait_ready(launch, nodes), stop(launch)
+        t_end = time.monotonic() + 4.0
+        next_done = time.monotonic() + 0.25
+        while time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.02)
+            if time.monotonic() >= next_done and got["cam0"]:  # "finished" the newest frame set it got
+                from std_msgs.msg import Header
+
+                h = Header(frame_id="cam0")
+                s = max(got["cam0"])
+                h.stamp.sec, h.stamp.nanosec = s // 10**9, s % 10**9
+                done.publish(h)
+                next_done += 0.25
+    finally:
+        log = stop(launch, signal.SIGINT)
+        ex.remove_node(node)
+        ex.shutdown()
+        node.destroy_node()
+        context.try_shutdown()
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    assert launch.returncode == 0, log
+    n = len(got["cam0"])
+    if record_images:
+        assert n > 60, n  # ~30 Hz for 4 s: every frame goes out for the recorder
+    else:
+        assert 0 < n <= 2 * (4.0 / 0.25 + 2) + 4, n  # ~2 frame sets per answer, not 30 Hz
+        # a frame set goes out on every camera or on none
+        assert len(set(got["cam0"]) ^ set(got["cam1"])) <= 2, (got["cam0"], got["cam1"])

@@ -83,6 +83,10 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "(as a live camera stamps its capture time; loops keep counting forward)"),
         Param("reconnect_s", 1.0, "live cameras (aravis, v4l2): after a disconnection, try to reopen the camera "
               "every this many seconds", 0.05, 60.0),
+        Param("max_in_flight", 2, "frame sets sent but not yet finished by the CNN (NS/pcm/done) beyond which "
+              "newer frame sets are not sent (cameras/flow.py): an overloaded graph spends its cores on the frame "
+              "sets it processes. Only while every subscriber of the images is a vmocap_pcm node (a recorder "
+              "of the images gets every frame); 0: off; lockstep replaces it", 0, 1000),
         Param("reconnect_attempts", 60, "live cameras: give a disconnected camera up after this many failed "
               "reopen attempts (its thread ends, the node and the other cameras go on)", 1, 1000000),
     ],
@@ -99,8 +103,8 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("use_feedback", True, "crop/rotate with the skeleton of the previous frame"),
         Param("feedback_wait_ms", 0.0, "0: crop with the latest skeleton (pipelined, fastest); > 0: frame t waits "
               "(at most this long) for the skeleton of frame t-1, exactly as offline (deterministic)", 0.0, 1e5),
-        Param("queue_depth", 2, "subscription depth per image topic and frame sets waiting (reliable; when the node "
-              "falls behind, older frames are dropped: freshness over completeness)", 1, 1000),
+        Param("queue_depth", 1, "frame sets waiting for the CNN (at least 2 images per camera topic are kept); when "
+              "the node falls behind, older frame sets are dropped: the newest wins", 1, 1000),
         Param("inference_thread", True, "run the CNN in a thread of its own, beside the spin loop (the process's "
               "other nodes work while it runs); false: inside the subscription callback"),
     ],
@@ -240,6 +244,11 @@ class Topics:
 
     def pcm_info(self, view: str) -> str:
         return f"{self.ns}/pcm/{view}/camera_info"
+
+    @property
+    def pcm_done(self) -> str:
+        """The stamp of each frame set the PCM node finished (std_msgs/Header): flow control."""
+        return f"{self.ns}/pcm/done"
 
     def pcm_keypoints(self, cam: str) -> str:
         """A camera's 2D keypoints (the PCM centroids in its image), published on demand."""

@@ -30,6 +30,7 @@ class LocalBus:
         self.enabled = False
         self.publishers: set[str] = set()
         self.subscribers: dict[str, list[Callable[[dict], None]]] = {}
+        self.subscriber_nodes: dict[str, list[str]] = {}  # topic -> names of the local nodes taking it
         self.pending: deque = deque()
         # a message published from another thread (the camera node's readers) wakes the spin
         # loop's executor at once (`wake`, set by the spin loop); poll_s is only a fallback

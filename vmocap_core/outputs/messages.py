@@ -23,6 +23,7 @@ JOINTS = "sensor_msgs/msg/JointState"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 DIAG = "diagnostic_msgs/msg/DiagnosticArray"
 
+HEADER = "std_msgs/msg/Header"  # a bare stamp: vmocap_pcm's NS/pcm/done
 
 def markers_message(markers: Markers) -> dict:
     residual = markers.residual_px if markers.residual_px is not None else np.full(len(KEYPOINTS), np.nan)

@@ -154,11 +154,14 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         # window on a loaded machine may hold only one
         reports = [(t, v) for t, v in probe.diag.get("vmocap_camera", []) if t <= t1]
         reports = [r for r in reports if r[0] < t0][-1:] + [r for r in reports if r[0] >= t0]
-        cam = [(t, ast.literal_eval(v["published"])) for t, v in reports]
+        # frames the camera node read: those it sent per camera, and the frame sets its flow
+        # control did not send while the CNN was busy (cameras/flow.py)
+        cam = [(t, ast.literal_eval(v["published"]), ast.literal_eval(v.get("flow", "{}")).get("skipped", 0))
+               for t, v in reports]
         input_rate = float("nan")
-        if len(cam) >= 2:  # frames the camera node sent per camera and second
-            (ta, a), (tb, b) = cam[0], cam[-1]
-            input_rate = float(np.mean([b[c] - a[c] for c in a])) / ((tb - ta) / 1e9)
+        if len(cam) >= 2:
+            (ta, a, sa), (tb, b, sb) = cam[0], cam[-1]
+            input_rate = (float(np.mean([b[c] - a[c] for c in a])) + sb - sa) / ((tb - ta) / 1e9)
         transport = node_age(status.get("vmocap_camera"))  # capture (due) stamp -> sent by the camera node
     dropped = 100.0 * missing / max(expected, 1)
     pcm_name = args.pcm if args.pcm != "model" else (args.model or "blazepose")
@@ -180,8 +183,9 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         # share of the frame sets out (keypoints go out also while not tracking) with the person tracked
         "tracking_pct": round(100.0 * len({st for _, st in s["joint_states"]} & sets_out) / max(len(sets_out), 1), 1),
         "precision": status.get("vmocap_pcm", {}).get("precision", "n/a"),
-        "node_status": {n: {k: v for k, v in status[n].items() if k in ("frames", "sync", "queue_dropped", "feedback_timeouts", "queued", "tracking")}
-                        for n in NODES if n in status},
+        "node_status": {n: {k: v for k, v in status[n].items() if k in ("frames", "sync", "queue_dropped", "feedback_timeouts", "queued", "tracking",
+                                                                       "flow", "published")}
+                        for n in ["vmocap_camera", *NODES] if n in status},
     }
 
 

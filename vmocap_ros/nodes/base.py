@@ -123,6 +123,7 @@ class VmocapNode(Node):
         for type_name, topic, guarded, depth, latched in subs:
             if bus.enabled and topic in bus.publishers:
                 bus.subscribers.setdefault(topic, []).append(guarded)
+                bus.subscriber_nodes.setdefault(topic, []).append(self.get_name())
                 continue
             # images and heatmaps: numpy views into the received bytes (no further copy)
             copy = type_name != IMAGE

@@ -13,9 +13,10 @@ from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.bag import bin_image, check_binning
 from vmocap_core.cameras.clock import LoopedStamps, PlaybackClock
+from vmocap_core.cameras.flow import InFlight
 from vmocap_core.cameras.lockstep import LockstepGate
 from vmocap_core.errors import VmocapError
-from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO
+from vmocap_core.outputs.messages import CLOUD, HEADER, IMAGE, INFO
 
 from ..transport import Output, Transport
 from .base import VmocapNode
@@ -37,6 +38,9 @@ class CameraNode(VmocapNode):
         # lockstep: recorded frame sets go out as the graph answers them, not by the clock
         self._gate = LockstepGate(self.p["lockstep_timeout_ms"] / 1e3) if self.p["lockstep"] else None
         self._playback = PlaybackClock(0.0 if self._gate else self.p["rate"], self.p["restamp"])
+        # live (and replays as live): frame sets the CNN has no room for are not sent
+        self._flow = InFlight(self.p["max_in_flight"], 1.0 / self.p["fps"]) if self.p["max_in_flight"] and not self._gate else None
+        self._flow_on = False  # set by _check_flow: a PCM node answers, and only PCM nodes take the images
         self._image_topics: list[str] = []
         self._matched = threading.Event()
         self._first_match: float | None = None
@@ -60,6 +64,9 @@ class CameraNode(VmocapNode):
             self._threads.append((th, src))
         if self._gate is not None:
             self.subscribe(CLOUD, self.topics.feedback, lambda m: self._gate.answered(M.stamp_ns(m)), depth=50, latched=True)
+        if self._flow is not None:
+            self.subscribe(HEADER, self.topics.pcm_done, lambda m: self._flow.done(M.stamp_ns(m["stamp"])), depth=10)
+            self.create_timer(0.5, self._check_flow)
         for th, _ in self._threads:
             th.start()
         self._wait_end = time.monotonic() + self.p["wait_subscribers"]
@@ -204,7 +211,18 @@ class CameraNode(VmocapNode):
         # frame set (or half a period later): woken meanwhile, it would take the GIL from it
         self.transport.due.when_idle(slot.release, release_at)
 
+    def _check_flow(self) -> None:
+        """Flow control only while a PCM node reports what it finished and nobody but PCM nodes
+        takes the images: a recorder or viewer of the images gets every frame."""
+        bus, done = self.transport.bus, self.topics.pcm_done
+        answered = done in bus.publishers or self.count_publishers(done) > 0
+        takers = [n for t in self._image_topics for n in bus.subscriber_nodes.get(t, [])]
+        takers += [i.node_name for t in self._image_topics for i in self.get_subscriptions_info_by_topic(t)]
+        self._flow_on = answered and bool(takers) and all(n.startswith("vmocap_pcm") for n in takers)
+
     def _send(self, cam: str, img: tuple, info: tuple, pub_img: Output, pub_info: Output) -> None:
+        if self._flow_on and self._flow is not None and not self._flow.admit(M.stamp_ns(img[0]), time.monotonic()):
+            return  # the CNN is busy with newer-than-useful work: this frame set is not sent
         pub_img.send(img)
         pub_info.send(info)
         self.published[cam] += 1
@@ -221,6 +239,9 @@ class CameraNode(VmocapNode):
         self.watch_dropped(sum(self.late_dropped.values()), "frames dropped (a period late)")
         out = {"published": self.published, "late_dropped": self.late_dropped, "wrong_size": self.wrong_size,
                "disconnects": self.disconnects, "reconnects": self.reconnects}
+        if self._flow is not None:
+            out["flow"] = {"on": self._flow_on, "sent": self._flow.sent, "skipped": self._flow.skipped,
+                           "in_flight": self._flow.in_flight}
         if self._gate is not None:
             if self._gate.timeouts:
                 self.warn_for("lockstep", f"lockstep: {self._gate.timeouts} frame sets got no feedback within "

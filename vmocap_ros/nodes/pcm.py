@@ -16,7 +16,7 @@ from vmocap_core.cameras.bag import check_binning
 from vmocap_core.cameras.sync import ApproximateSync
 from vmocap_core.errors import VmocapError
 from vmocap_core.method.camera_check import image_problem
-from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO
+from vmocap_core.outputs.messages import CLOUD, HEADER, IMAGE, INFO
 from vmocap_core.pcm.assembly import channel_keypoints
 from vmocap_core.pcm.peaks import camera_keypoints
 from vmocap_core.pcm.views import blank_views
@@ -45,7 +45,7 @@ class PcmNode(VmocapNode):
         self._info_seen: dict[str, tuple] = {}  # camera -> the CameraInfo last compared with the rig
         self._pubs: dict[str, tuple[Output, Output]] = {}
         for name in names:
-            self.subscribe(IMAGE, self.topics.image(name), lambda m, n=name: self._on_image(n, m), depth=p["queue_depth"])
+            self.subscribe(IMAGE, self.topics.image(name), lambda m, n=name: self._on_image(n, m), depth=max(2, p["queue_depth"]))
             self.subscribe(INFO, self.topics.camera_info(name), lambda m, n=name: self._on_info(n, m))
         self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
         # one view per camera exists from the start (publishers created late would lose their
@@ -53,6 +53,7 @@ class PcmNode(VmocapNode):
         for name in names:
             self._pubs[name] = (self.publisher(IMAGE, self.topics.pcm(name)), self.publisher(INFO, self.topics.pcm_info(name)))
         self._kp_pubs = {name: self.publisher(CLOUD, self.topics.pcm_keypoints(name)) for name in names}
+        self._done = self.publisher(HEADER, self.topics.pcm_done)  # vmocap_camera's flow control
         self.frames = 0
         self.sets: deque = deque()
         self.counts = {"queue_dropped": 0, "feedback_timeouts": 0}
@@ -188,6 +189,7 @@ class PcmNode(VmocapNode):
             else:
                 pi.send((img, None))  # to our nodes only
         self._publish_keypoints(pcm, fs.items, fs.stamp_ns)
+        self._done(M.header(fs.stamp_ns, ",".join(fs.items)))
         if pcm.n_views == 0 and self.awaiting is not None:
             self.awaiting = None  # nothing published: no skeleton will answer this frame
         self.errors.pop("inference", None)
