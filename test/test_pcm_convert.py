@@ -158,3 +158,25 @@ def test_tf_graph_reader_rejects_garbage() -> None:
     for junk in (b"", b"\xff\xff\xff", b"\x0a\x05ab"):
         with pytest.raises(ModelError):
             read_graph(junk)
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_detector_turned_pass_finds_a_turned_person_where_they_are(k: int) -> None:
+    """detect_turned looks at the image turned by quarter turns (a body lying or upside down):
+    its detections are in the given image's pixels, the hip where the upright pass on the
+    unturned image puts it, turned with the image."""
+    require_models()
+    img = real_image()
+    det = PoseDetector()
+    up = det.detect([img])[0]
+    assert up
+    H, W = img.shape[:2]
+    x, y = up[0].keypoints[0]
+    for _ in range(k):  # np.rot90: (x, y) -> (y, W - 1 - x) per quarter turn
+        x, y, H, W = y, W - 1 - x, W, H
+    turned_img = np.ascontiguousarray(np.rot90(img, k))
+    found = det.detect_turned([turned_img])[0]
+    assert found and found[0].score > 0.5
+    assert np.linalg.norm(found[0].keypoints[0] - [x, y]) < 0.03 * max(H, W), (found[0].keypoints[0], (x, y))
+    box = found[0].box  # the detector's box (the face), corners ordered again after the turn
+    assert box[0] < box[2] and box[1] < box[3]

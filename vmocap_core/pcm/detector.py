@@ -83,6 +83,19 @@ def nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarr
     return np.array(keep, dtype=np.intp)
 
 
+def turned(A: np.ndarray, quarter_turns: np.ndarray) -> np.ndarray:
+    """(N, 2, 3) image -> input affines followed by a turn of the input by quarter_turns[n] x 90
+    degrees counter-clockwise (as seen on screen, y down) about the input's centre."""
+    k = np.asarray(quarter_turns) % 4
+    cos, sin = np.round(np.cos(k * np.pi / 2)), np.round(np.sin(k * np.pi / 2))
+    R = np.stack([np.stack([cos, sin], -1), np.stack([-sin, cos], -1)], -2)  # (N, 2, 2), y down
+    c = (INPUT - 1) / 2.0
+    out = np.empty_like(A)
+    out[:, :, :2] = R @ A[:, :, :2]
+    out[:, :, 2] = np.einsum("nij,nj->ni", R, A[:, :, 2] - c) + c
+    return out
+
+
 def tiles(width: int, height: int, fraction: float = TILE_FRACTION) -> np.ndarray:
     """(K, 4) square tiles x0, y0, x1, y1 covering a width x height image, side `fraction` of
     the shorter image side, overlapping by half a tile (a person up to half a tile tall lies
@@ -111,9 +124,12 @@ class PoseDetector:
         self.iou_threshold = float(iou_threshold)
         self.anchors = ssd_anchors()
 
-    def sample(self, images: Sequence[np.ndarray], regions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def sample(self, images: Sequence[np.ndarray], regions: np.ndarray | None = None,
+               quarter_turns: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Letterboxed (N, 224, 224, 3) uint8 BGR batch and the (N, 2, 3) image -> input affines.
-        regions (N, 4) integer x0, y0, x1, y1: the part of each image letterboxed (default: all)."""
+        regions (N, 4) integer x0, y0, x1, y1: the part of each image letterboxed (default: all);
+        quarter_turns (N,): the input turned by that many quarter turns counter-clockwise about
+        its centre (the square input holds a turned letterbox whole)."""
         import cv2
 
         checked = [check_image(im, i) for i, im in enumerate(images)]
@@ -122,6 +138,8 @@ class PoseDetector:
         regions = np.asarray(regions, dtype=np.int64).reshape(len(checked), 4)
         A = np.array([letterbox_affine(int(x1 - x0), int(y1 - y0), INPUT, INPUT) for x0, y0, x1, y1 in regions])
         A[:, :, 2] -= np.einsum("nij,nj->ni", A[:, :, :2], regions[:, :2].astype(np.float64))  # region origin
+        if quarter_turns is not None:
+            A = turned(A, np.asarray(quarter_turns))
         batch = np.empty((len(checked), INPUT, INPUT, 3), dtype=np.uint8)
         for k, im in enumerate(checked):
             cv2.warpAffine(im, A[k], (INPUT, INPUT), dst=batch[k], flags=cv2.INTER_LINEAR,
@@ -133,12 +151,14 @@ class PoseDetector:
         batch, A = self.sample(images)
         return np.ascontiguousarray(batch[..., ::-1].astype(np.float32) * np.float32(2.0 / 255.0) - np.float32(1.0)), A
 
-    def detect(self, images: Sequence[np.ndarray], regions: np.ndarray | None = None) -> list[list[Detection]]:
+    def detect(self, images: Sequence[np.ndarray], regions: np.ndarray | None = None,
+               quarter_turns: np.ndarray | None = None) -> list[list[Detection]]:
         """Per image (H, W, 3) uint8 BGR / (H, W) mono: people found, best first (maybe none).
-        regions (N, 4): look only in this part of each image (x0, y0, x1, y1; see sample)."""
+        regions (N, 4): look only in this part of each image (x0, y0, x1, y1; see sample);
+        quarter_turns (N,): look at each image turned (see sample); results in image pixels."""
         if len(images) == 0:
             return []
-        x, A = self.sample(images, regions)
+        x, A = self.sample(images, regions, quarter_turns)
         raw, logits = self.runner.run(["Identity", "Identity_1"], x)
         if raw.shape[1:] != (len(self.anchors), 12):
             raise ModelError(f"{self.path}: output shape {raw.shape}, expected (N, {len(self.anchors)}, 12)")
@@ -154,9 +174,30 @@ class PoseDetector:
             cand = np.flatnonzero(scores[k] >= self.min_score)
             inv = invert_affine(A[k])
             img_pts = allpts[k, cand] @ inv[:, :2].T + inv[:, 2]  # (n, 6, 2) image pixels
-            boxes = img_pts[:, :2].reshape(-1, 4)
+            boxes = np.concatenate([img_pts[:, :2].min(axis=1), img_pts[:, :2].max(axis=1)], axis=1)  # turned: corners swap
             keep = nms(boxes, scores[k, cand], self.iou_threshold) if cand.size else np.empty(0, np.intp)
             out.append([Detection(float(scores[k, cand[i]]), boxes[i], img_pts[i, 2:]) for i in keep])
+        return out
+
+    def detect_turned(self, images: Sequence[np.ndarray]) -> list[list[Detection]]:
+        """A look at each image turned by one, two and three quarter turns, one batch: a body
+        lying or upside down, which the upright pass misses (the paper turns the CNN's input for
+        inverted bodies, III-B). Per image the detections merged by NMS, best first, in image
+        pixels (their keypoints give the crop its rotation)."""
+        checked = [check_image(im, i) for i, im in enumerate(images)]
+        owner = np.repeat(np.arange(len(checked)), 3)
+        dets = self.detect([checked[k] for k in owner], quarter_turns=np.tile([1, 2, 3], len(checked))) if checked else []
+        return self._merge(dets, owner, len(checked))
+
+    def _merge(self, dets: list[list[Detection]], owner: np.ndarray, n: int) -> list[list[Detection]]:
+        """Per image k, the detections of the passes owner == k, merged by NMS, best first."""
+        out: list[list[Detection]] = []
+        for k in range(n):
+            found = [d for i in np.flatnonzero(owner == k) for d in dets[i]]
+            if found:
+                found = [found[i] for i in nms(np.array([d.box for d in found]), np.array([d.score for d in found]),
+                                                self.iou_threshold)]
+            out.append(found)
         return out
 
     def detect_zoomed(self, images: Sequence[np.ndarray], near: Sequence[np.ndarray | None],
@@ -179,11 +220,4 @@ class PoseDetector:
             regions.append(np.array([[x0, y0, x0 + side, y0 + side]]))
         owner = np.repeat(np.arange(len(checked)), [len(r) for r in regions])
         dets = self.detect([checked[k] for k in owner], np.concatenate(regions)) if checked else []
-        out: list[list[Detection]] = []
-        for k in range(len(checked)):
-            found = [d for i in np.flatnonzero(owner == k) for d in dets[i]]
-            if found:
-                found = [found[i] for i in nms(np.array([d.box for d in found]), np.array([d.score for d in found]),
-                                                self.iou_threshold)]
-            out.append(found)
-        return out
+        return self._merge(dets, owner, len(checked))

@@ -93,6 +93,10 @@ class BlazePosePcm:
             if both:
                 keep = nms(np.array([d.box for d in both]), np.array([d.score for d in both]), self.detector.iou_threshold)
                 found[c] = [both[i] for i in keep]
+        # A body lying or upside down: where still nobody is found, look at the image turned.
+        lying = [c for c in have if not found[c]]
+        for c, dets in zip(lying, self.detector.detect_turned([images[c] for c in lying])):
+            found[c] = dets
         if seed is not None:
             hip, front = self.rig.project(np.asarray(seed, dtype=np.float64).reshape(3))  # (C, 2), (C,)
             for c, dets in enumerate(found):
