@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -157,7 +158,12 @@ def test_bvh_forward_kinematics_reproduces_the_keypoints(processed) -> None:
 
 def opensim_markers(path: Path) -> tuple[np.ndarray, list[str], str]:
     """(frames, markers, 3) of a TRC as OpenSim reads it, the marker names and the units."""
-    opensim = pytest.importorskip("opensim", reason="opensim not installed (pip install vmocap[opensim]; scripts/setup.sh)")
+    saved = dict(os.environ)
+    try:
+        opensim = pytest.importorskip("opensim", reason="opensim not installed (pip install vmocap[opensim]; scripts/setup.sh)")
+    finally:  # opensim 4.6's import sets LD_LIBRARY_PATH to PATH: later ROS node processes would not start
+        os.environ.clear()
+        os.environ.update(saved)
     table = opensim.TimeSeriesTableVec3(str(path))
     rows = [table.getRowAtIndex(i) for i in range(table.getNumRows())]
     P = np.array([[[r[k][a] for a in range(3)] for k in range(table.getNumColumns())] for r in rows])
