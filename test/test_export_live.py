@@ -23,6 +23,7 @@ from vmocap_core.export.session import load_session
 from vmocap_core.export.subject import dims_vector
 from vmocap_core.keypoints import KEYPOINTS
 
+pytestmark = pytest.mark.graph_replay
 N = 30
 RECORDED = ["/vmocap/keypoints", "/vmocap/joint_states", "/vmocap/markers", "/vmocap/skeleton", "/diagnostics"]
 FORMATS = ("bvh", "c3d", "trc", "csv")
