@@ -6,7 +6,7 @@ setup:
 
 # End-to-end demo on the Pose2Sim videos (fetched from PyPI): node graph + CNN, report in reports/demo/
 demo: setup
-	.venv/bin/vmocap demo
+	.venv/bin/vmocap demo --overwrite
 
 test: setup
 	bash scripts/test.sh

@@ -7,12 +7,13 @@ refusal costs nothing), `staged` or `write_text`/`write_bytes` for the writing i
 
 from __future__ import annotations
 
+import io
 import os
 import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Any, Iterable, Iterator
 
 from .errors import OutputPathError
 
@@ -74,6 +75,28 @@ def write_bytes(path: PathLike, data: bytes, inputs: Iterable[PathLike] = (), ov
 def write_text(path: PathLike, text: str, inputs: Iterable[PathLike] = (), overwrite: bool = False) -> Path:
     """Write `text` (UTF-8) to `path` atomically (see `staged`); returns the path written."""
     return write_bytes(path, text.encode(), inputs, overwrite)
+
+
+def output_folder(folder: PathLike, names: Iterable[str] = (), inputs: Iterable[PathLike] = ()) -> Path:
+    """Create the explicitly named `folder` for a command's own files (plots): those files
+    (`names`, when known ahead) replace the command's earlier ones there, but never an input
+    (OutputPathError, raised before anything is written, as for a folder that is a file)."""
+    out = Path(folder)
+    if os.path.lexists(out) and not out.is_dir():
+        raise OutputPathError(f"{out}: exists and is not a folder")
+    inputs = list(inputs)
+    for name in names:
+        check_output(out / name, inputs, overwrite=True)
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def write_figure(fig: Any, path: PathLike, inputs: Iterable[PathLike] = (), overwrite: bool = True, **savefig: Any) -> Path:
+    """A matplotlib figure as `path` (format from its suffix), atomically (see `staged`);
+    overwrite defaults to true: figures go into a folder the user named for them."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format=Path(path).suffix.lstrip(".") or "png", **savefig)
+    return write_bytes(path, buf.getvalue(), inputs, overwrite)
 
 
 def _sync(path: Path) -> None:

@@ -372,6 +372,11 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(rig_path)
     if p["cameras"]:
         rig = rig.subset(p["cameras"])
+    if args.plots:  # before the work: a refusal costs nothing
+        from ..export.plots import PLOT_FILES
+        from ..files import output_folder
+
+        output_folder(args.plots, PLOT_FILES, [args.input, rig_path, cfg_path, args.output])
     pipeline = cfg.pipeline_config()  # both stages' sections of the config
     if args.offline:
         pipeline = pipeline.replace(offline=True)
@@ -401,6 +406,6 @@ def run(args: argparse.Namespace) -> int:
         from ..export.plots import plot_session
         from ..export.session import load_session
 
-        for f in plot_session(load_session(args.output), args.plots):
+        for f in plot_session(load_session(args.output), args.plots, [args.input, rig_path, cfg_path, args.output]):
             print(f"plot: {f}")
     return 1 if failed else 0

@@ -4,26 +4,30 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 
+from ..files import output_folder, write_figure
 from ..keypoints import INDEX
 from ..method.skeleton import REVOLUTE
 from .session import Session
 
 SPHERICAL = ("waist", "neck", "left_shoulder", "right_shoulder", "left_hip", "right_hip")
 SPEED_KEYPOINTS = ("pelvis", "nose", "left_wrist", "right_wrist", "left_ankle", "right_ankle")
+PLOT_FILES = ("joint_angles.png", "keypoint_speeds.png")
 
 
-def plot_session(session: Session, folder: str | Path) -> list[Path]:
-    """Write joint_angles.png and keypoint_speeds.png into `folder`; returns their paths."""
+def plot_session(session: Session, folder: str | Path, inputs: Iterable[str | Path] = ()) -> list[Path]:
+    """Write PLOT_FILES (joint angles, keypoint speeds) into `folder`, replacing earlier ones
+    but never one of `inputs` (vmocap_core.files); returns their paths."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    inputs = list(inputs)
+    folder = output_folder(folder, PLOT_FILES, inputs)
     t = session.times
     col = {n: i for i, n in enumerate(session.joint_names)}
     fig, (a, b) = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
@@ -41,8 +45,8 @@ def plot_session(session: Session, folder: str | Path) -> list[Path]:
     b.set_xlabel("time (s)")
     b.legend(ncol=3, fontsize=8)
     fig.tight_layout()
-    out = [folder / "joint_angles.png", folder / "keypoint_speeds.png"]
-    fig.savefig(out[0], dpi=90)
+    out = [folder / name for name in PLOT_FILES]
+    write_figure(fig, out[0], inputs, dpi=90)
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(10, 4))
     # Central differences over consecutive tracked frames only (NaN next to a gap).
@@ -53,6 +57,6 @@ def plot_session(session: Session, folder: str | Path) -> list[Path]:
     ax.set_xlabel("time (s)")
     ax.legend(ncol=3, fontsize=8)
     fig.tight_layout()
-    fig.savefig(out[1], dpi=90)
+    write_figure(fig, out[1], inputs, dpi=90)
     plt.close(fig)
     return out

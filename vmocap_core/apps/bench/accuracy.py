@@ -17,11 +17,12 @@ import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 from tqdm import tqdm
 
+from ...files import output_folder, write_figure
 from ...method.config import PipelineConfig
 from ...method.filter import make_filter
 from ...method.offline import reconstruct
@@ -164,7 +165,8 @@ def summarize(per_motion: dict[str, dict[str, object]]) -> dict[str, object]:
     return summary
 
 
-def plot_run(run: MotionRun, path: Path) -> None:
+def plot_run(run: MotionRun, path: Path, inputs: Iterable[Path] = ()) -> None:
+    """MPJPE and PCM score over time as `path`, replacing an earlier plot but never one of `inputs`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -184,7 +186,7 @@ def plot_run(run: MotionRun, path: Path) -> None:
     b.set_ylabel("PCM score (mean W / cameras)")
     b.set_xlabel("time (s)")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    write_figure(fig, path, inputs, dpi=90)
     plt.close(fig)
 
 
@@ -204,14 +206,14 @@ def run(args: argparse.Namespace) -> int:
         return 2
     config = PipelineConfig.from_dict(tracker_settings(args, RATE_HZ))
     per_motion: dict[str, dict[str, object]] = {}
-    if args.plots:
-        args.plots.mkdir(parents=True, exist_ok=True)
+    if args.plots:  # the plots are named after the motions: each is checked against them when written
+        output_folder(args.plots, inputs=files)
     for path in tqdm(files, desc="motions", disable=args.json):
         motion = prepare(path)
         r = run_motion(motion, args.seed, config, rotation=not args.no_rotation, progress=not args.json)
         per_motion[motion.name] = score_run(r)
         if args.plots:
-            plot_run(r, args.plots / f"{motion.name}.png")
+            plot_run(r, args.plots / f"{motion.name}.png", files)
     result = {"motions": per_motion, "summary": summarize(per_motion), "seed": args.seed, "config": config.to_dict()}
     if args.json:
         print(json.dumps(result, indent=1))

@@ -51,42 +51,65 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="decode the 1920x1088 JPEGs reduced this many times (REP 104 binning; the CNN's crops "
                              "are cut from the reduced images): less CPU per frame set, at some accuracy")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an earlier run's files in --out, and --bag when it must be converted again")
+
+
+# what a run writes into --out, per mode (rig, recording and graph files; then the report)
+RUN_FILES = {"graph": ("rig.yaml", "graph.yaml", "graph_outputs.mcap", "graph.log", "graph_recorder.log"),
+             "in-process": ("rig.yaml", "outputs.mcap")}
+REPORT_FILES = ("pcm_score.png", "trajectories_3d.png", "bone_lengths.png", "reprojection_error.png", "summary.json",
+                "recording.npz", "report.md")
+VIDEO_FILES = ("overlay.mp4", "contact_sheet.png")
 
 
 def run(args: argparse.Namespace) -> int:
     from ...calibration.datasets import pose2sim_demo
     from ...cameras.rig_file import save_rig
+    from ...errors import OutputPathError
+    from ...files import check_output
     from ...pcm.fetch import fetch as fetch_models
 
-    log("PCM models: checking the cache (builds it on a fresh machine, as `vmocap models fetch`)")
-    fetch_models(quiet=True)
+    products = [args.out / n for n in RUN_FILES[args.mode] + REPORT_FILES + (() if args.no_video else VIDEO_FILES)]
+    for p in products:  # before anything is fetched or written: a refusal costs nothing
+        check_output(p, [args.bag], args.overwrite)
     log("fetching the pose2sim==0.10.49 wheel (pip download --no-deps, cached)")
     demo = pose2sim_demo(fetch=True)
     if demo is None:
         print("vmocap demo: could not obtain the Pose2Sim demo", file=sys.stderr)
         return 1
     videos = video_paths(demo)
-    rig = load_qualisys(demo / "calibration" / "Calib.qca.txt", video_sizes(videos))
+    calib = demo / "calibration" / "Calib.qca.txt"
+    inputs = [calib, *videos.values()]
+    for p in products:
+        check_output(p, inputs, overwrite=True)  # existing files were checked above; here: none is an input
+    log("PCM models: checking the cache (builds it on a fresh machine, as `vmocap models fetch`)")
+    fetch_models(quiet=True)
+    rig = load_qualisys(calib, video_sizes(videos))
     args.out.mkdir(parents=True, exist_ok=True)
-    save_rig(rig, args.out / "rig.yaml")
+    save_rig(rig, args.out / "rig.yaml", args.overwrite, inputs)
     log(f"rig {rig.names} -> {args.out / 'rig.yaml'}")
     want = min(_video_frames(videos), args.frames or 10**9)
     if args.bag.exists() and not args.rebuild_bag and _count_frame_sets(args.bag, rig) == want:
         n = want
         log(f"reusing {args.bag} ({n} frame sets; --rebuild-bag to convert again)")
     else:
-        n = videos_to_bag(videos, rig, args.bag, args.frames)
+        if args.bag.exists() and not (args.rebuild_bag or args.overwrite):
+            raise OutputPathError(f"{args.bag}: holds other frame sets than the {want} asked for; refusing to replace "
+                                  "it (pass --rebuild-bag or --overwrite to convert the videos again, or --bag)")
+        n = videos_to_bag(videos, rig, args.bag, args.frames, overwrite=True)  # replacing it was asked for above
         log(f"{n} frame sets -> {args.bag}")
     t0 = time.perf_counter()
     if args.mode == "graph":
         rate, why = (args.graph_rate, "--graph-rate") if args.graph_rate else live_rate(args.bag, rig, binning=args.binning)
         log(f"node graph on {args.bag} at {rate} x real time ({why})")
-        recorded = run_graph(args.bag, args.out / "rig.yaml", rig, args.out, n, rate, args.binning)
+        recorded = run_graph(args.bag, args.out / "rig.yaml", rig, args.out, n, rate, args.binning, args.overwrite)
         rec = recording_from_graph(recorded, rig, n)
         mode = (f"ROS 2 node graph (vmocap launch: camera, CNN PCM, markers, skeleton in one process, recorder apart), "
                 f"bag played at {rate} x real time ({why})")
     else:
-        rec = run_pipeline(args.bag, rig, args.out / "outputs.mcap", n, args.threads, binning=args.binning)
+        rec = run_pipeline(args.bag, rig, args.out / "outputs.mcap", n, args.threads, binning=args.binning,
+                           overwrite=args.overwrite)
         mode = "in-process pipeline (the graph's stage classes, no DDS)"
     info = {"pipeline_s": time.perf_counter() - t0, "bag": str(args.bag), "mode": mode,
             "processed_frames": int(sum(s != "dropped" for s in rec["status"])), "tracker_settings": TRACKER_SETTINGS}

@@ -40,11 +40,12 @@ def video_sizes(videos: dict[str, Path]) -> dict[str, tuple[int, int]]:
 
 # ------------------------------------------------------------------------------ videos -> bag
 def videos_to_bag(videos: dict[str, Path], rig: Rig, bag: Path, max_frames: int | None = None, quality: int = 90,
-                  raw: bool = False) -> int:
+                  raw: bool = False, overwrite: bool = False) -> int:
     """Write the synchronized videos as JPEG CompressedImage + CameraInfo per camera
     (stamp = frame index / 60 fps). Returns the number of frame sets. raw=True writes
     sensor_msgs/Image (bgr8) on NS/CAM/image_raw instead (about 25 MB per frame set before
-    the bag's zstd compression; the camera node reads either)."""
+    the bag's zstd compression; the camera node reads either). An existing `bag` is replaced
+    only with `overwrite`, and only once the new one is complete (BagWriter)."""
     import cv2
     from tqdm import tqdm
 
@@ -57,10 +58,8 @@ def videos_to_bag(videos: dict[str, Path], rig: Rig, bag: Path, max_frames: int 
     n = min(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) for cap in caps.values())
     if max_frames:
         n = min(n, max_frames)
-    bag.parent.mkdir(parents=True, exist_ok=True)
-    tmp = bag.with_suffix(".part")
     written = 0
-    with BagWriter(tmp, compression="zstd" if raw else "none") as writer:
+    with BagWriter(bag, compression="zstd" if raw else "none", overwrite=overwrite, inputs=videos.values()) as writer:
         for f in tqdm(range(n), desc="videos -> bag", unit="frame", file=sys.stderr):
             ns = int(round(f * 1e9 / FPS))
             frames = {}
@@ -83,7 +82,6 @@ def videos_to_bag(videos: dict[str, Path], rig: Rig, bag: Path, max_frames: int 
             written += 1
     for cap in caps.values():
         cap.release()
-    tmp.replace(bag)
     return written
 
 

@@ -24,10 +24,11 @@ TRACKER_SETTINGS = {"fps": FPS, "filter_kind": "butterworth", "filter_cutoff_hz"
 
 # ------------------------------------------------------------------------------ pipeline
 def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int = 2,
-                 settings: dict[str, Any] | None = None, binning: int = 1) -> dict:
+                 settings: dict[str, Any] | None = None, binning: int = 1, overwrite: bool = False) -> dict:
     """The pipeline on the bag's images with the real CNN; records everything the report needs.
     `settings`: the method's tunables (default TRACKER_SETTINGS); `binning`: images decoded
-    reduced that many times (ModelPcmProvider's binning)."""
+    reduced that many times (ModelPcmProvider's binning); an existing out_bag is replaced only
+    with `overwrite`."""
     from tqdm import tqdm
 
     from ...bag import BagWriter
@@ -47,7 +48,7 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
                                              "t_decode", "t_pcm", "t_markers", "t_skeleton", "n_views", "links")}
     cameras = np.arange(len(rig))
     it = bag_frame_sets(bag, rig, binning)
-    with BagWriter(out_bag, compression="zstd") as writer:
+    with BagWriter(out_bag, compression="zstd", overwrite=overwrite, inputs=[bag]) as writer:
         bar = tqdm(total=n_frames, desc="pipeline", unit="frame", file=sys.stderr)
         while True:
             t0 = time.perf_counter()
@@ -110,14 +111,15 @@ HOT_PATH = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"] 
 
 
 def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int, rate: float = 0.05,
-              binning: int = 1) -> Path:
+              binning: int = 1, overwrite: bool = False) -> Path:
     """The ROS 2 node graph (camera from the bag: JPEG CompressedImage decoded in the camera
     node, or raw Image; CNN PCM node, markers, skeleton, recorder) as `vmocap launch` runs it
     by default: camera, CNN and tracker in one process (images never cross a process), the
     recorder apart; returns the recorded MCAP (outputs + each camera's 2D keypoints).
 
     The bag is played at `rate` x real time (1 = live speed, see live_rate); every node queues
-    up to 50 frame sets, and what a node cannot take beyond that is dropped."""
+    up to 50 frame sets, and what a node cannot take beyond that is dropped. The recorder
+    replaces an earlier run's recording only with `overwrite`."""
     import os
     import signal
     import subprocess
@@ -150,10 +152,12 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
                                                "feedback_timeout_ms": 2000.0, "views": [""], "queue_depth": 50,
                                                **stages["vmocap_markers"]}},
         "vmocap_skeleton": {"ros__parameters": {"queue_depth": 50, **stages["vmocap_skeleton"]}},
-        "vmocap_recorder": {"ros__parameters": {"output": str(output), "topics": record + tf, "compression": "zstd"}},
+        "vmocap_recorder": {"ros__parameters": {"output": str(output), "topics": record + tf, "compression": "zstd",
+                                                "overwrite": overwrite}},
         "vmocap_launch": {"mode": "processes", "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml"),
                           "nodes": [*HOT_PATH, "vmocap_recorder"], "groups": [HOT_PATH]},
     }
+    earlier = _identity(output)  # an earlier run's recording, replaced only when this run's is complete
     cfg_path = out_dir / "graph.yaml"
     cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
@@ -192,9 +196,18 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
         finally:
             for proc in reversed(procs):
                 stop(proc)
-    if not output.exists():
+    if not output.exists() or _identity(output) == earlier:
         raise VmocapError(f"the node graph wrote no {output}; see {log_hot} and {log_rec}")
     return output
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    """(inode, modification time) of a file, None when there is none."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    return st.st_ino, st.st_mtime_ns
 
 
 def recording_from_graph(path: Path, rig: Rig, n_frames: int) -> dict:
