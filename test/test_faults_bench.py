@@ -1,8 +1,9 @@
-"""`vmocap bench faults --json` on a subset of its faults (damaged bags through `vmocap process`
-and `vmocap play`, the person leaving every view and returning through the node graph; an
-Aravis Fake camera unplugged and back): the JSON has the documented shape and every fault tried
-is survived and diagnosed (camera_late: cam2's images two frame sets late, found by vmocap_markers'
-periodic time-offset probe). Fast forms of two more: the launcher's restart policy on a killed
+"""`vmocap bench faults --json` on a subset of its faults (damaged bags and a damaged chunk through
+`vmocap process` and `vmocap play`; `vmocap process` writing onto its input, onto an existing
+output, killed while writing; a config the rig cannot satisfy; the person leaving every view and
+returning through the node graph; an Aravis Fake camera unplugged and back): the JSON has the
+documented shape and every fault tried is survived and diagnosed (camera_late: cam2's images two
+frame sets late, found by vmocap_markers' periodic time-offset probe). Fast forms of two more: the launcher's restart policy on a killed
 recorder, and vmocap_pcm with the CNN leaving out black and wrong-size images."""
 
 from __future__ import annotations
@@ -19,19 +20,22 @@ import pytest
 import yaml
 from graph_helpers import REPO, domain_env, synthetic_bag, vmocap, write_config
 
-FAULTS = ["truncated_bag", "corrupted_bag", "person_leaves", "heatmaps_nan", "camera_late"]
+FAULTS = ["truncated_bag", "corrupted_bag", "damaged_chunk", "output_is_input", "output_exists", "output_killed",
+          "min_cameras_above_rig", "person_leaves", "heatmaps_nan", "camera_late"]
 
 
 def test_bench_faults_subset_survived_and_diagnosed(tmp_path: Path) -> None:
     env = domain_env(41)
     run = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "bench", "faults", "--json", "--modes", "default",
                           "--only", *FAULTS, "--workdir", str(tmp_path)], env=env, cwd=REPO,
-                         capture_output=True, text=True, timeout=240)
+                         capture_output=True, text=True, timeout=360)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     out = json.loads(run.stdout.strip().splitlines()[-1])
     names = set(out["faults"])
     assert names == {"truncated_bag:process", "truncated_bag:play", "corrupted_bag:process", "corrupted_bag:play",
-                     "person_leaves:default", "heatmaps_nan:default", "camera_late:default"}, names
+                     "damaged_chunk:process", "damaged_chunk:play", "output_is_input:path", "output_is_input:symlink",
+                     "output_is_input:hardlink", "output_exists", "output_killed:new", "output_killed:replace",
+                     "min_cameras_above_rig", "person_leaves:default", "heatmaps_nan:default", "camera_late:default"}, names
     assert out["tried"] == len(names)
     assert out["survived"] == sum(r["survived"] for r in out["faults"].values())
     for name, r in out["faults"].items():
@@ -40,6 +44,12 @@ def test_bench_faults_subset_survived_and_diagnosed(tmp_path: Path) -> None:
     # damage at 60 % of the file: the frame sets before it are read, those after it lost
     for name in ("truncated_bag:process", "corrupted_bag:play"):
         assert 0 < out["faults"][name]["frames_lost"] < 150, out["faults"][name]
+    # one damaged chunk of three: the chunks before and after it are read
+    for name in ("damaged_chunk:process", "damaged_chunk:play"):
+        assert 0 < out["faults"][name]["frames_lost"] < 75, out["faults"][name]
+    assert out["faults"]["output_killed:new"]["output_after"] == "none", out["faults"]["output_killed:new"]
+    assert out["faults"]["output_killed:replace"]["output_after"] == "earlier file", out["faults"]["output_killed:replace"]
+    assert out["faults"]["min_cameras_above_rig"]["launch_exit"] == 2, out["faults"]["min_cameras_above_rig"]
     person = out["faults"]["person_leaves:default"]
     assert person["tracked_after_return"] > 0 and person["output_while_absent"] < 10, person
 

@@ -95,15 +95,9 @@ def test_crash_mid_write_leaves_the_old_file(tmp_path: Path) -> None:
 
 
 def _damage_chunk(src: Path, dst: Path) -> int:
-    with BagReader(src) as r:
-        chunks = r._summary.chunk_indexes
-        k = len(chunks) // 2
-        ci = chunks[k]
-    raw = bytearray(src.read_bytes())
-    pos = ci.chunk_start_offset + ci.chunk_length - 64  # inside the chunk's records
-    raw[pos:pos + 8] = bytes(b ^ 0xFF for b in raw[pos:pos + 8])
-    dst.write_bytes(bytes(raw))
-    return k
+    from vmocap_ros.bench.fault_harness import damage_chunk
+
+    return damage_chunk(src, dst)[0]
 
 
 def test_damaged_chunk_refused_by_process_export_and_play(work) -> None:
@@ -164,3 +158,64 @@ def test_config_values_that_cannot_work_are_refused(work, tmp_path: Path, sectio
 def test_config_rig_that_does_not_exist(tmp_path: Path) -> None:
     cfg = _config(tmp_path, tmp_path / "nope.yaml", vmocap_markers={})
     _refused(_cli("config", "check", str(cfg)), "nope.yaml: no such rig file")
+
+
+def test_plots_replace_their_own_files_but_never_an_input(work, tmp_path: Path) -> None:
+    """`vmocap process --plots DIR`: its plot files are replaced on a rerun; a plot file that is an
+    input (here a link to the config) or a DIR that is a file is refused before the work."""
+    plots = tmp_path / "plots"
+    out = tmp_path / "o.mcap"
+    base = ("process", str(work["in"]), "-o", str(out), "--config", str(work["cfg"]), "--no-progress", "--overwrite")
+    for _ in range(2):
+        assert _cli(*base, "--plots", str(plots)).returncode == 0
+    assert sorted(p.name for p in plots.iterdir()) == ["joint_angles.png", "keypoint_speeds.png"]
+    cfg_before = work["cfg"].read_bytes()
+    linked = tmp_path / "linked"
+    linked.mkdir()
+    (linked / "joint_angles.png").symlink_to(work["cfg"])
+    out.unlink()
+    _refused(_cli(*base, "--plots", str(linked)), "joint_angles.png", "refusing to write onto it")
+    not_a_folder = tmp_path / "f.png"
+    not_a_folder.write_bytes(b"mine")
+    _refused(_cli(*base, "--plots", str(not_a_folder)), "not a folder")
+    assert work["cfg"].read_bytes() == cfg_before and not_a_folder.read_bytes() == b"mine" and not out.exists()
+
+
+def test_figure_writer_keeps_inputs(tmp_path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from vmocap_core.files import output_folder, write_figure
+
+    src = tmp_path / "in.png"
+    src.write_bytes(b"input")
+    fig = plt.figure()
+    try:
+        folder = output_folder(tmp_path / "figs", ["a.png"], [src])
+        write_figure(fig, folder / "a.png", [src])
+        first = (folder / "a.png").read_bytes()
+        write_figure(fig, folder / "a.png", [src])  # its own figure: replaced
+        assert first.startswith(b"\x89PNG") and (folder / "a.png").read_bytes().startswith(b"\x89PNG")
+        with pytest.raises(OutputPathError, match="refusing to write onto it"):
+            write_figure(fig, src, [src])
+        with pytest.raises(OutputPathError, match="refusing to write onto it"):
+            output_folder(tmp_path, ["in.png"], [src])
+    finally:
+        plt.close(fig)
+    assert src.read_bytes() == b"input"
+
+
+def test_demo_refuses_an_earlier_run_without_overwrite(tmp_path: Path) -> None:
+    """`vmocap demo --out DIR` over an earlier run's files: refused without --overwrite (make demo
+    passes it), and a --bag among its outputs refused even with it; both before any work."""
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "report.md").write_text("earlier run")
+    _refused(_cli("demo", "--out", str(out), "--bag", str(tmp_path / "b.mcap")), "report.md", "exists", "--overwrite")
+    (out / "outputs.mcap").write_bytes(b"a bag")
+    _refused(_cli("demo", "--out", str(out), "--bag", str(out / "outputs.mcap"), "--mode", "in-process", "--overwrite"),
+             "outputs.mcap", "refusing to write onto it")
+    assert (out / "report.md").read_text() == "earlier run" and (out / "outputs.mcap").read_bytes() == b"a bag"
+    assert sorted(p.name for p in out.iterdir()) == ["outputs.mcap", "report.md"] and not (tmp_path / "b.mcap").exists()

@@ -20,6 +20,9 @@ REPO = Path(__file__).resolve().parents[2]
 MOTION = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
 FPS = 30.0
 T0 = 1_000_000_000_000  # the synthetic bags' first stamp (ns)
+# the harness's bags, configs and recordings live in its own work folder: a --workdir used
+# again replaces them (BagWriter's and the recorder's `overwrite`)
+SCRATCH = True
 
 
 def stamp_of(k: int) -> int:
@@ -49,7 +52,7 @@ def alter_heatmaps(src: Path, dst: Path, frames: range, views: list[str], how: s
     from vmocap_core.bag import BagReader, BagWriter, cdr
 
     lo, hi = stamp_of(frames.start), stamp_of(frames.stop)
-    with BagReader(src) as r, BagWriter(dst) as w:
+    with BagReader(src) as r, BagWriter(dst, overwrite=SCRATCH) as w:
         for m in r.messages():
             data: bytes | dict = bytes(m.data)
             view = m.topic.split("/")[-2] if "/pcm/" in m.topic else ""
@@ -76,7 +79,7 @@ def delay_view(src: Path, dst: Path, view: str, frames: int) -> Path:
     from vmocap_core.bag import BagReader, BagWriter, cdr
 
     held: dict[str, deque] = {}
-    with BagReader(src) as r, BagWriter(dst) as w:
+    with BagReader(src) as r, BagWriter(dst, overwrite=SCRATCH) as w:
         for m in r.messages():
             data: bytes = bytes(m.data)
             if f"/pcm/{view}/" in m.topic:
@@ -126,6 +129,30 @@ def damage(src: Path, dst: Path, how: str, at: float = 0.6, seed: int = 0) -> Pa
     return dst
 
 
+def damage_chunk(src: Path, dst: Path) -> tuple[int, int, int]:
+    """A copy of `src` with 8 bytes inverted inside the records of its middle chunk (summary and
+    the other chunks intact); returns that chunk's index and its first and last message time."""
+    from vmocap_core.bag import BagReader
+
+    with BagReader(src) as r:
+        chunks = r._summary.chunk_indexes
+        k = len(chunks) // 2
+        ci = chunks[k]
+    raw = bytearray(src.read_bytes())
+    pos = ci.chunk_start_offset + ci.chunk_length - 64  # inside the chunk's records
+    raw[pos:pos + 8] = bytes(b ^ 0xFF for b in raw[pos:pos + 8])
+    dst.write_bytes(bytes(raw))
+    return k, ci.message_start_time, ci.message_end_time
+
+
+def frame_stamps(path: Path, recover: bool = False) -> set[int]:
+    """The log times of the heatmaps in a bag: its frame sets."""
+    from vmocap_core.bag import BagReader
+
+    with BagReader(path, recover=recover) as r:
+        return {m.log_time_ns for m in r.messages() if m.topic.endswith("/heatmaps")}
+
+
 def launch_mode(mode: str) -> str:
     """The vmocap_launch mode of a benchmark mode ("default": the shipped process groups)."""
     return "processes" if mode == "default" else mode
@@ -136,7 +163,7 @@ def write_config(path: Path, rig_path: Path, kps: list[str], nodes: list[str], m
     cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
     cfg["/**"]["ros__parameters"].update(rig=str(rig_path), pcm_keypoints=kps)
     cfg["vmocap_pcm"]["ros__parameters"]["model"] = str(MOTION)
-    cfg["vmocap_recorder"]["ros__parameters"]["output"] = str(output)
+    cfg["vmocap_recorder"]["ros__parameters"].update(output=str(output), overwrite=SCRATCH)
     cfg["vmocap_launch"] = {"mode": mode, "nodes": nodes, "groups": groups or [],
                             "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml"), **(launch or {})}
     # the synthetic heatmaps' noise (6 px, false peaks, swaps) is harsher than the CNN's: a wider
@@ -280,7 +307,7 @@ def demo_bag(path: Path, frames: int):
     rig_path = path.with_suffix(".rig.yaml")
     save_rig(rig, rig_path)
     if not path.exists():
-        videos_to_bag(videos, rig, path, frames)
+        videos_to_bag(videos, rig, path, frames, overwrite=SCRATCH)  # a .partial a killed run left
     return rig, rig_path
 
 
@@ -292,7 +319,7 @@ def alter_images(src: Path, dst: Path, camera: str, frames: range, how: str) -> 
 
     from vmocap_core.bag import BagReader, BagWriter, cdr
 
-    with BagReader(src) as r, BagWriter(dst) as w:
+    with BagReader(src) as r, BagWriter(dst, overwrite=SCRATCH) as w:
         for m in r.messages():
             data: bytes = bytes(m.data)
             k = round(m.log_time_ns * DEMO_FPS / 1e9)

@@ -20,8 +20,10 @@ from pathlib import Path
 
 from . import fault_harness as H
 from .faults_camera import CAMERA_FAULTS, IMAGE_FAULTS, IMAGE_FRAMES, aravis_fault, image_fault
+from .faults_output import OUTPUT_FAULTS, output_fault
 
-BAG_FAULTS = ["truncated_bag:process", "truncated_bag:play", "corrupted_bag:process", "corrupted_bag:play"]
+BAG_FAULTS = ["truncated_bag:process", "truncated_bag:play", "corrupted_bag:process", "corrupted_bag:play",
+              "damaged_chunk:process", "damaged_chunk:play"]
 PCM_FAULTS = ["heatmaps_nan", "heatmaps_inf", "heatmaps_negative", "person_leaves", "camera_pause", "calibration_rotated",
               "calibration_moved", "camera_late"]
 GRAPH_FAULTS = ["launcher_sigint", "launcher_sigterm", "recorder_sigkill", "node_killed", "node_restarted",
@@ -36,43 +38,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the results as JSON")
     parser.add_argument("--modes", nargs="+", default=["default", "single_process"], choices=("default", "single_process"))
     parser.add_argument("--only", nargs="+", default=None, metavar="FAULT",
-                        help=f"run only these faults (of {', '.join(BAG_FAULTS + CAMERA_FAULTS + PCM_FAULTS + GRAPH_FAULTS + IMAGE_FAULTS)})")
+                        help=f"run only these faults (of {', '.join(BAG_FAULTS + OUTPUT_FAULTS + CAMERA_FAULTS + PCM_FAULTS + GRAPH_FAULTS + IMAGE_FAULTS)})")
     parser.add_argument("--workdir", default=None, help="where bags, configs and recordings go (default: a temp dir)")
 
 
 # ------------------------------------------------------------------------- damaged bags
 def bag_fault(name: str, work: Path, bag: Path, rig_path: Path, kps: list[str], env: dict[str, str]) -> dict:
-    """Without --recover the tool must fail naming the file; with --recover it must read what is
-    readable. frames_lost: frame sets of the intact bag that the tool did not get."""
-    from vmocap_core.bag import BagReader
-
+    """Without --recover the tool must fail naming the file (damaged_chunk: and the chunk); with
+    --recover it must read what is readable (damaged_chunk: the chunks after the damaged one too).
+    frames_lost: frame sets of the intact bag that the tool did not get."""
     kind, tool = name.split(":")
-    bad = H.damage(bag, work / f"{kind}.mcap", kind.split("_")[0])
-    total = _frame_sets(BagReader(bag))
+    bad = work / f"{kind}.mcap"
+    stamps = H.frame_stamps(bag)
+    total = len(stamps)
+    named, at_most = "", total  # what the error must name; the frame sets the damage may cost
+    if kind == "damaged_chunk":
+        k, start, end = H.damage_chunk(bag, bad)
+        named, at_most = f"chunk {k} of", sum(start <= s <= end for s in stamps)
+    else:
+        H.damage(bag, bad, kind.split("_")[0])
     cfg = H.write_config(work / f"{kind}_{tool}.yaml", rig_path, kps, ["vmocap_markers"], "single_process", work / "unused.mcap")
     if tool == "process":
-        def cmd(*extra: str) -> list[str]:
+        def cmd(*extra: str) -> list[str]:  # --overwrite: the fault's own output of an earlier run (--workdir)
             return H.vmocap_cmd("process", str(bad), "-o", str(work / f"{kind}_out.mcap"), "--config", str(cfg),
-                                "--no-progress", "--json", *extra)
+                                "--no-progress", "--json", "--overwrite", *extra)
     else:
         def cmd(*extra: str) -> list[str]:
             return H.vmocap_cmd("play", str(bad), "--rate", "0", "--no-clock", "--wait-subscribers", "0.2", *extra)
     plain = subprocess.run(cmd(), env=env, capture_output=True, text=True, timeout=300)
     rec = subprocess.run(cmd("--recover"), env=env, capture_output=True, text=True, timeout=300)
-    diagnosed = plain.returncode != 0 and bad.name in plain.stdout + plain.stderr
+    said = plain.stdout + plain.stderr
+    diagnosed = plain.returncode != 0 and bad.name in said and named in said
     got = 0
     if rec.returncode == 0:
         if tool == "process":
             got = int(json.loads(rec.stdout.strip().splitlines()[-1])["frames"])
         else:  # the player publishes exactly what the recovering reader yields
-            got = _frame_sets(BagReader(bad, recover=True))
-    return {"survived": rec.returncode == 0 and got > 0, "diagnosed": diagnosed, "frames_lost": total - got,
+            got = len(H.frame_stamps(bad, recover=True))
+    # a damaged chunk costs that chunk only: the frame sets after it are read too
+    return {"survived": rec.returncode == 0 and got > 0 and total - got <= at_most, "diagnosed": diagnosed,
+            "frames_lost": total - got,
             "detail": (plain.stderr or plain.stdout).strip().splitlines()[-1:] + (rec.stderr or "").strip().splitlines()[-1:]}
-
-
-def _frame_sets(reader) -> int:
-    with reader as r:
-        return len({m.log_time_ns for m in r.messages() if m.topic.endswith("/heatmaps")})
 
 
 # ------------------------------------------------------------------ faults in the PCM stream
@@ -188,6 +194,9 @@ def graph_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps
     extra = {"vmocap_camera": {"source": "bag", "uri": str(bag), "loop": True, "restamp": True},
              "vmocap_pcm": {"source": "model", "model": str(bag)}}
     restart = {"node_restarted": ["vmocap_markers"], "recorder_restarted": ["vmocap_recorder"]}.get(name, [])
+    # what killed recorders of an earlier run (--workdir) left: a new killed file must be .killed1
+    for old in [Path(f"{out}.partial"), *work.glob(f"{out.stem}.killed*{out.suffix}.partial")]:
+        old.unlink(missing_ok=True)
     cfg = H.write_config(work / f"{name}_{mode}.yaml", rig_path, kps, nodes, H.launch_mode(mode), out, groups=[nodes[:4]], extra=extra,
                          launch={"restart": restart, "restart_limit": 3})
     launch = H.Proc.start(H.vmocap_cmd("launch", str(cfg)), env)
@@ -196,7 +205,8 @@ def graph_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps
     try:
         H.wait_ready(launch, nodes)
         if name in ("recorder_sigkill", "recorder_restarted"):  # a second recorder: what the killed one should have had
-            ref = H.Proc.start(H.vmocap_cmd("record", "-o", str(work / f"ref_{mode}.mcap"), "/vmocap/joint_states"), env)
+            ref = H.Proc.start(H.vmocap_cmd("record", "-o", str(work / f"ref_{mode}.mcap"), "--overwrite",
+                                            "/vmocap/joint_states"), env)
         time.sleep(8.0)
         if name in ("launcher_sigint", "launcher_sigterm"):
             rc = launch.stop(signal.SIGINT if name.endswith("sigint") else signal.SIGTERM)
@@ -303,7 +313,7 @@ def run(args: argparse.Namespace) -> int:
     work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="vmocap_faults_"))
     work.mkdir(parents=True, exist_ok=True)
     env = H.env_for(100 + os.getpid() % 100)
-    plan = [(f, None) for f in BAG_FAULTS]
+    plan = [(f, None) for f in BAG_FAULTS + OUTPUT_FAULTS]
     from vmocap_core.cameras import aravis as arv
 
     if arv.available():
@@ -356,6 +366,8 @@ def _run_plan(plan, work: Path, env: dict[str, str], probe, pcm_bag, cam_bag, de
         try:
             if f in CAMERA_FAULTS:
                 faults[key] = aravis_fault(d, env)
+            elif f in OUTPUT_FAULTS:
+                faults[key] = output_fault(f, d, work / "pcm.mcap", pcm_bag[1], pcm_bag[2], env)
             elif m is None:
                 faults[key] = bag_fault(f, d, work / "pcm.mcap", pcm_bag[1], pcm_bag[2], env)
             elif f in IMAGE_FAULTS:

@@ -79,7 +79,7 @@ def pose2sim_bag(work: Path, args: argparse.Namespace):
     if not bag.exists():
         topics = Topics()
         caps = {c.name: cv2.VideoCapture(str(videos[source[c.name]])) for c in rig}
-        with BagWriter(bag) as wr:
+        with BagWriter(bag, overwrite=True) as wr:  # its own scratch bag: a .partial a killed run left is replaced
             for k in range(args.frames):
                 t = 1_000_000_000_000 + int(round(k * 1e9 / args.fps))
                 for c in rig:

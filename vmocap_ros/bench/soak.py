@@ -61,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = graph_config(work, args.mode, rig_path, kps, g, bag, motion)
     c = yaml.safe_load(cfg.read_text())  # the recorder too: a long run's memory includes its bag
     c["vmocap_launch"]["nodes"].append("vmocap_recorder")
-    c["vmocap_recorder"]["ros__parameters"]["output"] = str(work / "soak_out.mcap")
+    # its own recording in its work folder: a --workdir used again replaces it
+    c["vmocap_recorder"]["ros__parameters"].update(output=str(work / "soak_out.mcap"), overwrite=True)
     cfg.write_text(yaml.safe_dump(c))
     env = graph_env()
     rclpy = init_rclpy()
