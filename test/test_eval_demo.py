@@ -132,6 +132,26 @@ def test_demo_on_the_node_graph(tmp_path: Path) -> None:
     assert set(rec["node_timing"]) >= {"vmocap_pcm", "vmocap_markers", "vmocap_skeleton"}
     # the report's timing table has a figure in every cell (the nodes report their mean too)
     assert all(np.isfinite(list(t.values())).all() for t in rec["node_timing"].values()), rec["node_timing"]
+    # the demo's live recording exports to every format, read back by the programs users open them in
+    import subprocess
+    import sys
+
+    import ezc3d
+    from test_export import opensim_markers
+
+    files = {}
+    for fmt in ("bvh", "c3d", "trc", "csv"):
+        files[fmt] = tmp_path / f"demo.{fmt}"
+        r = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "export", str(recorded), "--format", fmt, "-o", str(files[fmt])],
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, (fmt, r.stdout + r.stderr)
+    n_tracked = int(tracking.sum())
+    c3d = ezc3d.c3d(str(files["c3d"]))
+    points = c3d["data"]["points"]  # (4, markers, frames), invalid (untracked) points NaN
+    assert points.shape[1] == 25 and np.isfinite(points[:3]).all(axis=(0, 1)).sum() >= n_tracked - 1, points.shape
+    P, labels, units = opensim_markers(files["trc"])
+    assert len(labels) == 25 and units == "mm" and np.isfinite(P).all(axis=(1, 2)).sum() >= n_tracked - 1, P.shape
+    assert any(tmp_path.glob("demo*.bvh")) and files["csv"].stat().st_size > 0
 
 
 @needs_demo
