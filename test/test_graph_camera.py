@@ -20,12 +20,12 @@ T0 = 1_000_000_000_000
 
 
 def compressed_bag(path: Path, rig, frames: int, fmt: str = ".png", corrupt: tuple[str, int] | None = None,
-                   fps: float = 30.0) -> dict[tuple[str, int], np.ndarray]:
+                   fps: float = 30.0, chunk_size: int = 4 << 20) -> dict[tuple[str, int], np.ndarray]:
     """A bag of CompressedImage (+ CameraInfo) per camera of `rig`; returns the images by
     (camera, stamp). `corrupt` = (camera, frame) gets bytes that do not decode."""
     rng = np.random.default_rng(3)
     images = {}
-    with BagWriter(path) as w:
+    with BagWriter(path, chunk_size=chunk_size) as w:
         for k in range(frames):
             t = T0 + int(round(k * 1e9 / fps))
             for c in rig:
@@ -185,12 +185,13 @@ def test_camera_waits_for_the_wait_topics_too(tmp_path: Path) -> None:
 
 
 def play_and_record(tmp_path: Path, rig_path: Path, bag: Path, out: Path, topics: list[str], domain: int,
-                    seconds: float, common: dict | None = None) -> str:
+                    seconds: float, common: dict | None = None, camera: dict | None = None) -> str:
     """The camera node playing `bag` as fast as it can, a recorder taking `topics` for
     `seconds`, in one process; returns the launcher's log (exit status checked)."""
     cfg = write_config(tmp_path / "g.yaml", rig_path, [], ["vmocap_camera", "vmocap_recorder"], mode="single_process",
                        output=out, extra={"/**": common or {},
-                                          "vmocap_camera": {"uri": str(bag), "rate": 0.0, "wait_subscribers": 60.0},
+                                          "vmocap_camera": {"uri": str(bag), "rate": 0.0, "wait_subscribers": 60.0,
+                                                            **(camera or {})},
                                           "vmocap_recorder": {"topics": topics}})
     launch = vmocap(["launch", str(cfg)], domain_env(domain))
     try:
@@ -246,28 +247,32 @@ def test_camera_node_publishes_binned_images_with_their_camera_info(tmp_path: Pa
     assert "frames of" not in log  # the size check knows the binned size
 
 
-def test_camera_whose_recording_breaks_turns_diagnostics_error(tmp_path: Path) -> None:
-    """A recording damaged in the middle: the camera node publishes what comes before the damage,
-    then its cameras' threads end, and /diagnostics says ERROR (level 2) with the reason: the
-    node no longer does its job, unlike a skipped frame (WARN)."""
+@pytest.mark.parametrize("recover", [False, True])
+def test_camera_whose_recording_breaks_turns_diagnostics_error(tmp_path: Path, recover: bool) -> None:
+    """A recording damaged in the middle: the camera node refuses it (its chunk checks fail) and
+    /diagnostics says ERROR (level 2) naming the file: the node no longer does its job, unlike a
+    skipped frame (WARN). With `recover` it publishes the intact chunks, and WARNs naming the
+    damaged ones."""
     from vmocap_core.cameras.rig_file import save_rig
     from vmocap_ros.bench.fault_harness import damage
 
     rig = small_rig()
     bag = tmp_path / "c.mcap"
-    compressed_bag(bag, rig, 40)
+    compressed_bag(bag, rig, 40, chunk_size=64 << 10)  # chunks of a few frame sets: the damage hits middle ones
     broken = damage(bag, tmp_path / "broken.mcap", "corrupted", at=0.5)
     rig_path = tmp_path / "rig.yaml"
     save_rig(rig, rig_path)
     out = tmp_path / "out.mcap"
-    play_and_record(tmp_path, rig_path, broken, out, ["/vmocap/cam1/image_raw", "/diagnostics"], 35, 4.0)
+    play_and_record(tmp_path, rig_path, broken, out, ["/vmocap/cam1/image_raw", "/diagnostics"], 35 + recover, 4.0,
+                    camera={"recover": recover})
     with BagReader(out) as r:
         images = r.message_counts.get("/vmocap/cam1/image_raw", 0)
         status = [s for m in r.messages(["/diagnostics"]) for s in m.decode()["status"] if s["name"] == "vmocap_camera"]
-    assert 0 < images < 40, images
+    assert (20 < images < 40) if recover else images == 0, images
     last = status[-1]
     level = last["level"][0] if isinstance(last["level"], (bytes, bytearray)) else int(last["level"])
-    assert level == 2 and "broken.mcap" in last["message"], last["message"]
+    assert level == (1 if recover else 2) and "broken.mcap" in last["message"] and "chunk" in last["message"], last["message"]
+    assert ("skipped (recover)" if recover else "--recover") in last["message"], last["message"]
 
 
 @pytest.mark.parametrize("record_images", [False, True])

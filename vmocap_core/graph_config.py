@@ -79,6 +79,8 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("wait_topics", [""], "recorded sources: also wait (up to wait_subscribers) until each of these topics "
               "has a subscriber, e.g. the outputs a recorder in another process records (frames played before it "
               "matched give outputs it never gets)"),
+        Param("recover", False, "recorded sources: read the intact parts of a damaged recording (chunks that fail "
+              "their CRC, a truncated file) instead of refusing it"),
         Param("restamp", False, "recorded sources: stamp each frame with the wall-clock time it is published at "
               "(as a live camera stamps its capture time; loops keep counting forward)"),
         Param("reconnect_s", 1.0, "live cameras (aravis, v4l2): after a disconnection, try to reopen the camera "

@@ -372,15 +372,21 @@ class BagReader:
                 # chunk record: opcode, length, start/end time, uncompressed size, crc, compression, records
                 (comp_len,) = struct.unpack_from("<I", mm, ci.chunk_start_offset + 37)
                 records = ci.chunk_start_offset + 41 + comp_len + 8
+                found: list[tuple[int, int, int, int]] = []
                 for cid, off in ci.message_index_offsets.items():
                     if cid not in chans:
                         continue
                     op, _, ch, n = struct.unpack_from("<BQHI", mm, off)
-                    if op != 0x07 or ch != cid:
-                        raise BagError(f"{self.path}: corrupt MCAP message index at offset {off}")
+                    if op != 0x07 or ch != cid or off + 15 + n > len(mm):
+                        break
                     idx = np.frombuffer(mm, dtype="<u8", count=2 * (n // 16), offset=off + 15).reshape(-1, 2)
-                    entries.extend((int(t), records + int(o), cid, k) for t, o in idx
-                                   if (start_ns is None or t >= start_ns) and (end_ns is None or t < end_ns))
+                    found.extend((int(t), records + int(o), cid, k) for t, o in idx
+                                 if (start_ns is None or t >= start_ns) and (end_ns is None or t < end_ns))
+                else:
+                    entries.extend(found)
+                    continue
+                # the chunk's message index was overwritten: the chunk cannot be read (or, recover, skipped)
+                self._chunk_damaged(k, ci, f"its message index at offset {off} is corrupt")
         except (ValueError, struct.error, OSError) as exc:
             raise BagError(f"{self.path}: corrupt MCAP index ({type(exc).__name__}: {exc})") from None
         entries.sort()

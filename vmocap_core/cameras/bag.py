@@ -72,6 +72,11 @@ class BagFrameSource(FrameSource):
         # camera node copies it into its message
         self._it = iter(self._reader.messages([self.topic], start_ns=start, zero_copy=True))
 
+    @property
+    def damaged(self) -> list[str]:
+        """recover: the damaged chunks skipped so far, what and where each was."""
+        return list(self._reader.damaged_chunks) if self._reader is not None else []
+
     def close(self) -> None:
         if self._reader is not None:
             self._reader.close()

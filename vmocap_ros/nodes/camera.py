@@ -96,7 +96,7 @@ class CameraNode(VmocapNode):
             from vmocap_core.cameras.bag import BagFrameSource
 
             return BagFrameSource(uri, camera, topic=self.topics.image(camera), start_offset_s=self.p["start_offset"],
-                                  loop=self.p["loop"], binning=self.binning)
+                                  loop=self.p["loop"], binning=self.binning, recover=self.p["recover"])
         import importlib
 
         try:
@@ -126,6 +126,9 @@ class CameraNode(VmocapNode):
             bad = getattr(src, "bad_frames", 0)
             if bad:
                 self.problems[f"frames:{cam.name}"] = f"{cam.name}: {bad} frames skipped ({src.last_error})"
+            damaged = getattr(src, "damaged", None)
+            if damaged:  # recover: a damaged recording played without its damaged chunks
+                self.problems[f"damaged:{cam.name}"] = f"{cam.name}: {len(damaged)} damaged chunks skipped (recover): {damaged[0]}"
             if frame is None:
                 if src.exhausted:
                     return
