@@ -295,6 +295,7 @@ def _write_frame(writer: BagWriter, topics: Topics, res: FrameResult, stats: dic
     write_results(writer, topics, result, stamp, subject)
     stats["frames"] += 1
     stats["tracking"] += result.status == "tracking"
+    stats["uncertain"] = stats.get("uncertain", 0) + (result.status == "uncertain")  # the images disagreed
     if dims_written and result.status == "tracking" and result.dims is not None and stats.get("_subject") is not result.dims:
         stats["_subject"] = result.dims
         writer.write(Topics.diagnostics, DIAG, subject_message(result.stamp_ns, result.dims), result.stamp_ns)

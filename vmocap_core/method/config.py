@@ -143,9 +143,25 @@ class SkeletonConfig(_Stage):
     # (the PCM source's own: "blazepose" for the CNN, "none" for the synthetic PCMs and PCM
     # bags), "none" (joint centres), a shipped model ("blazepose") or a YAML file.
     landmarks: str = "auto"
+    # Never confidently wrong (consistency.py): the fed-back skeleton's keypoints against each
+    # view's PCM peaks. Below `check_min_agreement` (mean fraction of agreeing views per
+    # keypoint) for `check_uncertain_frames` frame sets in a row the status is "uncertain" (no
+    # output, tracking goes on), at once below `check_fail_agreement`, until
+    # `check_recover_frames` agree in a row; uncertain for `check_lost_frames` in a row: "lost",
+    # start over from triangulation. check_min_agreement 0 disables the check.
+    check_min_agreement: float = 0.6
+    check_fail_agreement: float = 0.35
+    check_uncertain_frames: int = 3
+    check_recover_frames: int = 5
+    check_lost_frames: int = 30
 
     def validate(self) -> None:
         from .filter import make_filter, smoother_model
+
+        if not 0 <= self.check_fail_agreement <= self.check_min_agreement <= 1:
+            raise ConfigError("check_fail_agreement <= check_min_agreement must lie in [0, 1]")
+        if min(self.check_uncertain_frames, self.check_recover_frames, self.check_lost_frames) < 1:
+            raise ConfigError("check_uncertain_frames, check_recover_frames and check_lost_frames must be >= 1")
 
         if self.fps <= 0 or self.identify_seconds < 0:
             raise ConfigError("fps must be positive and identify_seconds >= 0")

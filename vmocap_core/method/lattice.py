@@ -92,6 +92,13 @@ class PcmSampler:
 
     def sample_camera_frame(self, pc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Camera-frame points of every view (V, 3, J, L) -> (score (J, L), views (J, L))."""
+        vals = self.view_values(pc)
+        seen = vals > 0
+        return vals.sum(axis=0), seen.sum(axis=0)
+
+    def view_values(self, pc: np.ndarray) -> np.ndarray:
+        """Camera-frame points of every view (V, 3, J, L) -> each view's PCM value (V, J, L):
+        bilinear, 0 behind the camera, off the map or where the view has no channel."""
         z = pc[:, 2]
         front = z > 1e-6
         inv_z = np.float32(1.0) / np.where(front, z, np.float32(1.0))
@@ -114,8 +121,12 @@ class PcmSampler:
         vals = self._bilinear(mx, my)
         vals *= front
         vals *= self._valid[:, :, None]
-        seen = vals > 0
-        return vals.sum(axis=0), seen.sum(axis=0)
+        return vals
+
+    def point_values(self, points: np.ndarray) -> np.ndarray:
+        """Each view's PCM value at one point per channel (J, 3) -> (V, J)."""
+        c = np.matmul(self._R, np.asarray(points, dtype=np.float64).T) + self._t[:, :, None]  # (V, 3, J)
+        return self.view_values(c.astype(np.float32)[:, :, :, None])[:, :, 0]
 
     def _bilinear(self, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
         """Bilinear PCM values at map coordinates (V, J, L); 0 outside the map."""

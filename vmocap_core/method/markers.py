@@ -4,7 +4,8 @@ While nobody is tracked, the markers are the triangulated PCM centroids (init.py
 tracking, the lattice search (lattice.py, eq. 1-2) around the skeleton fed back from the
 previous frame, refined by the views' own peaks (refinement.py). A keypoint weak for a few
 frames is searched again at its PCM peaks; a person whose markers stay weak is lost and the
-stage starts over from triangulation.
+stage starts over from triangulation. The skeleton fed back is checked against the PCMs of
+its own frame set (consistency.py), and the next markers carry that check to the skeleton stage.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 from ..cameras.projection import Rig
 from ..pcm.views import PcmViews
 from .config import MarkersConfig
+from .consistency import ViewCheck, check_views
 from .init import triangulated_markers
 from .lattice import PcmSampler, lattice_search
 from .lattice import warm_up as warm_up_lattice
@@ -37,6 +39,9 @@ class MarkerStage:
         self._low = 0
         self._weak = np.zeros(N_KP, dtype=np.int64)  # consecutive weak frames per keypoint
         self.timings: dict[str, float] = {}  # seconds spent in the last step, per stage
+        # the last frame set's PCMs (and its sampler), which the skeleton fed back is checked against
+        self._last: tuple[PcmViews, PcmSampler | None] | None = None
+        self._check: ViewCheck | None = None
         warm_up_lattice(rig)
         warm_up_refinement(rig)
 
@@ -50,8 +55,11 @@ class MarkerStage:
             self.centres = None
             self.velocity[:] = 0.0
             self._weak[:] = 0
+            self._check = None
             return
         kp = np.asarray(keypoints, dtype=np.float64)
+        if self._last is not None:
+            self._check = check_views(self.rig, self._last[0], kp, self._last[1])
         if self.centres is not None:
             self.velocity = kp - self.centres
         else:
@@ -60,12 +68,15 @@ class MarkerStage:
 
     def step(self, pcm: PcmViews) -> Markers:
         t0 = time.perf_counter()
+        check, self._check, self._last = self._check, None, None
         if pcm.n_views == 0:
             out = nan_markers(pcm.stamp_ns)
         elif self.centres is None:
             out = triangulated_markers(self.rig, pcm.sanitized(), self.config)
+            self._last = (pcm, None)
         else:
             out = self._lattice(pcm)  # the lattice search sanitizes the values it reads
+        out.check = check if out.kind == "lattice" else None
         self.timings = {"lattice": time.perf_counter() - t0}
         return out
 
@@ -75,7 +86,8 @@ class MarkerStage:
         assert centres is not None  # set by the previous frame's skeleton (markers run only while tracking)
         if cfg.prediction == "constant_velocity":
             centres = centres + self.velocity
-        sampler = PcmSampler(self.rig, pcm)  # one per frame: the lattice search and the refinement
+        sampler = PcmSampler(self.rig, pcm)  # one per frame: the lattice search, the refinement, the check
+        self._last = (pcm, sampler)
         res = lattice_search(
             self.rig,
             pcm,

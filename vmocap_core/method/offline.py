@@ -160,7 +160,8 @@ def reconstruct(results: Sequence[TrackResult], config: SkeletonConfig, progress
 def identify_and_reconstruct(results: Sequence[TrackResult], config: SkeletonConfig,
                              progress: bool = False) -> tuple[list[TrackResult], Skeleton]:
     """`reconstruct`, also returning the identified skeleton."""
-    tracked = np.array([r.status in FEEDBACK_STATUSES for r in results], dtype=bool)
+    # frames whose skeleton the images disagreed with ("uncertain") are gaps, not data
+    tracked = np.array([r.status in FEEDBACK_STATUSES and r.status != "uncertain" for r in results], dtype=bool)
     if not tracked.any():
         raise OfflineError("the recording has no tracked frame: nothing to reconstruct")
     markers = np.array([np.where((r.scores > 0)[:, None], r.markers, np.nan) for r in results])
@@ -180,6 +181,6 @@ def identify_and_reconstruct(results: Sequence[TrackResult], config: SkeletonCon
         for i, t in enumerate(range(seg.start, seg.stop)):
             r = results[t]
             out[t] = TrackResult(r.stamp_ns, "tracking", sk.to_angles(q2[i]), names, kp2[i], kp1[i], r.scores,
-                                 r.markers, lengths, sk.dims)
+                                 r.markers, lengths, sk.dims, confidence=r.confidence)
     bar.close()
     return out, sk

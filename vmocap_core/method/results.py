@@ -4,11 +4,15 @@ skeleton of a frame (skeleton stage -> outputs, and back to the marker stage as 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..keypoints import KEYPOINTS
 from .skeleton import BodyDimensions
+
+if TYPE_CHECKING:
+    from .consistency import ViewCheck
 
 N_KP = len(KEYPOINTS)
 
@@ -26,6 +30,8 @@ class Markers:
     residual_px: np.ndarray | None = None  # (25,) triangulation residual, NaN: not triangulated
     cameras: np.ndarray | None = None  # (25,) bit masks of the cameras whose peaks went in
     presence: dict[str, float] | None = None  # CNN presence per camera (not in messages)
+    # the previous frame set's skeleton checked against its PCMs (consistency.py; None: no skeleton was fed back)
+    check: ViewCheck | None = None
 
 
 def nan_markers(stamp_ns: int, kind: str = "none") -> Markers:
@@ -33,14 +39,15 @@ def nan_markers(stamp_ns: int, kind: str = "none") -> Markers:
 
 
 # Statuses whose raw keypoints are fed back to the lattice search (the others re-initialize);
-# only "tracking" results are output.
-FEEDBACK_STATUSES = ("tracking", "identifying", "smoothing")
+# only "tracking" results are output ("uncertain": the skeleton disagrees with the images,
+# tracked on but not published, see skeleton_stage.py).
+FEEDBACK_STATUSES = ("tracking", "identifying", "smoothing", "uncertain")
 
 
 @dataclass
 class TrackResult:
     stamp_ns: int
-    status: str  # "initializing" | "identifying" | "smoothing" | "tracking" | "lost"
+    status: str  # "initializing" | "identifying" | "smoothing" | "tracking" | "uncertain" | "lost"
     q: np.ndarray  # (40,) published DOF after the second IK (see Skeleton.to_angles)
     joint_names: list[str]
     keypoints: np.ndarray  # (25, 3) filtered output
@@ -50,6 +57,9 @@ class TrackResult:
     link_lengths: dict[str, float] = field(default_factory=dict)
     dims: BodyDimensions | None = None  # the subject's skeleton (tracking results only)
     feedback_stamp_ns: int | None = None  # the frame set of raw_keypoints when not stamp_ns
+    # (25,) per keypoint, the fraction of the views seeing it whose PCMs agree with the skeleton
+    # (consistency.py; NaN: no view sees it or nothing was checked)
+    confidence: np.ndarray = field(default_factory=lambda: np.full(N_KP, np.nan))
 
     @property
     def feedback_stamp(self) -> int:

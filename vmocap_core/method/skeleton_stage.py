@@ -3,7 +3,9 @@
 Identification once the views agree (init.py); then per frame the weighted first IK to the
 virtual markers (ik.py, eq. 3-4) with a motion prior, the low-pass of the keypoint positions
 (filter.py; or a fixed-lag RTS smoother), and the second IK to the smoothed positions, so the
-output is smooth and keeps constant link lengths.
+output is smooth and keeps constant link lengths. The markers carry the check of the previous
+skeleton against the images (consistency.py): a skeleton the views keep disagreeing with is
+"uncertain" (tracked, not output) and then "lost" (started over).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 
 from ..keypoints import INDEX
 from .config import SkeletonConfig
+from .consistency import Verdict, ViewCheck
 from .filter import make_filter, smoother_model
 from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
@@ -47,7 +50,11 @@ class SkeletonStage:
         self._lag = FixedLagSmoother(smoother_model(self.config), lag) if lag > 0 else None
         self._delayed: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=lag + 1)
         self.status = "initializing"
+        cfg = self.config
+        self.verdict = Verdict(cfg.check_min_agreement, cfg.check_uncertain_frames, cfg.check_recover_frames,
+                               cfg.check_lost_frames, cfg.check_fail_agreement)
         self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
+        self.disagreement: ViewCheck | None = None  # the check behind an "uncertain" or check-"lost" step
         self._last_stamp: int | None = None
         self._joint_names = Skeleton().joint_names
         self.timings: dict[str, float] = {}
@@ -66,18 +73,37 @@ class SkeletonStage:
         if self._lag is not None:
             self._lag.reset()
         self._delayed.clear()
+        self.verdict.reset()
         self.status = "initializing"
 
     def step(self, markers: Markers) -> TrackResult:
-        cfg = self.config
+        self.disagreement = None
+        if markers.kind == "lattice" and self.skeleton is not None:
+            verdict = self.verdict.update(markers.check)
+            if verdict != "ok":  # what the diagnostics name: the keypoints and views that disagree
+                self.disagreement = self.verdict.last
+            if verdict == "lost":  # the images disagreed for check_lost_frames: start over
+                self.reset()
+                self.status = "lost"
+                result = self._empty(markers, "lost")
+            else:
+                result = self._track(markers)
+                if verdict == "uncertain" and result.status == "tracking":
+                    result.status = self.status = "uncertain"
+            if markers.check is not None:
+                result.confidence = markers.check.confidence.copy()
+            return result
         if markers.kind == "triangulated" and self.skeleton is not None:
             self.reset()
             self.status = "lost"
         if self.skeleton is None:
             return self._initialize(markers)
-        if markers.kind != "lattice":
-            return self._empty(markers, "lost")
+        return self._empty(markers, "lost")
+
+    def _track(self, markers: Markers) -> TrackResult:
+        cfg = self.config
         sk = self.skeleton
+        assert sk is not None  # step tracks only with a skeleton
         t0 = time.perf_counter()
         dt = self._skipped_interval(markers.stamp_ns)
         rate = cfg.fps if dt is None else 1.0 / dt

@@ -13,6 +13,7 @@ from ..bag import messages as M
 from ..export.session import SUBJECT_STATUS
 from ..graph_config import Topics
 from ..keypoints import KEYPOINTS
+from ..method.consistency import ViewCheck
 from ..method.results import Markers, feedback_of
 from .streams import SubjectOutputs
 
@@ -25,18 +26,23 @@ DIAG = "diagnostic_msgs/msg/DiagnosticArray"
 
 HEADER = "std_msgs/msg/Header"  # a bare stamp: vmocap_pcm's NS/pcm/done
 
+
 def markers_message(markers: Markers) -> dict:
     residual = markers.residual_px if markers.residual_px is not None else np.full(len(KEYPOINTS), np.nan)
-    return M.keypoint_cloud(markers.stamp_ns, markers.positions, markers.weights, markers.kind, residual, markers.cameras)
+    check = None if markers.check is None else (markers.check.confidence, markers.check.disagree)
+    return M.keypoint_cloud(markers.stamp_ns, markers.positions, markers.weights, markers.kind, residual, markers.cameras,
+                            check=check)
 
 
 def markers_from_message(msg: dict) -> Markers:
-    """Inverse of `markers_message` (the cloud carries positions, weights and kind)."""
+    """Inverse of `markers_message` (the cloud carries positions, weights, kind and the check)."""
     P, S, kind = M.cloud_keypoints(msg)
     if P is None:
         P = np.full((len(KEYPOINTS), 3), np.nan)
     residual, cameras = M.cloud_marker_extras(msg)
-    return Markers(M.stamp_ns(msg), P, S, kind, residual_px=residual, cameras=cameras)
+    check = M.cloud_marker_check(msg)
+    return Markers(M.stamp_ns(msg), P, S, kind, residual_px=residual, cameras=cameras,
+                   check=None if check is None else ViewCheck(*check))
 
 
 def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] | None = None,
@@ -68,7 +74,8 @@ def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] |
         if subject is not None and want(topics.tf):
             yield subject.tf(topics, t, positions, base)
     if want(topics.keypoints):
-        yield topics.keypoints, CLOUD, M.keypoint_cloud(t, result.keypoints if tracking else None, result.scores)
+        yield topics.keypoints, CLOUD, M.keypoint_cloud(t, result.keypoints if tracking else None,
+                                                        np.nan_to_num(result.confidence, nan=0.0))
     if want(topics.skeleton):
         yield topics.skeleton, MARKER_ARRAY, M.skeleton_markers(t, result.keypoints if tracking else None)
 

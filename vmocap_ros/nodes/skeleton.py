@@ -13,6 +13,8 @@ from ..subject import skeleton_outputs
 from ..transport import Transport
 from .base import STREAM_DEPTH, InitWatch, VmocapNode
 
+DISAGREE_WARN_S = 3.0  # the WARN naming disagreeing keypoints and cameras stays this long after the last such frame set
+
 
 class SkeletonNode(VmocapNode):
     """NS/markers -> SkeletonStage (IK, IIR, second IK) -> NS/joint_states, NS/keypoints,
@@ -32,7 +34,7 @@ class SkeletonNode(VmocapNode):
         self.subject, extra = skeleton_outputs(self)  # robot_description, root_pose, TF
         self.pubs.update(extra)
         self.subscribe(CLOUD, self.topics.markers, self._on_markers, depth=self.p["queue_depth"], latched=True)
-        self.counts = {"frames": 0, "tracking": 0}
+        self.counts = {"frames": 0, "tracking": 0, "uncertain": 0}
         self.last_status = "initializing"
         self.init_watch = InitWatch(self.p["init_warn_s"], config.stage_config("vmocap_markers").init_max_reprojection_px,
                                     self.rig.names if self.rig is not None else None)
@@ -42,6 +44,7 @@ class SkeletonNode(VmocapNode):
         markers = markers_from_message(msg)
         result = self.stage.step(markers)
         self.init_watch.update(self, result.status, markers, self.stage.init_problem)
+        self._check_images(result.status)
         # feedback, then joint_states; outputs nobody subscribes to are not even built
         pubs = self.pubs
         for topic, _ty, out in result_messages(self.topics, result, subject=self.subject,
@@ -50,9 +53,24 @@ class SkeletonNode(VmocapNode):
                 pubs[topic](out)
         self.counts["frames"] += 1
         self.counts["tracking"] += result.status == "tracking"
+        self.counts["uncertain"] += result.status == "uncertain"
         self.last_status = result.status
         self.proc.add(1e3 * (time.perf_counter() - t0))
         self.record_age(result.stamp_ns)
 
+    def _check_images(self, status: str) -> None:
+        """WARN (held DISAGREE_WARN_S) while the skeleton disagrees with the images: which
+        keypoints, which cameras (consistency.py); joint_states stop meanwhile."""
+        check = self.stage.disagreement
+        if check is None:
+            return
+        names = self.rig.names if self.rig is not None else [f"camera {c}" for c in range(32)]
+        then = "tracking goes on without output" if status == "uncertain" else "starting over"
+        self.warn_for("images", f"{status}: the skeleton disagrees with the images ({check.agreement:.0%} of the views "
+                      f"agree per keypoint, below check_min_agreement {self.stage.config.check_min_agreement:.0%}), "
+                      f"{then}; keypoints (disagreeing cameras): {check.describe(names)}", DISAGREE_WARN_S)
+
     def status(self) -> dict[str, Any]:
-        return dict(self.counts, status=self.last_status)
+        last = self.stage.verdict.last
+        return dict(self.counts, status=self.last_status,
+                    agreement="-" if last is None else f"{last.agreement:.2f}")

@@ -1,0 +1,121 @@
+"""Does the skeleton sit where the images see the body? The per-frame consistency check.
+
+The tracker follows whatever the lattice search finds near the fed-back skeleton: when the
+CNN's maps go wrong (a body rolling or flipping over, crops that lost the person), the markers
+follow wrong peaks or none, the IK fits them and the output looks as confident as ever. The
+check asks the images instead: each keypoint of the skeleton (the first IK at the CNN's
+landmarks, the feedback) is projected into every view and that view's PCM is read there,
+relative to the view's own peak for the keypoint:
+
+    r[v, j] = PCM[v, j](projection of keypoint j in view v) / max(peak[v, j], MIN_PEAK)
+
+clipped to [0, 1]. A body where the maps are has r near 1 in most views (the PCM peaks are a
+few pixels wide, so r falls to ~0.5 two to three map cells off the peak); a body on the wrong
+peaks, or beside the person, reads low values; a view whose map for the keypoint is flat
+(below MIN_PEAK everywhere: occluded, outside the crop, the person missed) cannot agree. A view
+*agrees* on a keypoint when r >= AGREE.
+
+Per keypoint, `confidence` = the fraction of the views that see it (in front of the camera,
+a channel for it) that agree: what a controller can weigh each keypoint by (NS/keypoints'
+score). Per frame, `agreement` = the mean confidence over the keypoints some view sees: the
+skeleton stage's verdict, with hysteresis (skeleton_stage.py). Cost: one bilinear sample per
+view and keypoint and one maximum per map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..cameras.projection import Rig
+from ..keypoints import KEYPOINTS
+from ..pcm.views import PcmViews
+from .lattice import PcmSampler
+
+N_KP = len(KEYPOINTS)
+MIN_PEAK = 0.3  # a view's peak below this: its map for the keypoint is flat, it cannot agree
+AGREE = 0.5  # r at or above this: the view agrees (the projection lies on its peak)
+
+
+@dataclass
+class ViewCheck:
+    """The check of one skeleton against one frame set's PCMs."""
+
+    confidence: np.ndarray  # (25,) fraction of the views seeing the keypoint that agree; NaN: no view sees it
+    disagree: np.ndarray  # (25,) uint32 bit masks: rig cameras whose maps disagree on the keypoint
+
+    @property
+    def agreement(self) -> float:
+        """Mean confidence over the keypoints some view sees (0 when none is seen: a skeleton
+        no view confirms is not confirmed)."""
+        seen = np.isfinite(self.confidence)
+        return float(self.confidence[seen].mean()) if seen.any() else 0.0
+
+    def describe(self, names: list[str], threshold: float = AGREE) -> str:
+        """The keypoints below `threshold` and the cameras that disagree on them, e.g.
+        'left_knee (cam1, cam3), right_wrist (cam0)'."""
+        if not np.isfinite(self.confidence).any():
+            return "no keypoint in any view"
+        parts = []
+        for j in np.flatnonzero(np.nan_to_num(self.confidence, nan=1.0) < threshold):
+            cams = [names[c] for c in range(len(names)) if int(self.disagree[j]) >> c & 1]
+            parts.append(f"{KEYPOINTS[j]} ({', '.join(cams)})")
+        return ", ".join(parts)
+
+
+def check_views(rig: Rig, pcm: PcmViews, keypoints: np.ndarray, sampler: PcmSampler | None = None) -> ViewCheck:
+    """The skeleton's keypoints (25, 3) against the PCMs they should lie on (module doc)."""
+    out = ViewCheck(np.full(N_KP, np.nan), np.zeros(N_KP, np.uint32))
+    kp = np.asarray(pcm.keypoints, dtype=np.intp)
+    pts = np.asarray(keypoints, dtype=np.float64)[kp]
+    known = np.asarray(np.isfinite(pts).all(axis=1))
+    if pcm.n_views == 0 or not known.any():
+        return out
+    pts = np.where(known[:, None], pts, 0.0)
+    sampler = sampler or PcmSampler(rig, pcm)
+    value = sampler.point_values(pts).astype(np.float64)  # (V, J)
+    _, peak = pcm.peaks()  # (V, J), 0 where the view has no channel
+    cam = np.asarray(pcm.camera, dtype=np.intp)
+    _, front = rig.project(pts)  # (C, J)
+    sees = np.asarray(pcm.valid, bool) & np.asarray(front, bool)[cam] & known[None, :]
+    agree = sees & (value >= AGREE * np.maximum(peak, MIN_PEAK))
+    n = sees.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out.confidence[kp] = np.where(n > 0, agree.sum(axis=0) / n, np.nan)
+    # views of one camera (several crops) share the camera's bit
+    bits = np.left_shift(np.uint32(1), cam.astype(np.uint32))[:, None]
+    out.disagree[kp] = np.bitwise_or.reduce(np.where(sees & ~agree, bits, np.uint32(0)), axis=0)
+    return out
+
+
+class Verdict:
+    """Frame checks -> "ok" | "uncertain" | "lost", with hysteresis (SkeletonConfig.check_*):
+    one bad frame set (a view's wrong peak, a blurred limb) does not flip the status."""
+
+    def __init__(self, min_agreement: float, uncertain_frames: int, recover_frames: int, lost_frames: int,
+                 fail_agreement: float = 0.0) -> None:
+        self.min_agreement, self.fail_agreement = min_agreement, fail_agreement
+        self.uncertain_frames, self.recover_frames, self.lost_frames = uncertain_frames, recover_frames, lost_frames
+        self.last: ViewCheck | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        self.uncertain = False
+        self._bad = self._good = self._since = 0
+        self.last = None
+
+    def update(self, check: ViewCheck | None) -> str:
+        if check is not None and self.min_agreement > 0:
+            self.last = check
+            bad = check.agreement < self.min_agreement
+            self._bad, self._good = (self._bad + 1, 0) if bad else (0, self._good + 1)
+            # a frame set most views contradict is not noise: no need to wait for more
+            if not self.uncertain and (self._bad >= self.uncertain_frames or check.agreement < self.fail_agreement):
+                self.uncertain, self._since = True, 0
+            elif self.uncertain and self._good >= self.recover_frames:
+                self.uncertain = False
+        if not self.uncertain:
+            return "ok"
+        self._since += 1
+        return "lost" if self._since >= self.lost_frames else "uncertain"
