@@ -34,21 +34,27 @@ def _rows(n: int, desc: str, progress: bool) -> range | tqdm:
 
 def write_trc(session: Session, path: str | Path, progress: bool = False) -> None:
     """OpenSim marker file (tab separated, header of PathFileType 4): keypoints as markers."""
+    write_marker_trc(path, list(KEYPOINTS), session.keypoints, session.rate_hz, session.times, progress)
+
+
+def write_marker_trc(path: str | Path, names: list[str], points: np.ndarray, rate_hz: float, times: np.ndarray,
+                     progress: bool = False) -> None:
+    """A TRC of `points` (N, M, 3), metres in the vmocap world (Z up), named `names`: mm, Y up."""
     path = Path(path)
-    P = session.keypoints @ Z_TO_Y_UP.T * 1000.0  # mm, Y up
+    P = points @ Z_TO_Y_UP.T * 1000.0  # mm, Y up
     N, K = P.shape[:2]
-    rate = f"{session.rate_hz:.6f}"
+    rate = f"{rate_hz:.6f}"
     lines = [
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
         f"{rate}\t{rate}\t{N}\t{K}\tmm\t{rate}\t1\t{N}",
-        "Frame#\tTime\t" + "\t".join(f"{n}\t\t" for n in KEYPOINTS).rstrip("\t"),
+        "Frame#\tTime\t" + "\t".join(f"{n}\t\t" for n in names).rstrip("\t"),
         "\t\t" + "\t".join(f"X{i}\tY{i}\tZ{i}" for i in range(1, K + 1)),
         "",
     ]
     flat = P.reshape(N, -1)
     for i in _rows(N, "TRC", progress):
-        lines.append("\t".join([str(i + 1), f"{session.times[i]:.6f}"] + _fields(flat[i], "%.4f", "NaN")))
+        lines.append("\t".join([str(i + 1), f"{times[i]:.6f}"] + _fields(flat[i], "%.4f", "NaN")))
     path.write_text("\n".join(lines) + "\n")
 
 
