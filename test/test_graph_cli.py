@@ -104,10 +104,9 @@ def test_process_cli_says_why_nothing_was_tracked(tmp_path: Path) -> None:
     _, rig_path, kps = synthetic_bag(bag, frames=30)
     wrong = _miscalibrated(rig_path, tmp_path / "wrong.rig.yaml")
     cfg = write_config(tmp_path / "g.yaml", wrong, kps, ["vmocap_markers"])
-    base = [sys.executable, "-m", "vmocap_core.cli", "process", str(bag), "-o", str(tmp_path / "o.mcap"), "--config", str(cfg),
-            "--no-progress"]
-    for extra in ([], ["--offline"]):
-        r = subprocess.run(base + extra, capture_output=True, text=True, cwd=REPO)
+    base = [sys.executable, "-m", "vmocap_core.cli", "process", str(bag), "--config", str(cfg), "--no-progress"]
+    for k, extra in enumerate(([], ["--offline"])):
+        r = subprocess.run(base + extra + ["-o", str(tmp_path / f"o{k}.mcap")], capture_output=True, text=True, cwd=REPO)
         assert r.returncode != 0 and "no frame set of 30 tracked" in r.stderr, (extra, r.stdout, r.stderr)
         assert "views disagree" in r.stderr or "do not fit one skeleton" in r.stderr, r.stderr
 
