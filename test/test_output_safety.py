@@ -137,7 +137,7 @@ def _config(tmp_path: Path, rig: Path, **sections: dict) -> Path:
 
 @pytest.mark.parametrize("sections, words", [
     ({"vmocap_markers": {"min_cameras": 5}}, ["vmocap_markers.min_cameras", "more than the 4"]),
-    ({"vmocap_pcm": {"min_cameras": 3, "cameras": ["cam0", "cam1"]}}, ["vmocap_pcm.min_cameras"]),
+    ({"vmocap_pcm": {"min_cameras": 5}}, ["vmocap_pcm.min_cameras"]),  # a worker for some cameras (`cameras`) may have fewer
     ({"vmocap_markers": {"cameras": ["cam0", "cam9"]}}, ["cameras", "cam9", "not in the rig"]),
     ({"vmocap_markers": {"views": ["cam0", "cam1_1", "side"]}}, ["views", "side"]),
     ({"vmocap_camera": {"source": "bag", "uri": "missing.mcap"}}, ["vmocap_camera.uri", "missing.mcap: no such"]),

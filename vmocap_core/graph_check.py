@@ -30,7 +30,9 @@ def check_graph(cfg: GraphConfig, nodes: list[str] | None = None, overrides: dic
         if kind in ("vmocap_pcm", "vmocap_markers") and cams is not None:
             views = p.get("views") or cams
             _views(cfg, node, views, cams)
-            if p["min_cameras"] > len(views):
+            # a PCM worker for some of the cameras (`cameras` given) syncs what it has: the
+            # tracker's frame sets are what need min_cameras views
+            if p["min_cameras"] > len(views) and not (kind == "vmocap_pcm" and p["cameras"]):
                 raise GraphConfigError(cfg.path, f"{node}.min_cameras", f"{p['min_cameras']} is more than the "
                                        f"{len(views)} {'views' if p.get('views') else 'cameras'} {views}")
         if kind == "vmocap_camera":
