@@ -77,6 +77,7 @@ def import_opensim() -> Any:
     finally:
         os.environ.clear()
         os.environ.update(saved)
+    opensim.Logger.removeFileSink()  # its default opensim.log in the working directory: round_trip logs next to its files
     return opensim
 
 
