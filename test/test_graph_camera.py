@@ -282,11 +282,10 @@ def test_camera_sends_only_what_a_busy_cnn_can_take_unless_someone_records_the_i
     named vmocap_pcm in this process, answering on NS/pcm/done) gets at most max_in_flight frame
     sets per answer, every camera's frame of a frame set alike, and the camera node counts the
     frame sets it did not send; with a recorder of the images in the graph every frame goes out."""
-    import os
+    from std_msgs.msg import Header
 
     from vmocap_core.cameras.rig_file import save_rig
-    from vmocap_ros.common import msg_class, prepare_env, qos
-    from vmocap_ros.run_node import make_executor
+    from vmocap_ros.common import msg_class, prepare_env, probe_node, qos
 
     rig = small_rig()
     bag = tmp_path / "c.mcap"
@@ -299,49 +298,29 @@ def test_camera_sends_only_what_a_busy_cnn_can_take_unless_someone_records_the_i
                        extra={"vmocap_camera": {"uri": str(bag), "rate": 1.0, "loop": True, "restamp": True,
                                                 "wait_subscribers": 60.0, "max_in_flight": 2},
                               "vmocap_recorder": {"topics": ["/vmocap/cam0/image_raw"]}})
-    env = domain_env(34 if record_images else 35)
-    prepare_env(env)
-    saved = {k: os.environ.get(k) for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION", "FASTRTPS_DEFAULT_PROFILES_FILE")}
-    os.environ.update({k: env[k] for k in saved if k in env})
-    import rclpy
-
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]))
-    node = rclpy.create_node("vmocap_pcm", context=context)  # what the camera node sees as the CNN
+    env = prepare_env(domain_env(34 if record_images else 35))
     got: dict[str, list[int]] = {c.name: [] for c in rig}
-    for c in rig:
-        node.create_subscription(msg_class("sensor_msgs/msg/Image"), f"/vmocap/{c.name}/image_raw",
-                                 lambda data, n=c.name: got[n].append(M.stamp_ns(cdr.decode("sensor_msgs/msg/Image", data))),
-                                 qos(10), raw=True)
-    done = node.create_publisher(msg_class("std_msgs/msg/Header"), "/vmocap/pcm/done", qos(10))
-    ex = make_executor(context)
-    ex.add_node(node)
-    launch = vmocap(["launch", str(cfg)], env)
-    try:
-        assert wait_ready(launch, nodes), stop(launch)
-        t_end = time.monotonic() + 4.0
-        next_done = time.monotonic() + 0.25
-        while time.monotonic() < t_end:
-            ex.spin_once(timeout_sec=0.02)
-            if time.monotonic() >= next_done and got["cam0"]:  # "finished" the newest frame set it got
-                from std_msgs.msg import Header
-
-                h = Header(frame_id="cam0")
-                s = max(got["cam0"])
-                h.stamp.sec, h.stamp.nanosec = s // 10**9, s % 10**9
-                done.publish(h)
-                next_done += 0.25
-    finally:
-        log = stop(launch, signal.SIGINT)
-        ex.remove_node(node)
-        ex.shutdown()
-        node.destroy_node()
-        context.try_shutdown()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    with probe_node("vmocap_pcm", env) as (node, ex):  # what the camera node sees as the CNN
+        for c in rig:
+            node.create_subscription(msg_class("sensor_msgs/msg/Image"), f"/vmocap/{c.name}/image_raw",
+                                     lambda data, n=c.name: got[n].append(M.stamp_ns(cdr.decode("sensor_msgs/msg/Image", data))),
+                                     qos(10), raw=True)
+        done = node.create_publisher(msg_class("std_msgs/msg/Header"), "/vmocap/pcm/done", qos(10))
+        launch = vmocap(["launch", str(cfg)], env)
+        try:
+            assert wait_ready(launch, nodes), stop(launch)
+            t_end = time.monotonic() + 4.0
+            next_done = time.monotonic() + 0.25
+            while time.monotonic() < t_end:
+                ex.spin_once(timeout_sec=0.02)
+                if time.monotonic() >= next_done and got["cam0"]:  # "finished" the newest frame set it got
+                    s = max(got["cam0"])
+                    h = Header(frame_id="cam0")
+                    h.stamp.sec, h.stamp.nanosec = s // 10**9, s % 10**9
+                    done.publish(h)
+                    next_done += 0.25
+        finally:
+            log = stop(launch, signal.SIGINT)
     assert launch.returncode == 0, log
     n = len(got["cam0"])
     if record_images:

@@ -55,8 +55,7 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     from vmocap_core.bag import cdr
     from vmocap_core.bag import messages as M
 
-    from ..common import msg_class, prepare_env, qos
-    from ..run_node import make_executor
+    from ..common import msg_class, prepare_env, probe_node, qos
 
     cfg = graph_config(work, rec, rig_path, rotation, tracker, rate)
     fps = float(tracker["fps"])
@@ -65,18 +64,6 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
     env["VMOCAP_PCM_PRECISION"] = precision  # read by the CNN in vmocap_pcm
     env["PYTHONUNBUFFERED"] = "1"
-    # The probe gets a context of its own on the graph's domain, shut down when done, and the
-    # DDS settings only while it lives: a caller's own rclpy (a test's listener on another
-    # domain) must find the process as it was.
-    keys = ("ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION", "FASTRTPS_DEFAULT_PROFILES_FILE")
-    saved = {k: os.environ.get(k) for k in keys}
-    os.environ.update({k: env[k] for k in keys if k in env})
-    import rclpy
-    from rclpy.signals import SignalHandlerOptions
-
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]), signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("vmocap_bench_images_probe", context=context)
     got: dict[int, np.ndarray] = {}
     last_rx = [0.0]
 
@@ -86,41 +73,29 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
         got[M.stamp_ns(d)] = P if P is not None else np.full((len(KEYPOINTS), 3), np.nan)
         last_rx[0] = time.monotonic()
 
-    node.create_subscription(msg_class("sensor_msgs/msg/PointCloud2"), "/vmocap/keypoints", on_keypoints, qos(200), raw=True)
-    ex = make_executor(context)
-    ex.add_node(node)
-    log = open(work / f"{cfg.stem}.log", "w")
-    launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
-                              stdout=log, stderr=subprocess.STDOUT)
     last = int(stamps[-1])
     # lockstep goes at the graph's pace, which only the silence check bounds
     expected_s = len(stamps) / fps / rate if rate > 0 else len(stamps) * 1.0
-    deadline = time.monotonic() + 180.0 + 3.0 * expected_s
-    try:
-        while time.monotonic() < deadline and last not in got:
-            ex.spin_once(timeout_sec=0.1)
-            if launch.poll() is not None:
-                raise VmocapError(f"the node graph exited early (log: {log.name})")
-            if got and time.monotonic() - last_rx[0] > silent_s:
-                break  # the graph fell silent: the tail of the recording was dropped
-    finally:
-        if launch.poll() is None:
-            launch.send_signal(signal.SIGINT)
+    with probe_node("vmocap_bench_images_probe", env) as (node, ex), open(work / f"{cfg.stem}.log", "w") as log:
+        node.create_subscription(msg_class("sensor_msgs/msg/PointCloud2"), "/vmocap/keypoints", on_keypoints, qos(200), raw=True)
+        launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
+                                  stdout=log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 180.0 + 3.0 * expected_s
         try:
-            launch.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            launch.kill()
-            launch.wait()
-        log.close()
-        ex.remove_node(node)
-        ex.shutdown()
-        node.destroy_node()
-        context.try_shutdown()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+            while time.monotonic() < deadline and last not in got:
+                ex.spin_once(timeout_sec=0.1)
+                if launch.poll() is not None:
+                    raise VmocapError(f"the node graph exited early (log: {log.name})")
+                if got and time.monotonic() - last_rx[0] > silent_s:
+                    break  # the graph fell silent: the tail of the recording was dropped
+        finally:
+            if launch.poll() is None:
+                launch.send_signal(signal.SIGINT)
+            try:
+                launch.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                launch.kill()
+                launch.wait()
     if not got:
         raise VmocapError(f"no keypoints came out of the node graph (log: {log.name})")
     row = {int(s): i for i, s in enumerate(stamps)}
