@@ -109,3 +109,15 @@ def wait_for(predicate, timeout: float, step: float = 0.1) -> bool:
             return True
         time.sleep(step)
     return predicate()
+
+
+def without_frames(src: Path, dst: Path, frames, fps: float, t0: int = 1_000_000_000_000) -> Path:
+    """A copy of the bag `src` without the frame sets numbered `frames` (frame k at t0 + k / fps):
+    a recording with a gap."""
+    from vmocap_core.bag import BagReader, BagWriter
+
+    with BagReader(src) as r, BagWriter(dst) as w:
+        for m in r.messages():
+            if round((m.log_time_ns - t0) * fps / 1e9) not in frames:
+                w.write(m.topic, m.type, m.data, m.log_time_ns)
+    return dst

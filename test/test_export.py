@@ -13,10 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from graph_helpers import synthetic_bag, write_config
+from graph_helpers import synthetic_bag, without_frames, write_config
 from scipy.spatial.transform import Rotation
 
-from vmocap_core.bag import BagReader, BagWriter
 from vmocap_core.errors import VmocapError
 from vmocap_core.export.markers import Z_TO_Y_UP
 from vmocap_core.export.session import load_session
@@ -35,11 +34,7 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 def processed(tmp_path_factory) -> dict:
     d = tmp_path_factory.mktemp("export")
     rig, rig_path, kps = synthetic_bag(d / "full.mcap", frames=110, fps=FPS)
-    t0 = 1_000_000_000_000
-    with BagReader(d / "full.mcap") as r, BagWriter(d / "gap.mcap") as w:
-        for m in r.messages():
-            if round((m.log_time_ns - t0) * FPS / 1e9) not in GAP:
-                w.write(m.topic, m.type, m.data, m.log_time_ns)
+    without_frames(d / "full.mcap", d / "gap.mcap", GAP, FPS)
     cfg = write_config(d / "g.yaml", rig_path, kps, ["vmocap_markers"])
     out = d / "off.mcap"
     p = _cli("process", str(d / "gap.mcap"), "-o", str(out), "--config", str(cfg), "--offline", "--no-progress",
