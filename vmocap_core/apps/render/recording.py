@@ -12,7 +12,7 @@ import sys
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -22,7 +22,7 @@ from ...cameras.projection import Camera, Rig
 from ...graph_config import Topics
 from ...keypoints import KEYPOINTS
 from ...motion import Motion, extend, load_motion, resample
-from .body import SHAPES, load_body
+from .body import SHAPES, Body, load_body
 from .pose import clip_joints, segment_transforms, skin
 from .scene import Appearance, SceneRenderer
 
@@ -94,52 +94,72 @@ def cache_key(spec: ClipSpec, rig: Rig) -> str:
     return h.hexdigest()[:16]
 
 
-def render_recording(spec: ClipSpec, rig: Rig, cache_dir: Path, progress: bool = True) -> Path:
-    """Render (or find in the cache) the recording of one clip; returns its path."""
-    from tqdm import tqdm
+def posed_bodies(body: Body, positions: np.ndarray) -> Callable[[], Iterator[np.ndarray]]:
+    """A function giving the posed vertices of `body` at each frame of `positions` (T, 25, 3),
+    one at a time (skinning again per pass): memory does not grow with the clip."""
+    A, b = segment_transforms(body, clip_joints(positions, KEYPOINTS))
+    return lambda: (skin(body, A[t], b[t]) for t in range(len(A)))
 
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    out = cache_dir / f"{spec.label()}_{cache_key(spec, rig)}.mcap"
-    if out.exists():
-        return out
+
+def clip_scene(spec: ClipSpec, rig: Rig) -> tuple[Motion, Callable[[], Iterator[np.ndarray]], SceneRenderer]:
+    """The clip's motion, its posed body (posed_bodies) and the scene with that body, its look
+    and room (the box not yet fitted)."""
     motion = prepare_motion(spec)
-    J = clip_joints(motion.positions, KEYPOINTS)
     body = load_body(spec.shape())
-    A, b = segment_transforms(body, J)
-
-    def posed() -> Iterator[np.ndarray]:
-        # one posed body at a time (skinning again per pass): memory does not grow with the clip
-        return (skin(body, A[t], b[t]) for t in range(len(A)))
-
+    posed = posed_bodies(body, motion.positions)
     lowest = np.array([v[:, 2].min() for v in posed()])
     # the floor under the soles: at z = 0 unless the body lies lower (then it sinks into it less)
     floor_z = float(min(0.0, np.percentile(lowest, 5)))
     rng = np.random.default_rng(spec.rng_seed())
-    scene = SceneRenderer(rig, body, Appearance.draw(rng), spec.rng_seed(), floor_z)
+    return motion, posed, SceneRenderer(rig, body, Appearance.draw(rng), spec.rng_seed(), floor_z)
+
+
+def render_recording(spec: ClipSpec, rig: Rig, cache_dir: Path, progress: bool = True) -> Path:
+    """Render (or find in the cache) the recording of one clip; returns its path."""
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    out = cache_dir / f"{spec.label()}_{cache_key(spec, rig)}.mcap"
+    if out.exists():
+        return out
+    motion, posed, scene = clip_scene(spec, rig)
     scene.fit_box(posed())
+    write_rendered(out, scene, ((v, ()) for v in posed()), spec.rate_hz, [(TRUTH_TOPIC, motion.positions)],
+                   spec.label(), progress)
+    return out
+
+
+def write_rendered(out: Path, scene: SceneRenderer, frames: Iterable[tuple[np.ndarray, Sequence[np.ndarray]]],
+                   rate_hz: float, truths: Sequence[tuple[str, np.ndarray]], label: str, progress: bool) -> None:
+    """Render `frames` ((posed subject, posed others) per frame) through `scene` into the MCAP
+    `out`: per frame every camera's CameraInfo and Image, then each truth topic's keypoints
+    (truths: (topic, (T, 25, 3))). Written to a scratch file renamed at the end: `out` is
+    complete or absent. Closes the scene."""
+    from tqdm import tqdm
+
     topics = Topics()
+    rig = scene.rig
+    n = len(truths[0][1])
     tmp = out.with_suffix(".part")
     try:
         # the .part file is this cache's own scratch: one left by an interrupted render is replaced
         with BagWriter(tmp, compression="zstd", overwrite=True) as w:
-            for k, verts in enumerate(tqdm(posed(), total=len(A), desc=f"render {spec.label()}", unit="frame",
-                                           disable=not progress, file=sys.stderr, leave=False)):
-                t = T0_NS + int(round(k * 1e9 / spec.rate_hz))
-                for cam, img in zip(rig, scene.render(verts)):
+            for k, (verts, others) in enumerate(tqdm(frames, total=n, desc=f"render {label}", unit="frame",
+                                                     disable=not progress, file=sys.stderr, leave=False)):
+                t = T0_NS + int(round(k * 1e9 / rate_hz))
+                for cam, img in zip(rig, scene.render(verts, others)):
                     w.write(topics.camera_info(cam.name), "sensor_msgs/msg/CameraInfo", M.camera_info_msg(cam, t), t)
                     w.write(topics.image(cam.name), "sensor_msgs/msg/Image", M.image_msg(img, t, cam.name), t)
-                w.write(TRUTH_TOPIC, "sensor_msgs/msg/PointCloud2", M.keypoint_cloud(t, motion.positions[k]), t)
+                for topic, positions in truths:
+                    w.write(topic, "sensor_msgs/msg/PointCloud2", M.keypoint_cloud(t, positions[k]), t)
     finally:
         scene.close()
     tmp.rename(out)
-    return out
 
 
-def read_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
+def read_truth(path: Path, topic: str = TRUTH_TOPIC) -> tuple[np.ndarray, np.ndarray]:
     """(stamps (T,), keypoints (T, 25, 3)) of a recording's truth topic."""
     stamps, pts = [], []
     with BagReader(path) as r:
-        for m in r.messages([TRUTH_TOPIC]):
+        for m in r.messages([topic]):
             d = m.decode()
             P, _, _ = M.cloud_keypoints(d)
             stamps.append(M.stamp_ns(d))

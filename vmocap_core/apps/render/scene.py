@@ -1,4 +1,4 @@
-"""The rendered world: a clothed body, a textured floor and backdrop, per-clip lighting,
+"""The rendered world: a clothed body (and any others beside it), a textured floor and backdrop, per-clip lighting,
 drawn by pyrender through OSMesa (software OpenGL, no display) and distorted with the rig's
 lens model.
 
@@ -13,7 +13,7 @@ from __future__ import annotations
 import ctypes.util
 import os
 from dataclasses import dataclass
-from typing import Any, Iterable
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -232,6 +232,7 @@ class SceneRenderer:
         ceiling = np.array([c(-h, -h, zt), c(h, -h, zt), c(h, h, zt), c(-h, h, zt)])
         self.room.add(_quad(pr, ceiling, 1.0, np.full((4, 4, 3), 200, np.uint8), 0.4))
         self.albedo = self.colours[:, :3] ** 2.2
+        self.others: list[tuple[Body, np.ndarray]] = []  # more people: (body, albedo), see add_person
         self.maps = [DistortionMap(c) for c in rig]
         self.cam_nodes = []
         self.backgrounds: list[tuple[np.ndarray, np.ndarray]] = []
@@ -262,10 +263,16 @@ class SceneRenderer:
         """Lambert shading of unit normals (..., 3) under the scene's lights."""
         return 0.05 + sum(w * np.maximum(0.0, -normals @ d) for d, w in self.lights)
 
+    def add_person(self, body: Body, look: Appearance, seed: int) -> None:
+        """Another body in the scene, in its own clothes (`look`'s; its room and lights are not
+        used) under the scene's lights: render() then takes its posed vertices in `others`."""
+        self.others.append((body, vertex_colours(body, look, np.random.default_rng(seed))[:, :3] ** 2.2))
+
     def fit_box(self, frames: Iterable[np.ndarray]) -> None:
         """Draw the body in a fixed box just large enough for it in every frame and camera (one
         OSMesa context of that size: OSMesa cannot resize a context's buffer). `frames` may be a
-        generator: one posed body at a time is held."""
+        generator: one posed body at a time is held (with other people: all bodies' vertices
+        of a frame, concatenated)."""
         boxes = [self._body_box(c, m, v, (0, 0)) for v in frames for c, m in zip(self.rig, self.maps)]
         sizes = np.array([b[2:] for b in boxes if b is not None])
         if len(sizes):
@@ -299,22 +306,30 @@ class SceneRenderer:
         y0 = min(max((v0 + v1 - h) // 2, 0), H - h)
         return x0, y0, w, h
 
-    def render(self, vertices: np.ndarray) -> list[np.ndarray]:
-        """BGR uint8 images (one per rig camera) of the body with these posed vertices."""
-        pr = self.pr
-        n = vertex_normals(vertices, self.body.faces)
+    def _primitive(self, body: Body, albedo: np.ndarray, vertices: np.ndarray) -> Any:
+        n = vertex_normals(vertices, body.faces)
         shade = self._shade(n)
-        rgba = np.concatenate([np.clip(self.albedo * shade[:, None], 0, 1), np.ones((len(n), 1))], axis=1)
-        prim = pr.Primitive(positions=vertices.astype(np.float32), normals=n.astype(np.float32),
-                            color_0=rgba.astype(np.float32), indices=self.body.faces.astype(np.uint32),
-                            material=self.material)
+        rgba = np.concatenate([np.clip(albedo * shade[:, None], 0, 1), np.ones((len(n), 1))], axis=1)
+        return self.pr.Primitive(positions=vertices.astype(np.float32), normals=n.astype(np.float32),
+                                 color_0=rgba.astype(np.float32), indices=body.faces.astype(np.uint32),
+                                 material=self.material)
+
+    def render(self, vertices: np.ndarray, others: Sequence[np.ndarray] = ()) -> list[np.ndarray]:
+        """BGR uint8 images (one per rig camera) of the body with these posed vertices (and the
+        people of add_person with theirs, in that order)."""
+        pr = self.pr
+        if len(others) != len(self.others):
+            raise VmocapError(f"{len(others)} posed bodies for the {len(self.others)} other people of the scene")
+        prims = [self._primitive(self.body, self.albedo, vertices)]
+        prims += [self._primitive(b, a, v) for (b, a), v in zip(self.others, others)]
         if self.body_node is not None:
             self.scene.remove_node(self.body_node)
-        self.body_node = self.scene.add(pr.Mesh([prim]))
+        self.body_node = self.scene.add(pr.Mesh(prims))
+        everyone = np.concatenate([vertices, *others]) if len(others) else vertices
         out = []
         for c, node, m, (bg, bg_depth) in zip(self.rig, self.cam_nodes, self.maps, self.backgrounds):
             canvas = bg.copy()
-            box = self._body_box(c, m, vertices, self.box_size)
+            box = self._body_box(c, m, everyone, self.box_size)
             if box is not None and box[2:] != self.box_size:
                 raise VmocapError(f"the body does not fit the render box {self.box_size} (call fit_box)")
             if box is not None:
