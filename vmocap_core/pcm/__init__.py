@@ -10,7 +10,7 @@ tracking; `precision="float"` or VMOCAP_PCM_PRECISION=float selects the float mo
 Public API (images are per camera, in rig order, uint8 BGR (H, W, 3) or mono (H, W)):
 - `pipeline.BlazePosePcm(rig, rotation="all", threads=2, margin=1.25, variant="full", precision=None)`
   `.infer(images, keypoints=None, tilt=None, stamp_ns=0, seed=None) -> PcmViews`: keypoints=None
-  runs the detector (initialization, zoomed again where it finds nobody or a small person; seed (3,) picks the person nearest to it in every camera); keypoints (25, 3) = the current skeleton gives crops by projection
+  runs the detector (initialization, zoomed again where it finds nobody or a small person; the same person in every camera, choice.py: nearest to seed (3,), by default the last tracked pelvis, else the one most cameras see; `others_in_view` (C,) counts the rest, also while tracking: `census_every`); keypoints (25, 3) = the current skeleton gives crops by projection
   (tracking, no detector); tilt (C,) overrides the trunk tilt (e.g. tracker.trunk_tilt).
 - `blazepose.BlazePoseLandmark(path=None, threads=2, variant="full", precision=None, input_size=None)`
   (input_size or VMOCAP_PCM_INPUT: 256 default, 224/192/160 cheaper and less accurate, budget.py), `openpose.OpenPoseModel(path=None,

@@ -16,14 +16,16 @@ import numpy as np
 
 from ..cameras.projection import Rig
 from ..errors import ModelError
-from ..keypoints import KEYPOINTS
+from ..keypoints import INDEX, KEYPOINTS
 from .blazepose import DEFAULT_ROTATION, MIN_TILT, BlazePoseLandmark, rotated_crops
+from .choice import choose_subject, others_near
 from .crops import Crops, crops_from_skeleton
-from .detector import TILE_FRACTION, PoseDetector, nms
+from .detector import TILE_FRACTION, Detection, PoseDetector, nms
 from .model import DEFAULT_THREADS
 from .runner import DEFAULT_PARALLEL
 from .views import PcmViews
 
+PELVIS = INDEX["pelvis"]
 ZOOM_BELOW = TILE_FRACTION  # detector crop side / shorter image side below which the tiles run too
 
 
@@ -39,6 +41,8 @@ class BlazePosePcm:
     precision: "int8" (default for full) or "float" (blazepose.resolve_precision; env VMOCAP_PCM_PRECISION).
     min_presence: views whose BlazePose presence is below it come out with valid=False.
     parallel: how the threads are used, "views" (default) or "intra" (runner.py).
+    census_every: while tracking, the detector looks at one camera every that many frame sets
+        for other people (others_in_view; 0: never, others_in_view then comes from initializations).
     """
 
     def __init__(
@@ -54,6 +58,7 @@ class BlazePosePcm:
         min_presence: float = 0.5,
         parallel: str = DEFAULT_PARALLEL,
         precision: str | None = None,
+        census_every: int = 30,
     ) -> None:
         self.rig = rig
         self.rotation = rotation
@@ -64,6 +69,11 @@ class BlazePosePcm:
         self._detector_path = detector_path
         self._threads = threads
         self._detector: PoseDetector | None = None  # loaded on first use: tracking never needs it
+        self.last_subject: np.ndarray | None = None  # (3,) pelvis of the last skeleton given to infer
+        # (C,) detections that are not the subject, per camera, at the last detector run on it
+        self.others_in_view = np.zeros(len(rig), dtype=int)
+        self.census_every = int(census_every)
+        self._census_count = 0
         rotated_crops([], np.zeros((0, 2)), [], [], rotation)  # validates the mode now
 
     @property
@@ -72,11 +82,10 @@ class BlazePosePcm:
             self._detector = PoseDetector(self._detector_path, self._threads, parallel=self._parallel)
         return self._detector
 
-    def crops_from_detector(self, images: Sequence[np.ndarray], seed: np.ndarray | None = None) -> Crops:
-        """One person per image with MediaPipe's crop rule (already rotated): the highest-scoring
-        detection, or with `seed` (3,) (a world point on the wanted person, e.g. from another
-        tracker) the detection whose hip centre is nearest to the seed's projection, so that all
-        cameras look at the same person when several are in view."""
+    def detect_people(self, images: Sequence[np.ndarray], turned: bool = True) -> list[list[Detection]]:
+        """Per image (None: none), the people the detector finds, best first: the whole image,
+        then a closer look where it found nobody or a small person, then (`turned`) the image
+        turned where still nobody is found."""
         have = [c for c, im in enumerate(images) if im is not None]
         found: list[list] = [[] for _ in images]
         for c, dets in zip(have, self.detector.detect([images[c] for c in have])):
@@ -94,17 +103,38 @@ class BlazePosePcm:
                 keep = nms(np.array([d.box for d in both]), np.array([d.score for d in both]), self.detector.iou_threshold)
                 found[c] = [both[i] for i in keep]
         # A body lying or upside down: where still nobody is found, look at the image turned.
-        lying = [c for c in have if not found[c]]
+        lying = [c for c in have if not found[c]] if turned else []
         for c, dets in zip(lying, self.detector.detect_turned([images[c] for c in lying])):
             found[c] = dets
-        if seed is not None:
-            hip, front = self.rig.project(np.asarray(seed, dtype=np.float64).reshape(3))  # (C, 2), (C,)
-            for c, dets in enumerate(found):
-                if dets and front[c]:
-                    dets.sort(key=lambda d: float(np.linalg.norm(d.keypoints[0] - hip[c])))
-        cams = [c for c, d in enumerate(found) if d]
-        rects = [found[c][0].crop() for c in cams]
+        return found
+
+    def crops_from_detector(self, images: Sequence[np.ndarray], seed: np.ndarray | None = None) -> Crops:
+        """One person per image with MediaPipe's crop rule (already rotated), the same person in
+        every camera when several are in view (choice.choose_subject): with `seed` (3,) (a world
+        point on the wanted person, e.g. from another tracker) the person nearest to it, else the
+        one seen by the most cameras. Sets others_in_view."""
+        found = self.detect_people(images)
+        # The same person in every camera (choice.py): the one nearest the seed, else the one
+        # most cameras agree on; a camera where none of its detections is that person gets no crop.
+        choice = choose_subject(self.rig, found, seed)
+        self.others_in_view = choice.others
+        cams = [c for c in range(len(found)) if choice.index[c] >= 0]
+        rects = [found[c][choice.index[c]].crop() for c in cams]
         return Crops(cams, [r[0] for r in rects] or np.zeros((0, 2)), [r[1] for r in rects], [r[2] for r in rects])
+
+    def _census(self, images: Sequence[np.ndarray], pelvis: np.ndarray) -> None:
+        """While tracking the detector does not run for the crops: every `census_every`-th frame
+        set it looks at one camera (the cameras in turn; detect_people, not turned) for people
+        other than the subject, so others_in_view stays current (each camera every
+        census_every x C frame sets). The crops and heatmaps do not depend on it."""
+        if self.census_every <= 0:
+            return
+        self._census_count += 1
+        have = [c for c, im in enumerate(images) if im is not None]
+        if self._census_count % self.census_every or not have:
+            return
+        c = have[(self._census_count // self.census_every) % len(have)]
+        self.others_in_view[c] = others_near(self.rig, c, self.detect_people([images[c]], turned=False)[0], pelvis)
 
     def crops_from_skeleton(self, keypoints: np.ndarray, tilt: np.ndarray | None = None) -> Crops:
         """Tracking crops from the skeleton (25, 3); tilt (C,) overrides the computed trunk tilt."""
@@ -132,12 +162,18 @@ class BlazePosePcm:
     ) -> PcmViews:
         """PCMs of one frame set: images in rig camera order (uint8 BGR or mono; None for a
         camera without a frame in this set: it gets no view).
-        keypoints None: detector crops (seed picks the person, see crops_from_detector)."""
+        keypoints None: detector crops (seed picks the person, see crops_from_detector; without
+        one, the pelvis of the last skeleton given: re-initialization looks for the subject where
+        it was last tracked, not for whoever else is in view)."""
         if len(images) != len(self.rig):
             raise ModelError(f"{len(images)} images for a rig of {len(self.rig)} cameras")
         if keypoints is None:
-            crops = self.crops_from_detector(images, seed)
+            crops = self.crops_from_detector(images, self.last_subject if seed is None else seed)
         else:
+            pelvis = np.asarray(keypoints, dtype=np.float64)[PELVIS]
+            if np.isfinite(pelvis).all():
+                self.last_subject = pelvis
+                self._census(images, pelvis)
             crops = self.crops_from_skeleton(keypoints, tilt)
             crops = crops.select(np.array([images[c] is not None for c in crops.camera], dtype=bool))
         if len(crops) == 0:

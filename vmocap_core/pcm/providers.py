@@ -107,6 +107,10 @@ class ModelPcmProvider:
     def warm_up(self) -> None:
         self.pcm.warm_up()
 
+    def others_in_view(self) -> dict[str, int]:
+        """Per camera, the people the detector last saw there who are not the subject."""
+        return dict(zip(self.rig.names, (int(n) for n in self.pcm.others_in_view)))
+
     def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
         full: list[np.ndarray | None] = [None] * len(self.rig)
         for c, img in zip(cameras, images):

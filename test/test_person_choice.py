@@ -1,0 +1,78 @@
+"""Which detection is the subject when several people are in view (vmocap_core.pcm.choice):
+detections made by projecting two people into the benchmark rig's real cameras."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vmocap_core.cameras.rig_file import load_rig
+from vmocap_core.pcm.choice import choose_subject, others_near
+from vmocap_core.pcm.detector import Detection
+
+REPO = Path(__file__).resolve().parents[1]
+A = np.array([0.0, 0.0, 0.9])  # hip centres of two people 1.5 m apart, apart in every view
+B = np.array([0.4, 1.4, 0.9])
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return load_rig(REPO / "config" / "benchmark_rig.yaml")
+
+
+def detection(rig, cam: int, hip: np.ndarray, score: float, noise_px: float = 0.0) -> Detection:
+    uv, _ = rig.project(np.stack([hip, hip + [0.0, 0.0, 0.9]]))
+    kp = np.vstack([uv[cam], uv[cam]]) + noise_px
+    x0, y0 = kp.min(axis=0) - 40
+    x1, y1 = kp.max(axis=0) + 40
+    return Detection(score, np.array([x0, y0, x1, y1]), kp)
+
+
+def test_the_person_most_cameras_agree_on_in_every_camera(rig):
+    # B scores higher where it is seen, but cam1 sees only A: A is seen by 4 cameras, B by 3
+    found = [[detection(rig, c, B, 0.95, 3.0), detection(rig, c, A, 0.8, -4.0)] if c != 1
+             else [detection(rig, c, A, 0.7)] for c in range(len(rig))]
+    ch = choose_subject(rig, found)
+    assert ch.index.tolist() == [1, 0, 1, 1]
+    assert np.linalg.norm(ch.point - A) < 0.1
+    assert ch.others.tolist() == [1, 0, 1, 1]
+    # the seed (where the subject was last tracked) picks B; cam1 has no detection of B: no crop there
+    seeded = choose_subject(rig, found, seed=B + [0.3, 0.0, 0.0])
+    assert seeded.index.tolist() == [0, -1, 0, 0]
+    assert np.linalg.norm(seeded.point - B) < 0.1
+    assert seeded.others.tolist() == [1, 1, 1, 1]
+
+
+def test_no_two_cameras_agree_falls_back_to_the_best_or_the_nearest(rig):
+    found = [[], [detection(rig, 1, B, 0.9), detection(rig, 1, A, 0.6)], [], []]
+    assert choose_subject(rig, found).index.tolist() == [-1, 0, -1, -1]
+    assert choose_subject(rig, found, seed=A).index.tolist() == [-1, 1, -1, -1]
+    assert choose_subject(rig, [[] for _ in rig]).index.tolist() == [-1] * len(rig)
+
+
+def test_others_near_the_tracked_subject(rig):
+    dets = [detection(rig, 0, A, 0.9), detection(rig, 0, B, 0.8)]
+    assert others_near(rig, 0, dets, A) == 1
+    assert others_near(rig, 0, dets[:1], A) == 0
+    behind = rig[0].center + (rig[0].center - A) * 0.2  # subject behind the camera: everyone is someone else
+    assert others_near(rig, 0, dets, behind) == 2
+
+
+def reach(d: Detection) -> float:
+    return float(np.linalg.norm(d.keypoints[1] - d.keypoints[0]))
+
+
+def test_one_person_found_twice_is_one_person(rig):
+    """The detector's whole-image and closer passes find one person twice, hips a few px apart."""
+    dup = [detection(rig, 0, A, 0.9), detection(rig, 0, A, 0.8, 6.0), detection(rig, 0, B, 0.7),
+           detection(rig, 0, B, 0.6, -8.0)]
+    assert others_near(rig, 0, dup, A) == 1
+    kp = dup[0].keypoints.copy()  # the upper body found on its own: hips higher, a shorter reach
+    kp[0] += [0.0, -0.3 * reach(dup[0])]
+    kp[1] = kp[0] + 0.55 * (dup[0].keypoints[1] - dup[0].keypoints[0])
+    part = Detection(0.5, dup[0].box, kp)
+    assert others_near(rig, 0, [dup[0], part], A) == 0  # a part of the subject found on its own
+    found = [[detection(rig, c, A, 0.9), detection(rig, c, A, 0.8, 6.0)] for c in range(len(rig))]
+    assert choose_subject(rig, found).others.tolist() == [0] * len(rig)
