@@ -232,6 +232,10 @@ class PcmNode(VmocapNode):
         self.watch_late(st.late)
         self.watch_silent(st.silent)
         self.watch_dropped(self.counts["queue_dropped"])
+        # people besides the subject, per camera, from the CNN's detector (vmocap_core.pcm.choice)
+        others = self.provider.others_in_view() if hasattr(self.provider, "others_in_view") else {}
         return dict(self.counts, frames=self.frames, bad_images=self.bad_images, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
                     queued=len(self.sets), precision=getattr(self.provider, "precision", "n/a"),
-                    precision_reason=getattr(self.provider, "precision_reason", "n/a"))
+                    precision_reason=getattr(self.provider, "precision_reason", "n/a"),
+                    others_in_view=max(others.values(), default=0),
+                    others_in_view_by_camera=", ".join(f"{n}: {k}" for n, k in others.items() if k) or "none")
