@@ -54,6 +54,7 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     tracker settings (PipelineConfig keys, `fps` among them)."""
     from vmocap_core.bag import cdr
     from vmocap_core.bag import messages as M
+    from vmocap_core.outputs.messages import DIAG
 
     from ..common import msg_class, prepare_env, probe_node, qos
 
@@ -73,11 +74,20 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
         got[M.stamp_ns(d)] = P if P is not None else np.full((len(KEYPOINTS), 3), np.nan)
         last_rx[0] = time.monotonic()
 
+    others = [0]  # the most others in view vmocap_pcm's /diagnostics reported
+
+    def on_diagnostics(data: bytes) -> None:
+        for st in cdr.decode(DIAG, data)["status"]:
+            if st["name"].startswith("vmocap_pcm"):
+                v = {kv["key"]: kv["value"] for kv in st["values"]}.get("others_in_view", "0")
+                others[0] = max(others[0], int(v) if v.isdigit() else 0)
+
     last = int(stamps[-1])
     # lockstep goes at the graph's pace, which only the silence check bounds
     expected_s = len(stamps) / fps / rate if rate > 0 else len(stamps) * 1.0
     with probe_node("vmocap_bench_images_probe", env) as (node, ex), open(work / f"{cfg.stem}.log", "w") as log:
         node.create_subscription(msg_class("sensor_msgs/msg/PointCloud2"), "/vmocap/keypoints", on_keypoints, qos(200), raw=True)
+        node.create_subscription(msg_class(DIAG), "/diagnostics", on_diagnostics, qos(50), raw=True)
         launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
                                   stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 180.0 + 3.0 * expected_s
@@ -103,4 +113,4 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     for s, P in got.items():
         if s in row:
             est[row[s]] = P
-    return est, {"frame_sets_out": len(got), "frame_sets_in": len(stamps), "rate": rate}
+    return est, {"frame_sets_out": len(got), "frame_sets_in": len(stamps), "rate": rate, "others_in_view_max": others[0]}

@@ -171,6 +171,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--leave-one-out", action="store_true",
                         help="score each clip with a landmark model learnt on the other clips (the shipped one was "
                              "learnt on the shared clips: their default figures are in-sample)")
+    parser.add_argument("--people", type=int, default=1,
+                        help="people in the scene (2 or 3, people.py): the subject (first of --clips) among others "
+                             "walking around it (the next clips), scored alone and among them: swaps, ghosts, missed")
     parser.add_argument("--json", action="store_true")
     add_tracker_arguments(parser)  # --offline: the node graph (live by nature) is not run
 
@@ -341,6 +344,10 @@ def run(args: argparse.Namespace) -> int:
     args.rig_file = args.out / "rig.yaml"  # the (scaled) rig the graph loads
     args.tracker = tracker_settings(args, RATE_HZ)
     save_rig(rig, args.rig_file)
+    if args.people != 1:
+        from .people import run as run_people
+
+        return run_people(args, rig)
     if args.leave_one_out:
         if len(files) < 2:
             raise VmocapError("--leave-one-out needs at least two clips")
