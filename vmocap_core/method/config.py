@@ -146,12 +146,14 @@ class SkeletonConfig(_Stage):
     # Never confidently wrong (consistency.py): the fed-back skeleton's keypoints against each
     # view's PCM peaks. Below `check_min_agreement` (mean fraction of agreeing views per
     # keypoint) for `check_uncertain_frames` frame sets in a row the status is "uncertain" (no
-    # output, tracking goes on), at once below `check_fail_agreement`, until
+    # output, tracking goes on), below `check_fail_agreement` for `check_fail_frames` in a row
+    # (a single frame set every view contradicts is a glitch of the maps as often as of the body), until
     # `check_recover_frames` agree in a row; uncertain for `check_lost_frames` in a row: "lost",
     # start over from triangulation. check_min_agreement 0 disables the check.
     check_min_agreement: float = 0.6
     check_fail_agreement: float = 0.35
     check_uncertain_frames: int = 3
+    check_fail_frames: int = 2
     check_recover_frames: int = 5
     check_lost_frames: int = 30
 
@@ -160,8 +162,8 @@ class SkeletonConfig(_Stage):
 
         if not 0 <= self.check_fail_agreement <= self.check_min_agreement <= 1:
             raise ConfigError("check_fail_agreement <= check_min_agreement must lie in [0, 1]")
-        if min(self.check_uncertain_frames, self.check_recover_frames, self.check_lost_frames) < 1:
-            raise ConfigError("check_uncertain_frames, check_recover_frames and check_lost_frames must be >= 1")
+        if min(self.check_uncertain_frames, self.check_fail_frames, self.check_recover_frames, self.check_lost_frames) < 1:
+            raise ConfigError("check_uncertain_frames, check_fail_frames, check_recover_frames and check_lost_frames must be >= 1")
 
         if self.fps <= 0 or self.identify_seconds < 0:
             raise ConfigError("fps must be positive and identify_seconds >= 0")

@@ -94,15 +94,15 @@ class Verdict:
     one bad frame set (a view's wrong peak, a blurred limb) does not flip the status."""
 
     def __init__(self, min_agreement: float, uncertain_frames: int, recover_frames: int, lost_frames: int,
-                 fail_agreement: float = 0.0) -> None:
-        self.min_agreement, self.fail_agreement = min_agreement, fail_agreement
+                 fail_agreement: float = 0.0, fail_frames: int = 2) -> None:
+        self.min_agreement, self.fail_agreement, self.fail_frames = min_agreement, fail_agreement, fail_frames
         self.uncertain_frames, self.recover_frames, self.lost_frames = uncertain_frames, recover_frames, lost_frames
         self.last: ViewCheck | None = None
         self.reset()
 
     def reset(self) -> None:
         self.uncertain = False
-        self._bad = self._good = self._since = 0
+        self._bad = self._good = self._since = self._fail = 0
         self.last = None
 
     def update(self, check: ViewCheck | None) -> str:
@@ -110,8 +110,9 @@ class Verdict:
             self.last = check
             bad = check.agreement < self.min_agreement
             self._bad, self._good = (self._bad + 1, 0) if bad else (0, self._good + 1)
-            # a frame set most views contradict is not noise: no need to wait for more
-            if not self.uncertain and (self._bad >= self.uncertain_frames or check.agreement < self.fail_agreement):
+            self._fail = self._fail + 1 if check.agreement < self.fail_agreement else 0
+            # frame sets most views contradict are not noise: no need to wait for more
+            if not self.uncertain and (self._bad >= self.uncertain_frames or self._fail >= self.fail_frames):
                 self.uncertain, self._since = True, 0
             elif self.uncertain and self._good >= self.recover_frames:
                 self.uncertain = False

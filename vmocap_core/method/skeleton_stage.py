@@ -52,7 +52,7 @@ class SkeletonStage:
         self.status = "initializing"
         cfg = self.config
         self.verdict = Verdict(cfg.check_min_agreement, cfg.check_uncertain_frames, cfg.check_recover_frames,
-                               cfg.check_lost_frames, cfg.check_fail_agreement)
+                               cfg.check_lost_frames, cfg.check_fail_agreement, cfg.check_fail_frames)
         self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
         self.disagreement: ViewCheck | None = None  # the check behind an "uncertain" or check-"lost" step
         self._last_stamp: int | None = None
