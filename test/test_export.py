@@ -24,6 +24,7 @@ from vmocap_core.method.skeleton import BONES
 
 FPS = 30.0
 GAP = range(70, 76)  # frame sets dropped from the recording
+LOOP = 38  # frame sets of the walk clip at 30 Hz, which the synthetic session repeats
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
@@ -53,8 +54,13 @@ def test_offline_session_has_the_gap_and_constant_links(processed) -> None:
     assert s.rate_hz == pytest.approx(FPS, rel=1e-6) and s.n_frames == 110
     assert not s.tracked[list(GAP)].any()  # nothing invented across the dropped frame sets
     segs = s.segments()
-    assert len(segs) == 2 and segs[0].stop == GAP.start and segs[1].start == GAP.stop
-    assert s.tracked.sum() > 90
+    assert GAP.start in [g.stop for g in segs] and GAP.stop in [g.start for g in segs]
+    # the synthetic session loops the walk clip: where it starts over the body jumps back, the
+    # skeleton is off the maps for a frame set, and the consistency check makes that a gap too
+    wraps = {k * LOOP for k in range(1, s.n_frames // LOOP + 1)}
+    others = [(a.stop, b.start) for a, b in zip(segs, segs[1:]) if (a.stop, b.start) != (GAP.start, GAP.stop)]
+    assert all(any(0 <= stop - w <= 1 for w in wraps) and start - stop <= 8 for stop, start in others), (others, wraps)
+    assert s.tracked.sum() > 80
     tracked = s.keypoints[s.tracked]
     lengths = [np.linalg.norm(tracked[:, INDEX[a]] - tracked[:, INDEX[b]], axis=-1) for a, b in BONES.values()]
     assert max(float(np.std(v)) for v in lengths) < 1e-9
@@ -142,8 +148,8 @@ def test_bvh_forward_kinematics_reproduces_the_keypoints(processed) -> None:
     from bvh import Bvh
 
     s = processed["session"]
-    files = sorted(processed["dir"].glob("s*.bvh"))
-    assert [f.name for f in files] == ["s.bvh", "s_part2.bvh"]  # split at the gap
+    files = sorted(processed["dir"].glob("s*.bvh"), key=lambda f: (len(f.name), f.name))
+    assert [f.name for f in files] == ["s.bvh"] + [f"s_part{k}.bvh" for k in range(2, len(s.segments()) + 1)]  # split at gaps
     for seg, f in zip(s.segments(), files):
         mocap = Bvh(f.read_text())
         assert mocap.nframes == seg.stop - seg.start and mocap.frame_time == pytest.approx(1 / FPS, rel=1e-6)

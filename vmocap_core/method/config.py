@@ -147,13 +147,13 @@ class SkeletonConfig(_Stage):
     # view's PCM peaks. Below `check_min_agreement` (mean fraction of agreeing views per
     # keypoint) for `check_uncertain_frames` frame sets in a row the status is "uncertain" (no
     # output, tracking goes on), below `check_fail_agreement` for `check_fail_frames` in a row
-    # (a single frame set every view contradicts is a glitch of the maps as often as of the body), until
+    # (1: at once; a frame set every view contradicts is a body the skeleton is not on), until
     # `check_recover_frames` agree in a row; uncertain for `check_lost_frames` in a row: "lost",
     # start over from triangulation. check_min_agreement 0 disables the check.
     check_min_agreement: float = 0.6
     check_fail_agreement: float = 0.35
     check_uncertain_frames: int = 3
-    check_fail_frames: int = 2
+    check_fail_frames: int = 1
     check_recover_frames: int = 5
     check_lost_frames: int = 30
 
