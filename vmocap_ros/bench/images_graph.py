@@ -36,7 +36,8 @@ def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: 
     cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
     cfg["/**"]["ros__parameters"].update(rig=str(rig_path), pcm_keypoints=[""])  # the CNN's 25 channels
     cfg["vmocap_camera"]["ros__parameters"].update(source="bag", uri=str(rec), rate=max(float(rate), 0.0), loop=False,
-                                                    restamp=False, wait_subscribers=120.0)
+                                                    restamp=False, wait_subscribers=120.0,
+                                                    wait_topics=["/vmocap/keypoints"])  # this probe: the first outputs are volatile
     cfg["/**"]["ros__parameters"]["lockstep"] = rate <= 0
     cfg["vmocap_pcm"]["ros__parameters"].update(source="model", model="blazepose", rotation=rotation)
     for section, values in stage_sections(tracker).items():
