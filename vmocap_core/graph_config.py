@@ -87,8 +87,8 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "every this many seconds", 0.05, 60.0),
         Param("max_in_flight", 2, "frame sets sent but not yet finished by the CNN (NS/pcm/done) beyond which "
               "newer frame sets are not sent (cameras/flow.py): an overloaded graph spends its cores on the frame "
-              "sets it processes. Only while every subscriber of the images is a vmocap_pcm node (a recorder "
-              "of the images gets every frame); 0: off; lockstep replaces it", 0, 1000),
+              "sets it processes. Only while the images go to vmocap_pcm nodes in other processes and to nobody "
+              "else (a recorder of the images gets every frame); 0: off; lockstep replaces it", 0, 1000),
         Param("reconnect_attempts", 60, "live cameras: give a disconnected camera up after this many failed "
               "reopen attempts (its thread ends, the node and the other cameras go on)", 1, 1000000),
     ],

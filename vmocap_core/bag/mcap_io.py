@@ -21,6 +21,7 @@ import logging
 import mmap
 import os
 import struct
+import threading
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +40,12 @@ from ..files import check_output
 from . import cdr
 
 log = logging.getLogger(__name__)
+# Chunks whose CRC matched, per file version (device, inode, size, mtime) and chunk offset: the
+# camera node reads one bag with a reader per camera, each touching every chunk (which holds all
+# cameras' images), and loops restart the reading; without this each of them checked each chunk
+# again (4 cameras x 9 MB a frame set at 60 Hz: a third of a core).
+_VERIFIED: set[tuple[int, int, int, int, int]] = set()
+_VERIFIED_LOCK = threading.Lock()
 
 MAGIC = b"\x89MCAP0\r\n"
 PARTIAL_SUFFIX = ".partial"
@@ -430,10 +437,16 @@ class BagReader:
         if start + length > len(view):
             self._chunk_damaged(k, ci, "its records run beyond the end of the file")
             return False
+        st = os.fstat(self._f.fileno())
+        key = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, off)
+        if key in _VERIFIED:
+            return True
         actual = zlib.crc32(view[start : start + length]) if crc else 0
         if actual != crc:
             self._chunk_damaged(k, ci, f"CRC {actual:08x}, expected {crc:08x}")
             return False
+        with _VERIFIED_LOCK:
+            _VERIFIED.add(key)
         return True
 
     def _stream_messages(self, wanted: set[str] | None, strict: bool = False) -> Iterator[BagMessage]:
