@@ -154,3 +154,17 @@ def probe_node(name: str, env: dict[str, str]) -> Iterator[tuple[Any, Any]]:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def stop_graph(proc: Any, timeout: float = 30.0) -> None:
+    """SIGINT a `vmocap launch` process (its nodes flush and close their outputs), wait for it,
+    and kill it when it has not ended within `timeout` seconds."""
+    import subprocess
+
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()

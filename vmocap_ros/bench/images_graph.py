@@ -12,7 +12,6 @@ stamp until the recording's last frame set came out (or the graph fell silent).
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -57,7 +56,7 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     from vmocap_core.bag import messages as M
     from vmocap_core.outputs.messages import DIAG
 
-    from ..common import msg_class, prepare_env, probe_node, qos
+    from ..common import msg_class, prepare_env, probe_node, qos, stop_graph
 
     cfg = graph_config(work, rec, rig_path, rotation, tracker, rate)
     fps = float(tracker["fps"])
@@ -100,13 +99,7 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
                 if got and time.monotonic() - last_rx[0] > silent_s:
                     break  # the graph fell silent: the tail of the recording was dropped
         finally:
-            if launch.poll() is None:
-                launch.send_signal(signal.SIGINT)
-            try:
-                launch.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                launch.kill()
-                launch.wait()
+            stop_graph(launch)
     if not got:
         raise VmocapError(f"no keypoints came out of the node graph (log: {log.name})")
     row = {int(s): i for i, s in enumerate(stamps)}

@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -45,7 +44,7 @@ def rss_mib(pid: int) -> float:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from ..common import init_rclpy
+    from ..common import init_rclpy, stop_graph
     from .graph import cpu_flags
     from .graph_setup import graph_config, graph_env, synthetic_bag
     from .probe import Probe, latency, missing_periods
@@ -102,13 +101,7 @@ def run(args: argparse.Namespace) -> int:
         probe.close()
         if rclpy.ok():
             rclpy.shutdown()
-        if launch.poll() is None:
-            launch.send_signal(signal.SIGINT)
-        try:
-            launch.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            launch.kill()
-            launch.communicate()
+        stop_graph(launch)
     rss1 = windows[-1]["rss_mib"]
     # growth after the first window (the target's "after the first minute")
     base = windows[0]["rss_mib"]
