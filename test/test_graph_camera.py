@@ -285,7 +285,8 @@ def test_camera_sends_only_what_a_busy_cnn_can_take_unless_someone_records_the_i
     from std_msgs.msg import Header
 
     from vmocap_core.cameras.rig_file import save_rig
-    from vmocap_ros.common import msg_class, prepare_env, probe_node, qos
+    from vmocap_ros.common import msg_class, prepare_env, qos
+    from vmocap_ros.run_node import probe_node
 
     rig = small_rig()
     bag = tmp_path / "c.mcap"

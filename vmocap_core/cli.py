@@ -15,7 +15,7 @@ from .errors import VmocapError
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "accuracy"), "vmocap_core.apps.bench.accuracy", "synthetic multi-camera accuracy benchmark"),
     (("bench", "speed"), "vmocap_core.apps.bench.speed", "back-end time per frame"),
-    (("bench", "images"), "vmocap_core.apps.bench.images", "image-level benchmark: rendered body, real CNN, 3D truth"),
+    (("bench", "images"), "vmocap_core.apps.bench.images_cli", "image-level benchmark: rendered body, real CNN, 3D truth"),
     (("bench", "opensim"), "vmocap_core.apps.bench.opensim", "OpenSim joint angles against truth through the same scaled model"),
     (("bench", "pcm"), "vmocap_core.apps.bench.pcm", "PCM (CNN) inference time"),
     (("bench", "cnn"), "vmocap_core.apps.bench.cnn", "CNN budget: time of each model variant, interleaved"),

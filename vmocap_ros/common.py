@@ -7,9 +7,8 @@ import importlib
 import os
 import signal
 import threading
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 from vmocap_core.graph_config import Topics  # noqa: F401 (re-exported)
 
@@ -122,38 +121,6 @@ def init_rclpy(args: list[str] | None = None) -> Any:
     if not rclpy.ok():
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     return rclpy
-
-
-@contextmanager
-def probe_node(name: str, env: dict[str, str]) -> Iterator[tuple[Any, Any]]:
-    """(node, executor) of a node in this process on the domain of `env` (a graph this process
-    started), with an rclpy context of its own and `env`'s DDS settings only while it lives: a
-    caller's own rclpy (a test's listener on another domain) finds the process as it was."""
-    keys = ("ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION", "FASTRTPS_DEFAULT_PROFILES_FILE")
-    saved = {k: os.environ.get(k) for k in keys}
-    os.environ.update({k: env[k] for k in keys if k in env})
-    import rclpy
-    from rclpy.signals import SignalHandlerOptions
-
-    from .run_node import make_executor
-
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]), signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node(name, context=context)
-    ex = make_executor(context)
-    ex.add_node(node)
-    try:
-        yield node, ex
-    finally:
-        ex.remove_node(node)
-        ex.shutdown()
-        node.destroy_node()
-        context.try_shutdown()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def stop_graph(proc: Any, timeout: float = 30.0) -> None:

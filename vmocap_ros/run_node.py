@@ -9,7 +9,8 @@ import os
 import sys
 import threading
 import time
-from typing import Any
+from contextlib import contextmanager
+from typing import Any, Iterator
 
 import yaml
 
@@ -122,6 +123,37 @@ def main(argv: list[str] | None = None) -> int:
     except VmocapError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+
+
+@contextmanager
+def probe_node(name: str, env: dict[str, str]) -> Iterator[tuple[Any, Any]]:
+    """(node, executor) of a node in this process on the domain of `env` (a graph this process
+    started), with an rclpy context of its own and `env`'s DDS settings only while it lives: a
+    caller's own rclpy (a test's listener on another domain) finds the process as it was."""
+    keys = ("ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION", "FASTRTPS_DEFAULT_PROFILES_FILE")
+    saved = {k: os.environ.get(k) for k in keys}
+    os.environ.update({k: env[k] for k in keys if k in env})
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]), signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node(name, context=context)
+    ex = make_executor(context)
+    ex.add_node(node)
+    try:
+        yield node, ex
+    finally:
+        ex.remove_node(node)
+        ex.shutdown()
+        node.destroy_node()
+        context.try_shutdown()
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
 
 
 if __name__ == "__main__":

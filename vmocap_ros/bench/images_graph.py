@@ -56,7 +56,8 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     from vmocap_core.bag import messages as M
     from vmocap_core.outputs.messages import DIAG
 
-    from ..common import msg_class, prepare_env, probe_node, qos, stop_graph
+    from ..common import msg_class, prepare_env, qos, stop_graph
+    from ..run_node import probe_node
 
     cfg = graph_config(work, rec, rig_path, rotation, tracker, rate)
     fps = float(tracker["fps"])

@@ -325,7 +325,9 @@ def summarize(clips: dict[str, dict[str, Any]], configs: list[str], key: str, la
     return summary
 
 
-def run(args: argparse.Namespace) -> int:
+def prepare(args: argparse.Namespace) -> tuple[list[Path], range, Any]:
+    """The clips, body variants and (scaled, saved) rig of a run, its folders made and its
+    tracker settings resolved into `args`: what `run` and people.py's run share."""
     from ...cameras.rig_file import load_rig, save_rig
     from ..render.body import SHAPES
     from ..render.recording import scale_rig
@@ -344,10 +346,12 @@ def run(args: argparse.Namespace) -> int:
     args.rig_file = args.out / "rig.yaml"  # the (scaled) rig the graph loads
     args.tracker = tracker_settings(args, RATE_HZ)
     save_rig(rig, args.rig_file)
-    if args.people != 1:
-        from .people import run as run_people
+    return files, variants, rig
 
-        return run_people(args, rig)
+
+def run(args: argparse.Namespace) -> int:
+    """`vmocap bench images` for one person per scene (images_cli.py dispatches --people)."""
+    files, variants, rig = prepare(args)
     if args.leave_one_out:
         if len(files) < 2:
             raise VmocapError("--leave-one-out needs at least two clips")
