@@ -58,7 +58,7 @@ class BlazePosePcm:
         min_presence: float = 0.5,
         parallel: str = DEFAULT_PARALLEL,
         precision: str | None = None,
-        census_every: int = 30,
+        census_every: int = 120,
     ) -> None:
         self.rig = rig
         self.rotation = rotation
