@@ -15,7 +15,7 @@ import numpy as np
 from ..cameras.projection import Rig
 from ..graph_config import Topics
 from . import messages as M
-from .mcap_io import BagWriter
+from .writer import BagWriter
 
 if TYPE_CHECKING:
     from ..pcm.synthetic import NoiseModel

@@ -74,8 +74,9 @@ class BagFrameSource(FrameSource):
 
     @property
     def damaged(self) -> list[str]:
-        """recover: the damaged chunks skipped so far, what and where each was."""
-        return list(self._reader.damaged_chunks) if self._reader is not None else []
+        """recover: the damaged chunks skipped so far, what and where each was (the reader's
+        list, read each frame by the camera node: not copied)."""
+        return self._reader.damaged_chunks if self._reader is not None else []
 
     def close(self) -> None:
         if self._reader is not None:

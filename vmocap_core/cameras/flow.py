@@ -16,6 +16,16 @@ import threading
 from collections import deque
 
 
+def applies(cnn_answers: bool, local_takers: list[str], remote_takers: list[str]) -> bool:
+    """Whether flow control applies to a camera node's images: a PCM node reports what it finished
+    (`cnn_answers`), and the images reach only PCM nodes (names vmocap_pcm*) in other processes
+    (`remote_takers`). A recorder or viewer of the images gets every frame; a PCM node in the
+    camera's own process (`local_takers`) takes them for free and keeps the newest itself, which
+    gives fresher frame sets than holding them back here."""
+    return (cnn_answers and not local_takers and bool(remote_takers)
+            and all(n.startswith("vmocap_pcm") for n in remote_takers))
+
+
 class InFlight:
     """Thread-safe; shared by the camera threads of one node. `admit` decides (once per frame
     set) whether a frame goes out, `done` is called with the stamp of each frame set the CNN

@@ -52,6 +52,14 @@ class ViewCheck:
         seen = np.isfinite(self.confidence)
         return float(self.confidence[seen].mean()) if seen.any() else 0.0
 
+    def warning(self, status: str, min_agreement: float, names: list[str]) -> str:
+        """The WARN of a skeleton stage whose status the check turned `status` (uncertain or
+        lost): how much agrees, what it means for the output, which keypoints and cameras."""
+        then = "tracking goes on without output" if status == "uncertain" else "starting over"
+        return (f"{status}: the skeleton disagrees with the images ({self.agreement:.0%} of the views agree per "
+                f"keypoint, below check_min_agreement {min_agreement:.0%}), {then}; keypoints (disagreeing "
+                f"cameras): {self.describe(names)}")
+
     def describe(self, names: list[str], threshold: float = AGREE) -> str:
         """The keypoints below `threshold` and the cameras that disagree on them, e.g.
         'left_knee (cam1, cam3), right_wrist (cam0)'."""

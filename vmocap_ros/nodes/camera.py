@@ -13,7 +13,7 @@ from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.bag import bin_image, check_binning
 from vmocap_core.cameras.clock import LoopedStamps, PlaybackClock
-from vmocap_core.cameras.flow import InFlight
+from vmocap_core.cameras.flow import InFlight, applies
 from vmocap_core.cameras.lockstep import LockstepGate
 from vmocap_core.errors import VmocapError
 from vmocap_core.outputs.messages import CLOUD, HEADER, IMAGE, INFO
@@ -215,15 +215,12 @@ class CameraNode(VmocapNode):
         self.transport.due.when_idle(slot.release, release_at)
 
     def _check_flow(self) -> None:
-        """Flow control only while a PCM node reports what it finished and the images reach only
-        PCM nodes in other processes: a recorder or viewer of the images gets every frame, and a
-        PCM node of this process takes them for free (it keeps the newest itself, which gives
-        fresher frame sets than holding them back here)."""
+        """Who takes the images and whether a PCM node answers: flow.applies decides."""
         bus, done = self.transport.bus, self.topics.pcm_done
         answered = done in bus.publishers or self.count_publishers(done) > 0
-        local = any(bus.subscriber_nodes.get(t) for t in self._image_topics)
-        takers = [i.node_name for t in self._image_topics for i in self.get_subscriptions_info_by_topic(t)]
-        self._flow_on = answered and not local and bool(takers) and all(n.startswith("vmocap_pcm") for n in takers)
+        local = [n for t in self._image_topics for n in bus.subscriber_nodes.get(t, [])]
+        remote = [i.node_name for t in self._image_topics for i in self.get_subscriptions_info_by_topic(t)]
+        self._flow_on = applies(answered, local, remote)
 
     def _send(self, cam: str, img: tuple, info: tuple, pub_img: Output, pub_info: Output) -> None:
         if self._flow_on and self._flow is not None and not self._flow.admit(M.stamp_ns(img[0]), time.monotonic()):

@@ -21,7 +21,7 @@ def keep_partial(output: str) -> str:
     recording (OUT.mcap -> OUT.killed1.mcap.partial, .killed2 ...); "" when there was none."""
     from pathlib import Path
 
-    from vmocap_core.bag.mcap_io import PARTIAL_SUFFIX
+    from vmocap_core.bag.writer import PARTIAL_SUFFIX
 
     out = Path(output)
     partial = out.with_name(out.name + PARTIAL_SUFFIX)

@@ -65,10 +65,7 @@ class SkeletonNode(VmocapNode):
         if check is None:
             return
         names = self.rig.names if self.rig is not None else [f"camera {c}" for c in range(32)]
-        then = "tracking goes on without output" if status == "uncertain" else "starting over"
-        self.warn_for("images", f"{status}: the skeleton disagrees with the images ({check.agreement:.0%} of the views "
-                      f"agree per keypoint, below check_min_agreement {self.stage.config.check_min_agreement:.0%}), "
-                      f"{then}; keypoints (disagreeing cameras): {check.describe(names)}", DISAGREE_WARN_S)
+        self.warn_for("images", check.warning(status, self.stage.config.check_min_agreement, names), DISAGREE_WARN_S)
 
     def status(self) -> dict[str, Any]:
         last = self.stage.verdict.last
