@@ -158,8 +158,10 @@ class CameraNode(VmocapNode):
                     return
                 self._send(cam.name, *prepared, pub_img, pub_info)
                 continue
-            # a recorded frame is converted (and encoded for DDS readers) while it waits for its time
-            prepared = (pub_img.prepare(img), pub_info.prepare(info))
+            # a recorded frame is converted (and encoded for DDS readers) while it waits for its
+            # time; under flow control most frame sets are not sent, so their images are encoded
+            # in _send once admitted (an encode of 4 images costs ~2 ms of the CNN's core)
+            prepared = ((img, None) if self._flow_on else pub_img.prepare(img), pub_info.prepare(info))
             while not slot.acquire(timeout=0.1):  # the previous frame of this camera is still due
                 if self._stop.is_set():
                     return
@@ -225,6 +227,8 @@ class CameraNode(VmocapNode):
     def _send(self, cam: str, img: tuple, info: tuple, pub_img: Output, pub_info: Output) -> None:
         if self._flow_on and self._flow is not None and not self._flow.admit(M.stamp_ns(img[0]), time.monotonic()):
             return  # the CNN is busy with newer-than-useful work: this frame set is not sent
+        if img[1] is None:  # deferred (above) or no DDS reader when prepared
+            img = pub_img.prepare(img[0])
         pub_img.send(img)
         pub_info.send(info)
         self.published[cam] += 1
