@@ -98,6 +98,9 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "source=synthetic: the motion clip (.npz)", path="auto"),
         Param("rotation", "all", "CNN input rotation (paper III-B): all = each crop rotated upright; lower_body = "
               "an extra rotated view per camera for the lower body (views CAM and CAM_1); none", choices=("all", "lower_body", "none")),
+        Param("crop_prediction", "rigid", "the crops follow the skeleton extrapolated to the frame set by the body's "
+              "rigid motion between the last two feedbacks (method/prediction.py), or the previous skeleton as it was",
+              choices=("rigid", "previous")),
         Param("threads", 2, "onnxruntime threads of the CNN", 1, 64),
         Param("sync_tolerance_ms", 8.0, "max stamp difference of frames in one frame set", 0.0, 1000.0),
         Param("min_cameras", 2, "fewest cameras a frame set needs", 1, 64),

@@ -24,6 +24,7 @@ from .config import PipelineConfig
 from .landmarks import resolve
 from .markers import MarkerStage
 from .results import Markers, TrackResult, feedback_of
+from .prediction import BodyPredictor
 from .rotation import trunk_tilt
 from .skeleton_stage import SkeletonStage
 
@@ -77,6 +78,8 @@ class Pipeline:
         self.skeleton = SkeletonStage(self.config.skeleton)
         self.pcm = pcm
         self.feedback: np.ndarray | None = None
+        # the CNN's crops follow the feedback extrapolated to the frame set (prediction.py)
+        self.predictor = BodyPredictor(enabled=getattr(pcm, "crop_prediction", "previous") == "rigid")
         self.last: FrameResult | None = None
         self.timings: dict[str, float] = {}  # seconds of the last step per stage (pcm, markers, skeleton)
 
@@ -87,12 +90,13 @@ class Pipeline:
         else:
             if self.pcm is None:
                 raise TypeError("Pipeline.step got images but has no PCM provider")
-            pcm = self.pcm.infer(list(frame.images), frame.cameras, frame.stamp_ns, self.feedback)
+            pcm = self.pcm.infer(list(frame.images), frame.cameras, frame.stamp_ns, self.predictor.predict(frame.stamp_ns))
         t1 = time.perf_counter()
         markers = self.markers.step(pcm)
         t2 = time.perf_counter()
         result = self.skeleton.step(markers)
         self.feedback = feedback_of(result)
+        self.predictor.update(result.feedback_stamp, self.feedback)
         self.markers.feedback(self.feedback)
         self.timings = {"pcm": t1 - t0, "markers": t2 - t1, "skeleton": time.perf_counter() - t2}
         self.last = FrameResult(pcm, markers, result, self.feedback)

@@ -87,7 +87,8 @@ class ModelPcmProvider:
     at reduced size: projection.Camera.binned); crops are cut from them, and the views' affines
     are returned for full-resolution pixels, so everything downstream keeps the rig as it is."""
 
-    def __init__(self, rig: Rig, model: str = "", rotation: str = "all", threads: int = 2, binning: int = 1) -> None:
+    def __init__(self, rig: Rig, model: str = "", rotation: str = "all", threads: int = 2, binning: int = 1,
+                 crop_prediction: str = "rigid") -> None:
         from ..cameras.projection import binning_affine
         from .pipeline import BlazePosePcm
 
@@ -95,6 +96,7 @@ class ModelPcmProvider:
         from ..method.landmarks import CNN_LANDMARKS
 
         self.landmarks = CNN_LANDMARKS
+        self.crop_prediction = crop_prediction  # how its callers extrapolate the feedback (method/prediction.py)
         self.rig = rig
         self.binning = int(binning)
         self.seen = rig.binned(self.binning) if self.binning > 1 else rig  # the cameras the images come from
@@ -122,5 +124,6 @@ class ModelPcmProvider:
         return views
 
 
-def make_model_provider(model: str, rig: Rig, rotation: str = "all", threads: int = 2, binning: int = 1) -> ModelPcmProvider:
-    return ModelPcmProvider(rig, model, rotation, threads, binning)
+def make_model_provider(model: str, rig: Rig, rotation: str = "all", threads: int = 2, binning: int = 1,
+                        crop_prediction: str = "rigid") -> ModelPcmProvider:
+    return ModelPcmProvider(rig, model, rotation, threads, binning, crop_prediction)

@@ -27,7 +27,8 @@ REPO = Path(__file__).resolve().parents[2]
 NODES = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]
 
 
-def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: dict, rate: float) -> Path:
+def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: dict, rate: float,
+                 crop_prediction: str = "rigid") -> Path:
     """tracker: flat tracker settings (PipelineConfig keys, `fps` among them) for the nodes;
     rate <= 0: lockstep."""
     from vmocap_core.graph_config import stage_sections
@@ -38,7 +39,8 @@ def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: 
                                                     restamp=False, wait_subscribers=120.0,
                                                     wait_topics=["/vmocap/keypoints"])  # this probe: the first outputs are volatile
     cfg["/**"]["ros__parameters"]["lockstep"] = rate <= 0
-    cfg["vmocap_pcm"]["ros__parameters"].update(source="model", model="blazepose", rotation=rotation)
+    cfg["vmocap_pcm"]["ros__parameters"].update(source="model", model="blazepose", rotation=rotation,
+                                                 crop_prediction=crop_prediction)
     for section, values in stage_sections(tracker).items():
         cfg.setdefault(section, {}).setdefault("ros__parameters", {}).update(values)
     cfg["vmocap_launch"] = {"mode": "single_process", "nodes": NODES,
@@ -49,7 +51,7 @@ def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: 
 
 
 def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, precision: str, tracker: dict,
-              rate: float, work: Path, silent_s: float = 30.0) -> tuple[np.ndarray, dict]:
+              rate: float, work: Path, silent_s: float = 30.0, crop_prediction: str = "rigid") -> tuple[np.ndarray, dict]:
     """Estimates (T, 25, 3) at `stamps` (NaN where none came out) and counts; tracker: flat
     tracker settings (PipelineConfig keys, `fps` among them)."""
     from vmocap_core.bag import cdr
@@ -59,7 +61,7 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     from ..common import msg_class, prepare_env, qos, stop_graph
     from ..run_node import probe_node
 
-    cfg = graph_config(work, rec, rig_path, rotation, tracker, rate)
+    cfg = graph_config(work, rec, rig_path, rotation, tracker, rate, crop_prediction)
     fps = float(tracker["fps"])
     env = dict(os.environ)
     prepare_env(env)

@@ -16,6 +16,7 @@ from vmocap_core.cameras.bag import check_binning
 from vmocap_core.cameras.sync import ApproximateSync
 from vmocap_core.errors import VmocapError
 from vmocap_core.method.camera_check import image_problem
+from vmocap_core.method.prediction import BodyPredictor
 from vmocap_core.outputs.messages import CLOUD, HEADER, IMAGE, INFO
 from vmocap_core.pcm.assembly import channel_keypoints
 from vmocap_core.pcm.peaks import camera_keypoints
@@ -40,7 +41,8 @@ class PcmNode(VmocapNode):
         self.sync: ApproximateSync[np.ndarray] = ApproximateSync(
             names, int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
         self.provider = self._make_provider()
-        self.feedback: np.ndarray | None = None
+        # the crops follow the feedback extrapolated to each frame set (method/prediction.py)
+        self.predictor = BodyPredictor(enabled=getattr(self.provider, "crop_prediction", "previous") == "rigid")
         self.info_mismatch: dict[str, str] = {}
         self._info_seen: dict[str, tuple] = {}  # camera -> the CameraInfo last compared with the rig
         self._pubs: dict[str, tuple[Output, Output]] = {}
@@ -76,7 +78,8 @@ class PcmNode(VmocapNode):
             return BagPcmProvider(model, self.rig, channel_keypoints(self.p["pcm_keypoints"]), self.p["namespace"])
         from vmocap_core.pcm.providers import make_model_provider  # the CNN
 
-        provider = make_model_provider(model, self.rig, self.p["rotation"], self.p["threads"], self.p["binning"])
+        provider = make_model_provider(model, self.rig, self.p["rotation"], self.p["threads"], self.p["binning"],
+                                       self.p["crop_prediction"])
         provider.warm_up()  # before READY: the first frame set would wait for it
         from vmocap_core.pcm import selfcheck
 
@@ -104,7 +107,7 @@ class PcmNode(VmocapNode):
             self.problems[f"info:{cam}"] = problem
 
     def _on_feedback(self, msg: dict) -> None:
-        self.feedback = M.cloud_keypoints(msg)[0]
+        self.predictor.update(M.stamp_ns(msg), M.cloud_keypoints(msg)[0])
         if self.awaiting is not None and M.stamp_ns(msg) == self.awaiting:
             self.awaiting = None
             self._pump()
@@ -133,7 +136,7 @@ class PcmNode(VmocapNode):
         while self.sets and self.awaiting is None and not self.busy:
             fs = self.sets.popleft()
             cams = [n for n in self.rig.names if n in fs.items and self._usable(n, fs.items[n])]
-            fb = self.feedback if self.p["use_feedback"] else None
+            fb = self.predictor.predict(fs.stamp_ns) if self.p["use_feedback"] else None
             if self.wait > 0 and self.p["use_feedback"]:
                 self.awaiting, self.awaiting_since = fs.stamp_ns, time.monotonic()
             # without a DDS reader of the heatmaps (all nodes in one process), our vmocap_markers

@@ -47,12 +47,13 @@ class _Provider:
     """The CNN (BlazePosePcm) with an explicit rotation mode and precision, fed like
     process.ModelPcmProvider (detector until a skeleton is fed back)."""
 
-    def __init__(self, rig, rotation: str, precision: str, threads: int = 2) -> None:
+    def __init__(self, rig, rotation: str, precision: str, threads: int = 2, crop_prediction: str = "rigid") -> None:
         from ...method.landmarks import CNN_LANDMARKS
         from ...pcm.pipeline import BlazePosePcm
 
         self.rig = rig
         self.landmarks = CNN_LANDMARKS
+        self.crop_prediction = crop_prediction  # read by Pipeline (method/prediction.py)
         self.pcm = BlazePosePcm(rig, rotation=rotation, threads=threads, precision=precision)
         self.name = f"blazepose-full {precision} (rotation {rotation})"
 
@@ -159,6 +160,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", type=float, default=1.0, help="image size factor (0.5: 512x384)")
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS),
                         help="rotation (rot: all, norot: none) x CNN precision")
+    parser.add_argument("--crop-prediction", default="rigid", choices=("rigid", "previous"),
+                        help="the CNN's crops follow the skeleton extrapolated to the frame set (rigid) or the previous "
+                             "one (vmocap_pcm's crop_prediction)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="rendered recordings (by content hash)")
     parser.add_argument("--out", type=Path, default=REPO / "out" / "image_bench", help="report, overlays, graph outputs")
@@ -257,7 +261,7 @@ def run_clip(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> dic
         out = args.out / f"{label}_{name}.mcap"
         # the benchmark's own product in its --out folder: a rerun replaces it
         process_bag(rec, out, rig, config=args.tracker, progress=not args.json,
-                    provider=_Provider(rig, rotation, precision), overwrite=True)
+                    provider=_Provider(rig, rotation, precision, crop_prediction=args.crop_prediction), overwrite=True)
         est = read_estimates(out, stamps)
         row[name] = score(est, truth)
         curves[name] = frame_mpjpe(est, truth)
@@ -268,7 +272,7 @@ def run_clip(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> dic
             # vmocap_ros is imported by name (as cli.py does): vmocap_core itself never imports rclpy
             g = importlib.import_module("vmocap_ros.bench.images_graph")
             est_g, counts = g.run_graph(rec, args.rig_file, stamps, rotation, precision, args.tracker, args.graph_rate,
-                                        args.out)
+                                        args.out, crop_prediction=args.crop_prediction)
             row[f"graph:{name}"] = {**score(est_g, truth), **counts}
             curves[f"graph:{name}"] = frame_mpjpe(est_g, truth)
     if not args.no_synthetic and variant == 0:  # no body in the synthetic benchmark: once per clip
