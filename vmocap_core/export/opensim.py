@@ -33,6 +33,10 @@ from .session import Session
 
 SETUP = "Pose2Sim/OpenSim_Setup"
 MODEL, MARKER_SET = "Model_Pose2Sim_simple.osim", "Markers_BlazePose.xml"
+CLAMPED = ("arm_rot_r", "arm_rot_l")  # coordinates whose range IK must keep (adapted_model)
+# (arm_rot, elbow_flex) radians each segment's first frame is assembled from (_assemble_arms)
+ARM_GUESSES = ((0.0, 0.3), (0.0, 1.5), (-1.0, 0.8), (1.0, 0.8))
+ARM_RETRY_M2 = 2 * 0.02**2  # an arm's elbow and wrist this far off (squared, m^2): assembled again
 SCALE_SETUP, IK_SETUP = "Scaling_Setup_Pose2Sim_Blazepose.xml", "IK_Setup_Pose2Sim_Blazepose.xml"
 INSTALL = "pip install 'vmocap[opensim]' (opensim==4.6; scripts/setup.sh installs it)"
 
@@ -179,6 +183,12 @@ def adapted_model(osim: Any, setup: OpenSimSetup, path: Path) -> None:
         marker.set_location(frame.findTransformInBaseFrame().p())
     for name in MARKERS:  # Pose2Sim's file fixes some landmarks and not others
         markers.get(name).set_fixed(name not in PLACED)
+    # Markers on the shoulder, elbow and wrist centres leave the upper arm's axial rotation free
+    # while the elbow is straight: IK then may turn the arm half around, onto the branch where
+    # the elbow would bend backwards (held at 0 by its range), and track on there. The model's
+    # own range (+-90 degrees, not enforced in the generic model) keeps it on the physiological one.
+    for name in CLAMPED:
+        model.updCoordinateSet().get(name).set_clamped(True)
     model.finalizeConnections()
     model.printToXML(str(path))
 
@@ -227,6 +237,37 @@ class IKResult:
         return self.values[:, self.names.index(name)]
 
 
+def _arm_errors(solver: Any, err: Any) -> dict[str, float]:
+    """Per arm ("r", "l"), the squared errors of its elbow and wrist markers in the current pose."""
+    solver.computeCurrentMarkerErrors(err)
+    names = [solver.getMarkerNameForIndex(k) for k in range(err.size())]
+    return {side: float(np.nansum([err.getElt(k) ** 2 for k, n in enumerate(names) if n in (f"{p}Elbow", f"{p}Wrist")]))
+            for side, p in (("r", "R"), ("l", "L"))}
+
+
+def _assemble_arms(solver: Any, state: Any, coords: Any, err: Any) -> None:
+    """Assemble from the current pose and from several guesses of each arm's axial rotation and
+    elbow flexion, and keep, per arm, the one that fits its elbow and wrist markers best: with
+    markers on joint centres, an elbow that straightens leaves the arm's axial rotation free, and
+    IK may come out of it with the arm turned away and the elbow held straight (its range), a
+    pose it then tracks on from (30-45 mm off at the elbow where the right one fits within 10)."""
+    guesses = [tuple(coords.get(f"{c}_{side}").getValue(state) for side in "rl" for c in ("arm_rot", "elbow_flex"))]
+    guesses += [(rot, flex, rot, flex) for rot, flex in ARM_GUESSES]
+    fits: dict[str, list[tuple[float, float, float]]] = {"r": [], "l": []}
+    for guess in guesses:
+        for k, side in enumerate("rl"):
+            coords.get(f"arm_rot_{side}").setValue(state, guess[2 * k], False)
+            coords.get(f"elbow_flex_{side}").setValue(state, guess[2 * k + 1], False)
+        solver.assemble(state)
+        for side, e in _arm_errors(solver, err).items():
+            fits[side].append((e, coords.get(f"arm_rot_{side}").getValue(state), coords.get(f"elbow_flex_{side}").getValue(state)))
+    for side in "rl":
+        _, rot, flex = min(fits[side], key=lambda f: f[0])
+        coords.get(f"arm_rot_{side}").setValue(state, rot, False)
+        coords.get(f"elbow_flex_{side}").setValue(state, flex, False)
+    solver.assemble(state)
+
+
 def inverse_kinematics(osim: Any, setup: OpenSimSetup, model_path: Path, trc: Path, times: np.ndarray,
                        segments: list[slice], progress: Any = None) -> IKResult:
     """OpenSim's IK solver (the IK tool's solver, with its weights from Pose2Sim's IK setup) on
@@ -255,10 +296,12 @@ def inverse_kinematics(osim: Any, setup: OpenSimSetup, model_path: Path, trc: Pa
     sq = np.full((len(times), len(setup.marker_weights)), np.nan)
     for seg in segments:
         state.setTime(float(times[seg.start]))
-        solver.assemble(state)
+        _assemble_arms(solver, state, coords, err)
         for i in range(seg.start, seg.stop):
             state.setTime(float(times[i]))
             solver.track(state)
+            if max(_arm_errors(solver, err).values()) > ARM_RETRY_M2:
+                _assemble_arms(solver, state, coords, err)
             Q[i] = [coords.get(j).getValue(state) for j in range(C)]
             solver.computeCurrentMarkerErrors(err)
             e = np.array([err.getElt(k) for k in range(err.size())])
