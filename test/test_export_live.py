@@ -142,6 +142,26 @@ def test_live_trc_read_by_opensim(live) -> None:
     assert np.array_equal(np.isfinite(P).all(axis=(1, 2)), s.tracked) and not s.tracked.all()
 
 
+def test_live_recording_round_trips_through_opensim(live) -> None:
+    """`vmocap opensim` on the live graph's recording (issue 31): a scaled model and joint angles
+    OpenSim reads, untracked frame sets a gap in the .mot as in the TRC."""
+    from vmocap_core.export.opensim import OpenSimError, import_opensim
+
+    try:
+        osim = import_opensim()
+    except OpenSimError as exc:
+        pytest.skip(str(exc))
+    s, out = live["session"], live["dir"] / "osim"
+    r = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "opensim", str(live["bag"]), "-o", str(out), "--name", "live"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    osim.Model(str(out / "live_scaled.osim")).initSystem()
+    mot = osim.TimeSeriesTable(str(out / "live_ik.mot"))
+    assert mot.getNumRows() == s.n_frames
+    knee = mot.getDependentColumn("knee_angle_r").to_numpy()
+    assert np.array_equal(np.isfinite(knee), s.tracked)
+
+
 def test_live_trc_read_by_pose2sim(live) -> None:
     common = pytest.importorskip("Pose2Sim.common", reason="Pose2Sim not installed")
     s = live["session"]
