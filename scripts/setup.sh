@@ -32,7 +32,7 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     export DEBIAN_FRONTEND=noninteractive
     apt-get update -qq >/dev/null || echo "setup.sh: apt-get update failed (optional packages may be missing)"
     apt-get install -y -q opencv-doc >/dev/null || echo "setup.sh: opencv-doc not installed (PCM photo test will skip)"
-    apt-get install -y -q cmake ninja-build g++ >/dev/null || echo "setup.sh: cmake/ninja/g++ not installed (tf2_msgs cannot be built)"
+    apt-get install -y -q cmake ninja-build g++ >/dev/null || echo "setup.sh: cmake/ninja/g++ not installed (tf2_msgs, hri_msgs cannot be built)"
     if apt-get install -y -q gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config >/dev/null; then
       .venv/bin/python -m pip install -q --disable-pip-version-check "PyGObject==3.50.0" "pycairo==1.29.2" \
         && touch "$stamp" || echo "setup.sh: PyGObject not built (Aravis source unavailable)"
@@ -42,10 +42,12 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
   fi
 fi
 
-# tf2_msgs has no wheel: build its TFMessage interface from the definition in ros/tf2_msgs with
-# the rosidl generators from PyPI (about 10 s) so that /tf and /tf_static travel over DDS.
-# Without it the recorder still writes them into its MCAP (docs/ros_outputs.md).
-bash scripts/build_tf2_msgs.sh || echo "setup.sh: tf2_msgs not built (/tf only in recorded MCAPs)"
+# tf2_msgs and hri_msgs have no wheel: build their interfaces (TFMessage, IdsList) from the
+# definitions in ros/ with the rosidl generators from PyPI (about 10 s each) so that /tf,
+# /tf_static and the ROS4HRI /humans/bodies/tracked travel over DDS. Without them the recorder
+# still writes /tf into its MCAP and vmocap_skeleton runs without the ROS4HRI outputs
+# (docs/ros_outputs.md).
+bash scripts/build_ros_msgs.sh || echo "setup.sh: some ROS interfaces not built (without tf2_msgs: /tf only in recorded MCAPs; without hri_msgs: no /humans topics)"
 
 # OSMesa (software OpenGL) for `vmocap bench images`' offscreen renderer.
 if ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then
