@@ -85,6 +85,7 @@ DEFINITIONS: dict[str, str] = {
     ),
     "diagnostic_msgs/msg/DiagnosticArray": "std_msgs/Header header\nDiagnosticStatus[] status\n",
     "rosgraph_msgs/msg/Clock": "builtin_interfaces/Time clock\n",
+    "hri_msgs/msg/IdsList": "std_msgs/Header header\nstring[] ids\n",  # ROS4HRI (REP-155), ros/hri_msgs
 }
 
 # name -> (struct code, size)

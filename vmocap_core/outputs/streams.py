@@ -52,6 +52,7 @@ class SubjectOutputs:
         self.kinematics: UrdfKinematics | None = None
         self.descriptions = 0
         self.started = False
+        self.extra_static: Transforms | None = None  # more fixed frames of the graph (hri.HriOutputs: the body's)
 
     def start(self, topics: Topics, stamp_ns: int) -> Iterator[tuple[str, str, dict]]:
         """/tf_static of the cameras, once, before any subject is described."""
@@ -61,7 +62,8 @@ class SubjectOutputs:
                 yield topics.tf_static, TF_TYPE, tf_message(stamp_ns, self.cameras)
 
     def static(self, stamp_ns: int) -> Transforms:
-        parts = [p for p in (self.cameras, self.kinematics.static_transforms() if self.kinematics else None) if p is not None]
+        parts = [p for p in (self.cameras, self.kinematics.static_transforms() if self.kinematics else None, self.extra_static)
+                 if p is not None]
         return Transforms.concat(parts) if parts else Transforms([], [], np.zeros((0, 3)), np.zeros((0, 4)))
 
     def description(self, topics: Topics, stamp_ns: int, dims: BodyDimensions | None) -> Iterator[tuple[str, str, dict]]:
