@@ -98,7 +98,7 @@ def test_short_clip_offline_and_through_the_node_graph(rig, tmp_path):
     precision = "int8" if check.int8_correct else "float"  # int8 is the default where it is right
     config = f"rot-{precision}"
     args = argparse.Namespace(frames=60, seed=0, cache=tmp_path / "cache", out=tmp_path / "out", json=True,
-                              configs=[config], no_synthetic=True, graph="first", graph_rate=0.0,
+                              configs=[config], no_synthetic=True, graph="first", graph_rate=0.0, crop_prediction="rigid",
                               rig_file=tmp_path / "rig.yaml", tracker={"fps": 60.0})
     save_rig(rig, args.rig_file)
     args.out.mkdir()

@@ -156,6 +156,10 @@ class SkeletonConfig(_Stage):
     check_fail_frames: int = 1
     check_recover_frames: int = 5
     check_lost_frames: int = 30
+    # A track (identified, or the subject found again) starts uncertain: output once this many
+    # frame sets agreed with its skeleton (the first check of a new skeleton is the next frame
+    # set's); 0: output from its first frame set.
+    check_confirm_frames: int = 1
 
     def validate(self) -> None:
         from .filter import make_filter, smoother_model
@@ -164,6 +168,8 @@ class SkeletonConfig(_Stage):
             raise ConfigError("check_fail_agreement <= check_min_agreement must lie in [0, 1]")
         if min(self.check_uncertain_frames, self.check_fail_frames, self.check_recover_frames, self.check_lost_frames) < 1:
             raise ConfigError("check_uncertain_frames, check_fail_frames, check_recover_frames and check_lost_frames must be >= 1")
+        if self.check_confirm_frames < 0:
+            raise ConfigError("check_confirm_frames must be >= 0")
 
         if self.fps <= 0 or self.identify_seconds < 0:
             raise ConfigError("fps must be positive and identify_seconds >= 0")

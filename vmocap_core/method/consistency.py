@@ -111,7 +111,14 @@ class Verdict:
     def reset(self) -> None:
         self.uncertain = False
         self._bad = self._good = self._since = self._fail = 0
+        self._needed = self.recover_frames  # agreeing frame sets that end the uncertain state
         self.last = None
+
+    def doubt(self, frames: int) -> None:
+        """Start uncertain (a track that just started): "ok" after `frames` agreeing frame sets,
+        "lost" after lost_frames without them."""
+        self.reset()
+        self.uncertain, self._needed = True, frames
 
     def update(self, check: ViewCheck | None) -> str:
         if check is not None and self.min_agreement > 0:
@@ -122,8 +129,8 @@ class Verdict:
             # frame sets most views contradict are not noise: no need to wait for more
             if not self.uncertain and (self._bad >= self.uncertain_frames or self._fail >= self.fail_frames):
                 self.uncertain, self._since = True, 0
-            elif self.uncertain and self._good >= self.recover_frames:
-                self.uncertain = False
+            elif self.uncertain and self._good >= self._needed:
+                self.uncertain, self._needed = False, self.recover_frames
         if not self.uncertain:
             return "ok"
         self._since += 1

@@ -150,6 +150,20 @@ def segments(stamps_ns: np.ndarray, tracked: np.ndarray) -> list[slice]:
     return out
 
 
+def tracked_frames(status: Sequence[str]) -> np.ndarray:
+    """(N,) bool: the frames that are data. Those whose skeleton the images disagreed with
+    ("uncertain" within a track) are gaps; a track starts "uncertain" until the images agree
+    with it (SkeletonStage._start_tracking), and those frames are data once it went on to
+    "tracking"."""
+    s = np.asarray(status, dtype=object)
+    tracked = np.isin(s, [x for x in FEEDBACK_STATUSES if x != "uncertain"])
+    for run in runs(s == "uncertain"):
+        starts_a_track = run.start == 0 or s[run.start - 1] not in ("tracking", "smoothing")
+        if starts_a_track and run.stop < len(s) and s[run.stop] == "tracking":
+            tracked[run] = True
+    return tracked
+
+
 def reconstruct(results: Sequence[TrackResult], config: SkeletonConfig, progress: bool = False) -> list[TrackResult]:
     """The offline pass over the live tracker's results of a whole recording (one person):
     new results, one per input, "tracking" on every frame of a tracked segment (the
@@ -160,8 +174,7 @@ def reconstruct(results: Sequence[TrackResult], config: SkeletonConfig, progress
 def identify_and_reconstruct(results: Sequence[TrackResult], config: SkeletonConfig,
                              progress: bool = False) -> tuple[list[TrackResult], Skeleton]:
     """`reconstruct`, also returning the identified skeleton."""
-    # frames whose skeleton the images disagreed with ("uncertain") are gaps, not data
-    tracked = np.array([r.status in FEEDBACK_STATUSES and r.status != "uncertain" for r in results], dtype=bool)
+    tracked = tracked_frames([r.status for r in results])
     if not tracked.any():
         raise OfflineError("the recording has no tracked frame: nothing to reconstruct")
     markers = np.array([np.where((r.scores > 0)[:, None], r.markers, np.nan) for r in results])

@@ -30,6 +30,8 @@ from .results import N_KP, Markers, TrackResult
 from .skeleton import Skeleton
 from .smoothing import FixedLagSmoother
 
+REACQUIRE_LENGTHS = 0.15  # a body found again whose link lengths are the subject's within this (median ratio)
+
 
 class SkeletonStage:
     """Markers -> skeleton: identification, first IK (eq. 3-4), low-pass, second IK."""
@@ -56,6 +58,9 @@ class SkeletonStage:
         self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
         self.disagreement: ViewCheck | None = None  # the check behind an "uncertain" or check-"lost" step
         self._last_stamp: int | None = None
+        # The skeleton identified for the subject: kept when the subject is lost, so that finding
+        # it again needs no new identification phase (II-C identifies a body once).
+        self.identified: Skeleton | None = None
         self._joint_names = Skeleton().joint_names
         self.timings: dict[str, float] = {}
         warm_up_ik()
@@ -212,6 +217,9 @@ class SkeletonStage:
             return self._empty(markers, status)
         self.init_problem = None
         sk, fit = fitted
+        again = self._same_subject(markers, sk, fit)
+        if again is not None:
+            return self._start_tracking(markers, *again)
         self.skeleton = sk
         self._q_raw = fit.q.copy()
         if cfg.identify_frames > 0:
@@ -219,6 +227,26 @@ class SkeletonStage:
             self._identify_start_ns = markers.stamp_ns
             return self._identifying(markers, self._centres(markers.positions, fit.q), self._sites(fit.keypoints, fit.q))
         return self._start_tracking(markers, sk, fit)
+
+    def _same_subject(self, markers: Markers, sk: Skeleton, fit: Any) -> tuple[Skeleton, Any] | None:
+        """The identified subject found again: its skeleton posed on the new triangulation, when
+        the newly fitted link lengths are its own (median within REACQUIRE_LENGTHS) and it fits
+        within init_max_fit_error_m; None for a body to identify anew."""
+        known = self.identified
+        if known is None:
+            return None
+        new, old = sk.dims.bone_lengths(), known.dims.bone_lengths()
+        ratios = np.array([new[k] / old[k] for k in old if old[k] > 0])
+        if not ratios.size or abs(float(np.median(ratios)) - 1.0) > REACQUIRE_LENGTHS:
+            return None
+        self.skeleton = known  # its landmark offsets turn the markers into joint centres
+        centres = self._centres(markers.positions, fit.q)
+        w = np.isfinite(centres).all(axis=1).astype(float)
+        refit = solve_ik(known, fit.q, centres, w, 30, damping=1e-2, regularization=1e-6, line_search=True)
+        if np.sqrt(refit.cost) > self.config.init_max_fit_error_m:
+            self.skeleton = None
+            return None
+        return known, refit
 
     def _identifying(self, markers: Markers, centres: np.ndarray, raw: np.ndarray) -> TrackResult:
         """Identification phase: collect the virtual markers for identify_seconds of capture
@@ -244,7 +272,18 @@ class SkeletonStage:
                            markers.weights.copy(), centres.copy(), {})
 
     def _start_tracking(self, markers: Markers, sk: Skeleton, fit: Any) -> TrackResult:
-        self.skeleton = sk
+        """Tracking starts, its output once the images agree with the skeleton (Verdict.doubt):
+        a skeleton identified or found again by triangulation may fit the wrong body (views that
+        see another person, a body identified while it dived into a roll)."""
+        result = self._started(markers, sk, fit)
+        if self.verdict.min_agreement > 0 and self.config.check_confirm_frames > 0:
+            self.verdict.doubt(self.config.check_confirm_frames)
+            if result.status == "tracking":
+                result.status = self.status = "uncertain"
+        return result
+
+    def _started(self, markers: Markers, sk: Skeleton, fit: Any) -> TrackResult:
+        self.skeleton = self.identified = sk
         self._q_raw = fit.q.copy()
         self._q_out = fit.q.copy()
         self._filter.reset()
