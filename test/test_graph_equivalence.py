@@ -147,6 +147,7 @@ def _tf(path: Path) -> dict:
     from vmocap_core.outputs.tf import message_transforms
 
     out: dict = {"description": None, "tf": {}, "static": set()}
+    bodies: set[str] = set()  # the graph's REP-155 body ids (their frames: test_graph_hri.py)
     with BagReader(path) as r:
         for m in r.messages(["/vmocap/robot_description", "/tf", "/tf_static"]):
             d = m.decode()
@@ -156,9 +157,12 @@ def _tf(path: Path) -> dict:
             tr = message_transforms(d)
             if m.topic == "/tf_static":
                 out["static"] |= set(zip(tr.parents, tr.children))
+            elif tr.children[0].startswith("body_"):
+                bodies.add(tr.children[0][len("body_"):])
             else:
                 stamp = d["transforms"][0]["header"]["stamp"]
                 out["tf"][stamp["sec"] * 10**9 + stamp["nanosec"]] = np.hstack([tr.t, tr.q])
+    out["static"] = {(p, c) for p, c in out["static"] if not c.endswith(tuple(f"_{b}" for b in bodies))}
     return out
 
 

@@ -193,3 +193,14 @@ def test_without_tf_no_tf_messages_and_the_subject_static_untouched() -> None:
     hri = H.HriOutputs(subject, tf=False, seed=1)
     f = hri.step(_result(0))
     assert [t for t, _, _ in f.messages if t.startswith("/tf")] == [] and subject.extra_static is None
+
+
+def test_nobody_listening_skips_joint_states_and_tf_but_not_the_description() -> None:
+    hri = H.HriOutputs(SubjectOutputs(), seed=1)
+    listened = {H.TRACKED}
+    f = hri.step(_result(0), wanted=lambda topic: topic in listened)
+    body = hri.body_id
+    assert [t for t, _, _ in f.messages] == [f"/humans/bodies/{body}/urdf", "/tf_static", H.TRACKED]
+    listened.add("/tf")
+    f = hri.step(_result(PERIOD, seed=1), wanted=lambda topic: topic in listened)
+    assert [t for t, _, _ in f.messages] == ["/tf", H.TRACKED]

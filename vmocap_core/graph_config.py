@@ -130,6 +130,8 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "raise it to process every frame of a bag played faster than the pipeline)", 1, 1000),
         Param("init_warn_s", 2.0, "diagnostics turn WARN, saying why, when no subject is initialized for this long "
               "(capture time)", 0.0, 1e6),
+        Param("hri", True, "publish the subject the ROS4HRI way (REP-155): /humans/bodies/tracked, "
+              "/humans/bodies/<id>/{joint_states,urdf}, TF body_<id> (needs hri_msgs: bash scripts/build_ros_msgs.sh)"),
     ],
     "vmocap_recorder": [
         Param("output", "", "MCAP file to write (renamed from .partial when closed)", path=True),

@@ -1,21 +1,27 @@
 """The subject's ROS outputs on the node side (logic in vmocap_core.outputs): the skeleton
-node's extra publishers, and the TF a recorder derives when /tf cannot travel over DDS.
+node's extra publishers, its ROS4HRI (REP-155) publishers, and the TF a recorder derives when
+/tf cannot travel over DDS.
 
 tf2_msgs has no PyPI wheel: without it (the default install) no node can publish or
 subscribe /tf; the skeleton node then publishes root_pose and robot_description only, and the
 recorder writes /tf and /tf_static into its MCAP from them (vmocap_core.outputs.streams).
 With tf2_msgs importable (a ROS 2 install), /tf and /tf_static go over DDS as well, unless
-VMOCAP_TF_DDS=off (the recorder then derives them, as without tf2_msgs)."""
+VMOCAP_TF_DDS=off (the recorder then derives them, as without tf2_msgs). hri_msgs has no
+wheel either: without it the skeleton node runs without the ROS4HRI outputs and says so on
+/diagnostics (WARN)."""
 
 from __future__ import annotations
 
 import os
 from typing import Any
 
+from vmocap_core.outputs.hri import IDS_LIST, TRACKED, HriOutputs
 from vmocap_core.outputs.streams import POSE, STRING, SubjectOutputs, TfFromStates
 from vmocap_core.outputs.tf import TF_TYPE
 
 TF_DEPTH = 100
+HRI_DEPTH = 10  # /humans/bodies/tracked and each body's joint_states: reliable, keep last 10
+BUILD_MSGS = "bash scripts/build_ros_msgs.sh"
 
 
 def tf_available() -> bool:
@@ -26,6 +32,52 @@ def tf_available() -> bool:
     except ImportError:
         return False
     return True
+
+
+def hri_available() -> bool:
+    try:
+        import hri_msgs.msg  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+class HriPublishers:
+    """The skeleton node's ROS4HRI outputs (vmocap_core.outputs.hri): /humans/bodies/tracked
+    (reliable, volatile: what libhri's listener subscribes with), per body id its urdf
+    (transient local) and joint_states, opened when the id appears and destroyed when the core
+    retires it; /tf and /tf_static through the node's own publishers."""
+
+    def __init__(self, node: Any, subject: SubjectOutputs, shared: dict[str, Any]) -> None:
+        self.node, self.shared = node, shared
+        self.core = HriOutputs(subject, tf=node.topics.tf in shared)
+        self.pubs = {TRACKED: node.publisher(IDS_LIST, TRACKED, depth=HRI_DEPTH)}
+
+    def __call__(self, result: Any) -> None:
+        frame = self.core.step(result, wanted=self._wanted)
+        for ch in frame.opened:
+            self.pubs[ch.topic] = self.node.publisher(ch.type, ch.topic, depth=1 if ch.latched else HRI_DEPTH,
+                                                      latched=ch.latched)
+        for topic, _ty, msg in frame.messages:
+            (self.pubs.get(topic) or self.shared[topic])(msg)
+        for topic in frame.closed:
+            self.node.drop_publisher(self.pubs.pop(topic))
+
+    def _wanted(self, topic: str) -> bool:
+        pub = self.pubs.get(topic) or self.shared.get(topic)
+        return pub is not None and pub.wanted()
+
+
+def hri_outputs(node: Any, subject: SubjectOutputs, shared: dict[str, Any]) -> HriPublishers | None:
+    """The node's HriPublishers when its `hri` parameter asks for them and hri_msgs imports;
+    without hri_msgs a WARN naming the build command (none when `hri` is false)."""
+    if not node.p["hri"]:
+        return None
+    if not hri_available():
+        node.problems["hri"] = (f"no ROS4HRI outputs (/humans/bodies/...): hri_msgs is not installed; build it with "
+                                f"`{BUILD_MSGS}`, or set hri: false")
+        return None
+    return HriPublishers(node, subject, shared)
 
 
 def skeleton_outputs(node: Any) -> tuple[SubjectOutputs, dict[str, Any]]:

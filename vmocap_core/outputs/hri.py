@@ -24,7 +24,7 @@ import random
 import string
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -191,8 +191,10 @@ class HriOutputs:
     def body_id(self) -> str | None:
         return self.ids.current
 
-    def step(self, result: Any) -> HriFrame:
-        """The frame set of a TrackResult (stamp_ns, status, q, keypoints, dims)."""
+    def step(self, result: Any, wanted: Callable[[str], bool] | None = None) -> HriFrame:
+        """The frame set of a TrackResult (stamp_ns, status, q, keypoints, dims). A body's
+        joint_states and /tf are not built where `wanted(topic)` is False (nobody listens)."""
+        want = wanted or (lambda topic: True)
         t = result.stamp_ns
         body_id = self.ids.update(t, result.status)
         frame = HriFrame(closed=[c.topic for i in self.ids.retired(t) for c in body_channels(i)])
@@ -203,8 +205,10 @@ class HriOutputs:
             if self._described != (body_id, result.dims):
                 out.extend(self._describe(t, body_id, result.dims))
             positions = joint_positions(result.q)
-            out.append((body_topic(body_id, "joint_states"), JOINTS, M.joint_state_msg(t, self._names, positions)))
-            if self.tf:
+            js = body_topic(body_id, "joint_states")
+            if want(js):
+                out.append((js, JOINTS, M.joint_state_msg(t, self._names, positions)))
+            if self.tf and want(Topics.tf):
                 out.append((Topics.tf, TF_TYPE, tf_message(t, self._transforms(body_id, result, positions))))
         tracked = [body_id] if body_id is not None else []
         out.append((TRACKED, IDS_LIST, {"header": M.header(t), "ids": tracked}))

@@ -100,6 +100,12 @@ class VmocapNode(Node):
             bus.publishers.add(topic)
         return Output(type_name, topic, pub, latched, bus)
 
+    def drop_publisher(self, out: "Output") -> None:
+        """Destroy an output made by `publisher` (a topic of a body that is gone)."""
+        self._dds_pubs.pop(out.topic, None)
+        self.transport.bus.publishers.discard(out.topic)
+        self.destroy_publisher(out.pub)
+
     def subscribe(self, type_name: str, topic: str, cb: Callable[[dict], None], depth: int = STREAM_DEPTH,
                   latched: bool = False) -> None:
         def guarded(msg: dict) -> None:

@@ -9,7 +9,7 @@ from typing import Any
 from vmocap_core import graph_config
 from vmocap_core.outputs.messages import CLOUD, markers_from_message, result_messages
 
-from ..subject import skeleton_outputs
+from ..subject import hri_outputs, skeleton_outputs
 from ..transport import Transport
 from .base import STREAM_DEPTH, InitWatch, VmocapNode
 
@@ -33,6 +33,7 @@ class SkeletonNode(VmocapNode):
             self.pubs[topic] = self.publisher(ty, topic, depth=50 if fb else STREAM_DEPTH, latched=fb)
         self.subject, extra = skeleton_outputs(self)  # robot_description, root_pose, TF
         self.pubs.update(extra)
+        self.hri = hri_outputs(self, self.subject, self.pubs)  # REP-155 bodies; None: off or no hri_msgs (WARN)
         self.subscribe(CLOUD, self.topics.markers, self._on_markers, depth=self.p["queue_depth"], latched=True)
         self.counts = {"frames": 0, "tracking": 0, "uncertain": 0}
         self.last_status = "initializing"
@@ -51,6 +52,8 @@ class SkeletonNode(VmocapNode):
                                                wanted=lambda topic: topic in pubs and pubs[topic].wanted()):
             if topic in pubs:
                 pubs[topic](out)
+        if self.hri is not None:
+            self.hri(result)
         self.counts["frames"] += 1
         self.counts["tracking"] += result.status == "tracking"
         self.counts["uncertain"] += result.status == "uncertain"
@@ -70,4 +73,5 @@ class SkeletonNode(VmocapNode):
     def status(self) -> dict[str, Any]:
         last = self.stage.verdict.last
         return dict(self.counts, status=self.last_status,
-                    agreement="-" if last is None else f"{last.agreement:.2f}")
+                    agreement="-" if last is None else f"{last.agreement:.2f}",
+                    body_id=(self.hri.core.body_id if self.hri is not None else None) or "-")
