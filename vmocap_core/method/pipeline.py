@@ -23,8 +23,8 @@ from ..pcm.views import PcmViews
 from .config import PipelineConfig
 from .landmarks import resolve
 from .markers import MarkerStage
-from .results import Markers, TrackResult, feedback_of
 from .prediction import BodyPredictor
+from .results import Markers, TrackResult, feedback_of
 from .rotation import trunk_tilt
 from .skeleton_stage import SkeletonStage
 
