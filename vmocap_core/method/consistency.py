@@ -97,6 +97,9 @@ def check_views(rig: Rig, pcm: PcmViews, keypoints: np.ndarray, sampler: PcmSamp
     return out
 
 
+RESUME_GAP_S = 0.1  # frame sets this far apart: tracking resumes as after a loss, confirmed first
+
+
 class Verdict:
     """Frame checks -> "ok" | "uncertain" | "lost", with hysteresis (SkeletonConfig.check_*):
     one bad frame set (a view's wrong peak, a blurred limb) does not flip the status."""

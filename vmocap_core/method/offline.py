@@ -25,6 +25,7 @@ from tqdm import tqdm
 from ..errors import VmocapError
 from ..keypoints import KEYPOINTS
 from .config import SkeletonConfig
+from .consistency import RESUME_GAP_S
 from .filter import smoother_model
 from .ik import solve_ik
 from .init import identify_dimensions, initial_pose, refine_offsets
@@ -150,15 +151,16 @@ def segments(stamps_ns: np.ndarray, tracked: np.ndarray) -> list[slice]:
     return out
 
 
-def tracked_frames(status: Sequence[str]) -> np.ndarray:
+def tracked_frames(status: Sequence[str], stamps_ns: np.ndarray) -> np.ndarray:
     """(N,) bool: the frames that are data. Those whose skeleton the images disagreed with
     ("uncertain" within a track) are gaps; a track starts "uncertain" until the images agree
-    with it (SkeletonStage._start_tracking), and those frames are data once it went on to
-    "tracking"."""
+    with it (SkeletonStage._start_tracking, also after a gap of RESUME_GAP_S), and those frames
+    are data once it went on to "tracking"."""
     s = np.asarray(status, dtype=object)
     tracked = np.isin(s, [x for x in FEEDBACK_STATUSES if x != "uncertain"])
+    gap = np.concatenate([[True], np.diff(np.asarray(stamps_ns, dtype=np.int64)) > RESUME_GAP_S * 1e9])
     for run in runs(s == "uncertain"):
-        starts_a_track = run.start == 0 or s[run.start - 1] not in ("tracking", "smoothing")
+        starts_a_track = gap[run.start] or s[run.start - 1] not in ("tracking", "smoothing")
         if starts_a_track and run.stop < len(s) and s[run.stop] == "tracking":
             tracked[run] = True
     return tracked
@@ -174,7 +176,7 @@ def reconstruct(results: Sequence[TrackResult], config: SkeletonConfig, progress
 def identify_and_reconstruct(results: Sequence[TrackResult], config: SkeletonConfig,
                              progress: bool = False) -> tuple[list[TrackResult], Skeleton]:
     """`reconstruct`, also returning the identified skeleton."""
-    tracked = tracked_frames([r.status for r in results])
+    tracked = tracked_frames([r.status for r in results], np.array([r.stamp_ns for r in results], dtype=np.int64))
     if not tracked.any():
         raise OfflineError("the recording has no tracked frame: nothing to reconstruct")
     markers = np.array([np.where((r.scores > 0)[:, None], r.markers, np.nan) for r in results])

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..keypoints import INDEX
 from .config import SkeletonConfig
-from .consistency import Verdict, ViewCheck
+from .consistency import RESUME_GAP_S, Verdict, ViewCheck
 from .filter import make_filter, smoother_model
 from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
@@ -84,7 +84,15 @@ class SkeletonStage:
     def step(self, markers: Markers) -> TrackResult:
         self.disagreement = None
         if markers.kind == "lattice" and self.skeleton is not None:
+            # markers again after frame sets without any (every view covered, or none came for
+            # RESUME_GAP_S): the skeleton is the one from before, so the output waits for the
+            # images to agree with it again
+            resumed = self.status == "lost" or (self._last_stamp is not None
+                                                and markers.stamp_ns - self._last_stamp > RESUME_GAP_S * 1e9)
             verdict = self.verdict.update(markers.check)
+            if resumed and verdict == "ok" and self.verdict.min_agreement > 0 and self.config.check_confirm_frames > 0:
+                self.verdict.doubt(self.config.check_confirm_frames)
+                verdict = "uncertain"
             if verdict != "ok":  # what the diagnostics name: the keypoints and views that disagree
                 self.disagreement = self.verdict.last
             if verdict == "lost":  # the images disagreed for check_lost_frames: start over
@@ -103,6 +111,7 @@ class SkeletonStage:
             self.status = "lost"
         if self.skeleton is None:
             return self._initialize(markers)
+        self.status = "lost"
         return self._empty(markers, "lost")
 
     def _track(self, markers: Markers) -> TrackResult:

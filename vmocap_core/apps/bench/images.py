@@ -163,6 +163,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--crop-prediction", default="rigid", choices=("rigid", "previous"),
                         help="the CNN's crops follow the skeleton extrapolated to the frame set (rigid) or the previous "
                              "one (vmocap_pcm's crop_prediction)")
+    parser.add_argument("--blackout", type=float, nargs=2, metavar=("FROM_S", "TO_S"),
+                        help="every camera black from FROM_S to TO_S seconds into the clip: the JSON's reacquire_s "
+                             "is the time from TO_S to the first frame set output as tracked again")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="rendered recordings (by content hash)")
     parser.add_argument("--out", type=Path, default=REPO / "out" / "image_bench", help="report, overlays, graph outputs")
@@ -244,6 +247,36 @@ def leave_one_out_models(files: list[Path], rig, args: argparse.Namespace) -> di
     return models
 
 
+def blacked_out(rec: Path, out: Path, stamps: np.ndarray, window_s: tuple[float, float]) -> Path:
+    """A copy of the recording `rec` whose images show noise, no body, from window_s[0] to
+    window_s[1] (seconds after its first frame set), then the body again. (Black images would
+    be dropped as covered cameras, and the tracker would wait for them rather than lose the body.)"""
+    from ...bag import BagReader, BagWriter
+    from ...bag import messages as M
+
+    a, b = (int(stamps[0] + s * 1e9) for s in window_s)
+    rng = np.random.default_rng(0)
+    with BagReader(rec) as r, BagWriter(out, overwrite=True) as w:
+        for m in r.messages():
+            if m.type == "sensor_msgs/msg/Image" and a <= m.log_time_ns < b:
+                img = m.decode()
+                shape = M.image_array(img).shape
+                noise = rng.integers(40, 200, size=shape, dtype=np.uint8)
+                w.write(m.topic, m.type, M.image_msg(noise, M.stamp_ns(img), img["header"]["frame_id"], img["encoding"]),
+                        m.log_time_ns)
+            else:
+                w.write(m.topic, m.type, m.data, m.log_time_ns)
+    return out
+
+
+def reacquisition_s(est: np.ndarray, stamps: np.ndarray, visible_again_s: float) -> float | None:
+    """Seconds from the body being visible again (`visible_again_s` after the first frame set)
+    to the first frame set output as tracked; None when it never was."""
+    t = (stamps - stamps[0]) * 1e-9
+    after = np.flatnonzero((t >= visible_again_s - 1e-6) & np.isfinite(est).all(axis=(1, 2)))
+    return float(t[after[0]] - visible_again_s) if after.size else None
+
+
 def run_clip(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> dict[str, Any]:
     """One clip with body `variant`: figures per config (and graph run), its group and shape."""
     from ...motion import load_motion
@@ -252,6 +285,9 @@ def run_clip(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> dic
     spec, rec, stamps, truth = render(path, rig, args, variant)
     motion = load_motion(path)
     label = spec.label()
+    blackout = getattr(args, "blackout", None)
+    if blackout:  # the benchmark's own product in its --out folder
+        rec = blacked_out(rec, args.out / f"{label}_blackout.mcap", stamps, tuple(blackout))
     row: dict[str, Any] = {"clip": label, "motion": path.stem, "recording": str(rec), "shape": spec.shape(),
                            "frames": len(stamps), "group": motion_group(motion.positions),
                            "inverted": motion.is_inverted(), "landmarks": args.tracker.get("landmarks", "auto")}
@@ -264,6 +300,8 @@ def run_clip(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> dic
                     provider=_Provider(rig, rotation, precision, crop_prediction=args.crop_prediction), overwrite=True)
         est = read_estimates(out, stamps)
         row[name] = score(est, truth)
+        if blackout:
+            row[name]["reacquire_s"] = reacquisition_s(est[:, np.isfinite(truth).all(axis=(0, 2))], stamps, blackout[1])
         curves[name] = frame_mpjpe(est, truth)
         if name == args.configs[0]:
             overlay(rec, rig, truth, est, len(stamps) // 2, args.out / f"{label}.png")
