@@ -158,7 +158,7 @@ def tracked_frames(status: Sequence[str], stamps_ns: np.ndarray) -> np.ndarray:
     are data once it went on to "tracking"."""
     s = np.asarray(status, dtype=object)
     tracked = np.isin(s, [x for x in FEEDBACK_STATUSES if x != "uncertain"])
-    gap = np.concatenate([[True], np.diff(np.asarray(stamps_ns, dtype=np.int64)) > RESUME_GAP_S * 1e9])
+    gap = np.concatenate([[True], np.diff(np.asarray(stamps_ns, dtype=np.int64)) > int(RESUME_GAP_S * 1e9)])
     for run in runs(s == "uncertain"):
         starts_a_track = gap[run.start] or s[run.start - 1] not in ("tracking", "smoothing")
         if starts_a_track and run.stop < len(s) and s[run.stop] == "tracking":
