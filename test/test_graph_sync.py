@@ -122,6 +122,17 @@ def test_camera_back_from_silence_is_matched_again_even_if_its_first_frame_is_la
     assert len(late_sets) == 7 and all(s.complete for s in late_sets)
 
 
+def test_the_first_frame_set_after_a_gap_in_every_stream_is_matched():
+    """A recording with a gap (or cameras restarted together): the first camera back must not make
+    the others silent, which dropped the first frame set after the gap as below min_cameras."""
+    sync = ApproximateSync(CAMS, tolerance_ns=5 * MS, min_cameras=2, silent_after_ns=500 * MS)
+    out = []
+    for k in list(range(10)) + list(range(180, 185)):  # 5.6 s without any frame
+        out += feed(sync, [(c, k * 33 * MS) for c in CAMS])
+    assert [s.stamp_ns // (33 * MS) for s in out] == list(range(10)) + list(range(180, 185))
+    assert all(s.complete for s in out) and sync.stats().dropped_sets == 0
+
+
 def test_a_camera_whose_stamps_lag_is_reported_not_silently_ignored():
     """cam1's stamps trail the others by 1 s (a clock offset, or its source started early):
     every frame of it arrives after its set went out; `lagging` names it (the nodes WARN)."""

@@ -8,9 +8,12 @@ wall clock, so the result is deterministic for a given arrival order.
 - A camera that has already delivered a frame later than pivot + tolerance cannot complete the
   set any more: the set is emitted without it if at least `min_cameras` take part ("partial"),
   otherwise dropped.
-- A camera that delivered nothing for `silent_after_ns` (in stamp time, relative to the newest
-  stamp of any camera) is *silent*: sets no longer wait for it; it is reported in `stats()` and
-  becomes active again with its next frame.
+- A camera that delivered nothing for `silent_after_ns` (in stamp time) while another camera went
+  on delivering is *silent*: sets no longer wait for it; it is reported in `stats()` and becomes
+  active again with its next frame. "Went on" is measured to the newest stamp some camera has
+  followed with another frame: after a gap in every stream (a recording with a gap, cameras
+  restarted together) the first camera back does not make the others silent, so the first frame
+  set after the gap is matched, not dropped.
 - Duplicated stamps (same camera, same stamp) are dropped and counted; frames that arrive out of
   order are inserted in stamp order, or dropped as late when a set at or after their stamp was
   already emitted.
@@ -86,6 +89,7 @@ class ApproximateSync(Generic[T]):
         self._stamps: dict[str, list[int]] = {n: [] for n in names}
         self._items: dict[str, list[T]] = {n: [] for n in names}
         self._newest: dict[str, int | None] = {n: None for n in names}
+        self._before_newest: dict[str, int | None] = {n: None for n in names}  # each camera's newest stamp but one
         self._emitted_until: int | None = None  # stamp of the last emitted/dropped pivot
         self._last_members: set[str] = set()  # cameras that took part in that set
         self._first: int | None = None  # first stamp seen
@@ -103,7 +107,8 @@ class ApproximateSync(Generic[T]):
         if self._first is None:
             self._first = stamp_ns
         newest = self._newest[name]
-        self._newest[name] = stamp_ns if newest is None else max(newest, stamp_ns)
+        if newest is None or stamp_ns > newest:
+            self._before_newest[name], self._newest[name] = newest, stamp_ns
         last = self._emitted_until
         if last is not None and (
             stamp_ns <= last or (name not in self._last_members and stamp_ns <= last + self.tolerance_ns)
@@ -135,7 +140,8 @@ class ApproximateSync(Generic[T]):
 
     # ------------------------------------------------------------------------------ logic
     def _now(self) -> int | None:
-        seen = [s for s in self._newest.values() if s is not None]
+        """The newest stamp some camera has delivered another frame after (its stream went on)."""
+        seen = [s for s in self._before_newest.values() if s is not None]
         return max(seen) if seen else None
 
     def _silent(self) -> list[str]:

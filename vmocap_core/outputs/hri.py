@@ -116,25 +116,27 @@ class BodyIds:
         self._rng: random.Random = random.Random(seed) if seed is not None else random.SystemRandom()
         self.grace_ns, self.retire_ns = int(grace_s * 1e9), int(retire_s * 1e9)
         self.current: str | None = None
-        self._last_tracked_ns = 0
-        self._untracked_since_last = False  # a frame set without tracking came after the last tracked one
+        self._untracked_since: int | None = None  # stamp of the first untracked frame set after the last tracked one
         self._used: set[str] = set()
         self._ended: dict[str, int] = {}  # id -> stamp of the frame set that ended it
 
     def update(self, stamp_ns: int, status: str) -> str | None:
         tracking = status == "tracking"
+        if not tracking and self._untracked_since is None:
+            self._untracked_since = stamp_ns
         if self.current is not None:
-            # frame sets dropped while tracking goes on end nothing; untracked ones for longer than the grace do
-            gap = (self._untracked_since_last or not tracking) and not 0 <= stamp_ns - self._last_tracked_ns <= self.grace_ns
+            # frame sets missing (a gap in the recording, dropped) end nothing; frame sets that are
+            # there but untracked for longer than the grace do
+            since = self._untracked_since
+            gap = since is not None and not 0 <= stamp_ns - since <= self.grace_ns
             if status == "lost" or gap:  # lost: the tracker starts over, maybe on someone else
                 self._end(stamp_ns)
         if not tracking:
-            self._untracked_since_last = True
             return None
         if self.current is None:
             self.current = new_body_id(self._rng, self._used)
             self._used.add(self.current)
-        self._last_tracked_ns, self._untracked_since_last = stamp_ns, False
+        self._untracked_since = None
         return self.current
 
     def _end(self, stamp_ns: int) -> None:
