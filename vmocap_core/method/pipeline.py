@@ -79,7 +79,7 @@ class Pipeline:
         self.pcm = pcm
         self.feedback: np.ndarray | None = None
         # the CNN's crops follow the feedback extrapolated to the frame set (prediction.py)
-        self.predictor = BodyPredictor(enabled=getattr(pcm, "crop_prediction", "previous") == "rigid")
+        self.predictor = BodyPredictor.for_provider(pcm)
         self.last: FrameResult | None = None
         self.timings: dict[str, float] = {}  # seconds of the last step per stage (pcm, markers, skeleton)
 

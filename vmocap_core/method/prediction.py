@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..calibration.geometry import rigid_align, rodrigues, rotvec
+
 # Extrapolate at most this many feedback intervals ahead, from feedbacks at most MAX_GAP_S apart:
 # beyond that the velocity is stale and the last skeleton is the better guess.
 MAX_AHEAD = 3.0
@@ -29,27 +31,17 @@ def rigid_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     """Least-squares rotation R and centroids ca, cb with b ~ R (a - ca) + cb (Kabsch), over the
     rows finite in both (N, 3) point sets."""
     ok = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
-    pa, pb = a[ok], b[ok]
-    ca, cb = pa.mean(axis=0), pb.mean(axis=0)
-    U, _, Vt = np.linalg.svd((pa - ca).T @ (pb - cb))
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return R, ca, cb
+    R, _ = rigid_align(a[ok], b[ok])
+    return R, a[ok].mean(axis=0), b[ok].mean(axis=0)
 
 
 def rotation_power(R: np.ndarray, s: float, max_angle: float = MAX_TURN_RAD) -> np.ndarray:
-    """R^s (the same axis, s times the angle, clipped to max_angle), by Rodrigues' formula."""
-    angle = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    """R^s: the same axis, s times the angle, clipped to max_angle."""
+    v = rotvec(R)
+    angle = float(np.linalg.norm(v))
     if angle < 1e-9:
         return np.eye(3)
-    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    n = np.linalg.norm(axis)
-    if n < 1e-12:  # a half turn between two feedbacks: no velocity to trust
-        return np.eye(3)
-    k = axis / n
-    theta = float(np.clip(s * angle, -max_angle, max_angle))
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+    return rodrigues(v * (min(s * angle, max_angle) / angle))[0]
 
 
 class BodyPredictor:
@@ -61,6 +53,12 @@ class BodyPredictor:
         self.enabled = enabled
         self._last: tuple[int, np.ndarray] | None = None
         self._before: tuple[int, np.ndarray] | None = None
+
+    @classmethod
+    def for_provider(cls, provider: object) -> "BodyPredictor":
+        """The predictor the crops of a PCM provider follow: its `crop_prediction` ("rigid"), or
+        the previous skeleton as it was for providers without crops (heatmap bags, synthetic)."""
+        return cls(enabled=getattr(provider, "crop_prediction", "previous") == "rigid")
 
     def update(self, stamp_ns: int, keypoints: np.ndarray | None) -> None:
         if not _usable(keypoints):

@@ -42,7 +42,7 @@ class PcmNode(VmocapNode):
             names, int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
         self.provider = self._make_provider()
         # the crops follow the feedback extrapolated to each frame set (method/prediction.py)
-        self.predictor = BodyPredictor(enabled=getattr(self.provider, "crop_prediction", "previous") == "rigid")
+        self.predictor = BodyPredictor.for_provider(self.provider)
         self.info_mismatch: dict[str, str] = {}
         self._info_seen: dict[str, tuple] = {}  # camera -> the CameraInfo last compared with the rig
         self._pubs: dict[str, tuple[Output, Output]] = {}

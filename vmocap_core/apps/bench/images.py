@@ -32,6 +32,7 @@ from ...method.skeleton import BONES
 from ..metrics import acceleration_error, table_one
 from . import add_tracker_arguments, tracker_settings
 from .accuracy import BUNDLED, RATE_HZ, default_motions
+from .blackout import blacked_out, reacquisition_s
 from .clouds import read_clouds
 from .motion_groups import GROUPS, motion_group
 
@@ -245,36 +246,6 @@ def leave_one_out_models(files: list[Path], rig, args: argparse.Namespace) -> di
         models[held].write_text(yaml.safe_dump(model_yaml(f"without-{held}", {n: samples[n] for n in others}, note),
                                                sort_keys=False, default_flow_style=None))
     return models
-
-
-def blacked_out(rec: Path, out: Path, stamps: np.ndarray, window_s: tuple[float, float]) -> Path:
-    """A copy of the recording `rec` whose images show noise, no body, from window_s[0] to
-    window_s[1] (seconds after its first frame set), then the body again. (Black images would
-    be dropped as covered cameras, and the tracker would wait for them rather than lose the body.)"""
-    from ...bag import BagReader, BagWriter
-    from ...bag import messages as M
-
-    a, b = (int(stamps[0] + s * 1e9) for s in window_s)
-    rng = np.random.default_rng(0)
-    with BagReader(rec) as r, BagWriter(out, overwrite=True) as w:
-        for m in r.messages():
-            if m.type == "sensor_msgs/msg/Image" and a <= m.log_time_ns < b:
-                img = m.decode()
-                shape = M.image_array(img).shape
-                noise = rng.integers(40, 200, size=shape, dtype=np.uint8)
-                w.write(m.topic, m.type, M.image_msg(noise, M.stamp_ns(img), img["header"]["frame_id"], img["encoding"]),
-                        m.log_time_ns)
-            else:
-                w.write(m.topic, m.type, m.data, m.log_time_ns)
-    return out
-
-
-def reacquisition_s(est: np.ndarray, stamps: np.ndarray, visible_again_s: float) -> float | None:
-    """Seconds from the body being visible again (`visible_again_s` after the first frame set)
-    to the first frame set output as tracked; None when it never was."""
-    t = (stamps - stamps[0]) * 1e-9
-    after = np.flatnonzero((t >= visible_again_s - 1e-6) & np.isfinite(est).all(axis=(1, 2)))
-    return float(t[after[0]] - visible_again_s) if after.size else None
 
 
 def run_clip(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> dict[str, Any]:
