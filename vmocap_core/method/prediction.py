@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..calibration.geometry import rigid_align, rodrigues, rotvec
-
 # Extrapolate at most this many feedback intervals ahead, from feedbacks at most MAX_GAP_S apart:
 # beyond that the velocity is stale and the last skeleton is the better guess.
 MAX_AHEAD = 3.0
@@ -31,17 +29,27 @@ def rigid_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     """Least-squares rotation R and centroids ca, cb with b ~ R (a - ca) + cb (Kabsch), over the
     rows finite in both (N, 3) point sets."""
     ok = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
-    R, _ = rigid_align(a[ok], b[ok])
-    return R, a[ok].mean(axis=0), b[ok].mean(axis=0)
+    pa, pb = a[ok], b[ok]
+    ca, cb = pa.mean(axis=0), pb.mean(axis=0)
+    U, _, Vt = np.linalg.svd((pa - ca).T @ (pb - cb))
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, ca, cb
 
 
 def rotation_power(R: np.ndarray, s: float, max_angle: float = MAX_TURN_RAD) -> np.ndarray:
-    """R^s: the same axis, s times the angle, clipped to max_angle."""
-    v = rotvec(R)
-    angle = float(np.linalg.norm(v))
+    """R^s (the same axis, s times the angle, clipped to max_angle), by Rodrigues' formula."""
+    angle = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
     if angle < 1e-9:
         return np.eye(3)
-    return rodrigues(v * (min(s * angle, max_angle) / angle))[0]
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    n = np.linalg.norm(axis)
+    if n < 1e-12:  # a half turn between two feedbacks: no velocity to trust
+        return np.eye(3)
+    k = axis / n
+    theta = float(np.clip(s * angle, -max_angle, max_angle))
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
 
 
 class BodyPredictor:

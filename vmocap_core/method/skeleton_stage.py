@@ -248,11 +248,14 @@ class SkeletonStage:
         ratios = np.array([new[k] / old[k] for k in old if old[k] > 0])
         if not ratios.size or abs(float(np.median(ratios)) - 1.0) > REACQUIRE_LENGTHS:
             return None
-        # its landmark offsets turn the markers into joint centres
-        centres = markers.positions if self._landmarks is None else markers.positions - self._landmarks.correction(known, fit.q)
+        self.skeleton = known  # its landmark offsets turn the markers into joint centres
+        centres = self._centres(markers.positions, fit.q)
         w = np.isfinite(centres).all(axis=1).astype(float)
         refit = solve_ik(known, fit.q, centres, w, 30, damping=1e-2, regularization=1e-6, line_search=True)
-        return (known, refit) if np.sqrt(refit.cost) <= self.config.init_max_fit_error_m else None
+        if np.sqrt(refit.cost) > self.config.init_max_fit_error_m:
+            self.skeleton = None
+            return None
+        return known, refit
 
     def _identifying(self, markers: Markers, centres: np.ndarray, raw: np.ndarray) -> TrackResult:
         """Identification phase: collect the virtual markers for identify_seconds of capture
