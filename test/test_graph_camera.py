@@ -330,3 +330,36 @@ def test_camera_sends_only_what_a_busy_cnn_can_take_unless_someone_records_the_i
         assert 0 < n <= 2 * (4.0 / 0.25 + 2) + 4, n  # ~2 frame sets per answer, not 30 Hz
         # a frame set goes out on every camera or on none
         assert len(set(got["cam0"]) ^ set(got["cam1"])) <= 2, (got["cam0"], got["cam1"])
+
+
+def test_camera_waits_for_every_image_topic(tmp_path: Path) -> None:
+    """A recorded source plays 0.2 s after every camera's image topic has a subscriber (a frame
+    sent before a reader matched is lost to it); a reader of some cameras only gets them
+    PARTIAL_MATCH_S after it matched, and the log says so."""
+    from vmocap_ros.nodes.camera import PARTIAL_MATCH_S
+
+    rig = small_rig()
+    bag = tmp_path / "c.mcap"
+    compressed_bag(bag, rig, 4)
+    from vmocap_core.cameras.rig_file import save_rig
+
+    rig_path = tmp_path / "rig.yaml"
+    save_rig(rig, rig_path)
+    waited = {}
+    for topics in (["/vmocap/cam1/image_raw"], [f"/vmocap/{c.name}/image_raw" for c in rig]):
+        cfg = write_config(tmp_path / "g.yaml", rig_path, [], ["vmocap_camera", "vmocap_recorder"], mode="single_process",
+                           output=tmp_path / f"out{len(topics)}.mcap",
+                           extra={"vmocap_camera": {"uri": str(bag), "wait_subscribers": 60.0},
+                                  "vmocap_recorder": {"topics": topics}})
+        launch = vmocap(["launch", str(cfg)], domain_env(34))
+        try:
+            assert wait_ready(launch, ["vmocap_camera", "vmocap_recorder"]), stop(launch)
+            t_ready = time.monotonic()
+            while "playing" not in "".join(launch._lines) and time.monotonic() < t_ready + 30:
+                time.sleep(0.05)
+            waited[len(topics)] = time.monotonic() - t_ready
+        finally:
+            log = stop(launch, signal.SIGINT)
+        line = next(l for l in log.splitlines() if "playing" in l)
+        assert (f"subscribers on 1 of {len(rig)} image topics" in line) == (len(topics) == 1), log
+    assert waited[1] >= PARTIAL_MATCH_S - 0.1 and waited[len(rig)] < waited[1] - 0.5, waited

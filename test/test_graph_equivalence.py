@@ -54,6 +54,11 @@ def listener():
             rclpy.spin_once(node, timeout_sec=0.1)
             return status.get(node_name, {}).get(key)
 
+        def snapshot(self) -> dict[str, dict[str, str]]:
+            """Every node's latest /diagnostics values (for a failure's message)."""
+            rclpy.spin_once(node, timeout_sec=0.1)
+            return {k: dict(v) for k, v in status.items()}
+
         def subscribers(self, node_name: str, topic: str) -> int:
             """Matched subscribers of a node's output, as the node itself reports them."""
             rclpy.spin_once(node, timeout_sec=0.1)
@@ -247,9 +252,10 @@ def test_graph_with_cnn_equals_offline_and_demo(tmp_path: Path, listener) -> Non
         # matched after the first ones, so it does not count
         # (a frame set nobody answered within lockstep_timeout_ms ends the wait too: the next line says so)
         assert wait_for(lambda: sum(lockstep().values()) >= n or launch.poll() is not None, 300.0, 0.2), lockstep()
-        assert lockstep() == {"answered": n, "timeouts": 0}, lockstep()
+        counts, nodes_status = lockstep(), counter.snapshot()
     finally:
         log = stop(launch)
+    assert counts == {"answered": n, "timeouts": 0}, (counts, nodes_status, log)
     assert launch.returncode == 0, log
     t_off, q_off, _ = joint_trajectory(offline)
     for other in (out, demo_bag):

@@ -57,9 +57,12 @@ class MarkersNode(VmocapNode):
         # markers and feedback are transient-local: a frame processed before the other node's
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
         self.pub = self.publisher(CLOUD, self.topics.markers, depth=p["queue_depth"], latched=True)
+        latched = bool(p["lockstep"])  # as vmocap_pcm publishes them in lockstep
         for v in views:
-            self.subscribe(IMAGE, self.topics.pcm(v), lambda m, v=v: self._enqueue(self.asm.add_image(v, m)), depth=p["queue_depth"])
-            self.subscribe(INFO, self.topics.pcm_info(v), lambda m, v=v: self._enqueue(self.asm.add_info(v, m)), depth=p["queue_depth"])
+            self.subscribe(IMAGE, self.topics.pcm(v), lambda m, v=v: self._enqueue(self.asm.add_image(v, m)), depth=p["queue_depth"],
+                           latched=latched)
+            self.subscribe(INFO, self.topics.pcm_info(v), lambda m, v=v: self._enqueue(self.asm.add_info(v, m)), depth=p["queue_depth"],
+                           latched=latched)
         self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
         if self.timeout > 0:
             self.create_timer(min(0.02, self.timeout / 2), self._check_timeout)

@@ -52,8 +52,11 @@ class PcmNode(VmocapNode):
         self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
         # one view per camera exists from the start (publishers created late would lose their
         # first messages while discovery matches them); extra views (CAM_1...) come on demand
+        # in lockstep the heatmaps are transient-local, as markers and feedback are: a view the
+        # markers node matched late still gets its first heatmaps (one lost one stalls the loop)
+        self._latched = bool(p["lockstep"])
         for name in names:
-            self._pubs[name] = (self.publisher(IMAGE, self.topics.pcm(name)), self.publisher(INFO, self.topics.pcm_info(name)))
+            self._pubs[name] = self._view_publishers(name)
         self._kp_pubs = {name: self.publisher(CLOUD, self.topics.pcm_keypoints(name)) for name in names}
         self._done = self.publisher(HEADER, self.topics.pcm_done)  # vmocap_camera's flow control
         self.frames = 0
@@ -67,6 +70,10 @@ class PcmNode(VmocapNode):
             self.create_timer(min(0.02, self.wait / 2), self._check_timeout)
         self.busy = False  # a frame set is in the inference thread
         self.worker = ThreadPoolExecutor(1, thread_name_prefix=self.get_name()) if p["inference_thread"] else None
+
+    def _view_publishers(self, view: str) -> tuple[Output, Output]:
+        return (self.publisher(IMAGE, self.topics.pcm(view), latched=self._latched),
+                self.publisher(INFO, self.topics.pcm_info(view), latched=self._latched))
 
     def _make_provider(self):
         from vmocap_core.pcm.providers import BagPcmProvider, SyntheticPcmProvider
@@ -184,7 +191,7 @@ class PcmNode(VmocapNode):
             seen[cam_name] = k + 1
             view = cam_name if k == 0 else f"{cam_name}_{k}"
             if view not in self._pubs:
-                self._pubs[view] = (self.publisher(IMAGE, self.topics.pcm(view)), self.publisher(INFO, self.topics.pcm_info(view)))
+                self._pubs[view] = self._view_publishers(view)
             pi, pc = self._pubs[view]
             pc(info)
             if data:
