@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from graph_helpers import domain_env, stop, vmocap, wait_ready, write_config
+from graph_helpers import domain_env, stop, vmocap, wait_for, wait_ready, write_config
 
 from vmocap_core.bag import BagReader, BagWriter, cdr
 from vmocap_core.bag import messages as M
@@ -310,6 +310,8 @@ def test_camera_sends_only_what_a_busy_cnn_can_take_unless_someone_records_the_i
         launch = vmocap(["launch", str(cfg)], env)
         try:
             assert wait_ready(launch, nodes), stop(launch)
+            # the 4 s count from when it plays (once every image topic has its readers)
+            assert wait_for(lambda: "playing" in "".join(launch._lines), 60.0, 0.05), stop(launch)
             t_end = time.monotonic() + 4.0
             next_done = time.monotonic() + 0.25
             while time.monotonic() < t_end:
@@ -351,7 +353,7 @@ def test_camera_waits_for_every_image_topic(tmp_path: Path) -> None:
                            output=tmp_path / f"out{len(topics)}.mcap",
                            extra={"vmocap_camera": {"uri": str(bag), "wait_subscribers": 60.0},
                                   "vmocap_recorder": {"topics": topics}})
-        launch = vmocap(["launch", str(cfg)], domain_env(34))
+        launch = vmocap(["launch", str(cfg)], domain_env(36))
         try:
             assert wait_ready(launch, ["vmocap_camera", "vmocap_recorder"]), stop(launch)
             t_ready = time.monotonic()
