@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..calibration.geometry import rigid_align, rodrigues
+
 # Extrapolate at most this many feedback intervals ahead, from feedbacks at most MAX_GAP_S apart:
 # beyond that the velocity is stale and the last skeleton is the better guess.
 MAX_AHEAD = 3.0
@@ -30,11 +32,8 @@ def rigid_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     rows finite in both (N, 3) point sets."""
     ok = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
     pa, pb = a[ok], b[ok]
-    ca, cb = pa.mean(axis=0), pb.mean(axis=0)
-    U, _, Vt = np.linalg.svd((pa - ca).T @ (pb - cb))
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return R, ca, cb
+    R, _ = rigid_align(pa, pb)
+    return R, pa.mean(axis=0), pb.mean(axis=0)
 
 
 def rotation_power(R: np.ndarray, s: float, max_angle: float = MAX_TURN_RAD) -> np.ndarray:
@@ -46,10 +45,8 @@ def rotation_power(R: np.ndarray, s: float, max_angle: float = MAX_TURN_RAD) -> 
     n = np.linalg.norm(axis)
     if n < 1e-12:  # a half turn between two feedbacks: no velocity to trust
         return np.eye(3)
-    k = axis / n
     theta = float(np.clip(s * angle, -max_angle, max_angle))
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+    return rodrigues(axis * (theta / n))[0]
 
 
 class BodyPredictor:
