@@ -348,7 +348,7 @@ def test_camera_waits_for_every_image_topic(tmp_path: Path) -> None:
     """A recorded source plays 0.2 s after every camera's image topic has a subscriber (a frame
     sent before a reader matched is lost to it); a reader of some cameras only gets them
     PARTIAL_MATCH_S after it matched, and the log says so."""
-    from vmocap_ros.nodes.camera import PARTIAL_MATCH_S
+    from vmocap_core.cameras.start import PARTIAL_MATCH_S
 
     rig = small_rig()
     bag = tmp_path / "c.mcap"

@@ -15,6 +15,7 @@ from vmocap_core.cameras.bag import bin_image, check_binning
 from vmocap_core.cameras.clock import LoopedStamps, PlaybackClock
 from vmocap_core.cameras.flow import InFlight, applies
 from vmocap_core.cameras.lockstep import LockstepGate
+from vmocap_core.cameras.start import StartGate
 from vmocap_core.errors import VmocapError
 from vmocap_core.outputs.messages import CLOUD, HEADER, IMAGE, INFO
 
@@ -22,7 +23,6 @@ from ..transport import Output, Transport
 from .base import VmocapNode
 
 STALL_S = 2.0  # a live camera that delivers nothing for this long (but is not lost) is WARNed about
-PARTIAL_MATCH_S = 2.0  # a reader of some of the image topics only: start this long after it matched
 
 
 class CameraNode(VmocapNode):
@@ -44,8 +44,6 @@ class CameraNode(VmocapNode):
         self._flow_on = False  # set by _check_flow: a PCM node answers, and only PCM nodes take the images
         self._image_topics: list[str] = []
         self._matched = threading.Event()
-        self._first_match: float | None = None  # some image topic (and every wait_topics topic) has a subscriber
-        self._all_matched: float | None = None  # every image topic has one
         self._threads = []
         self.published = {c.name: 0 for c in self.rig}
         self.late_dropped = {c.name: 0 for c in self.rig}  # restamped replay: frames a period late, skipped
@@ -71,32 +69,21 @@ class CameraNode(VmocapNode):
             self.create_timer(0.5, self._check_flow)
         for th, _ in self._threads:
             th.start()
-        self._wait_end = time.monotonic() + self.p["wait_subscribers"]
+        self._start = StartGate(time.monotonic(), self.p["wait_subscribers"])
         self._matched_timer = self.create_timer(0.05, self._check_matched)
         self._check_matched()
 
     def _check_matched(self) -> None:
-        """Recorded sources start once every `wait_topics` topic has a subscriber and every
-        image topic has one (one of our nodes in this process or a matched DDS reader), 0.2 s
-        later so a subscriber's other topics match too; at most wait_subscribers seconds after
-        start-up. Frames published before the PCM node (or a recorder elsewhere) has matched
-        are lost: in lockstep one lost frame stalls the graph for lockstep_timeout_ms. A reader
-        of only some cameras gets them PARTIAL_MATCH_S after its first match."""
+        """Recorded sources start once their readers are there (cameras/start.py): one of our
+        nodes in this process or a matched DDS reader per image topic, and every `wait_topics`
+        topic has a subscriber."""
         if self._matched.is_set():
             return
-        now = time.monotonic()
         matched = [bool(self.count_subscribers(t) + len(self.transport.bus.subscribers.get(t, ()))) for t in self._image_topics]
-        waited = all(self.count_subscribers(t) for t in self.p["wait_topics"])
-        if self._first_match is None and any(matched) and waited:
-            self._first_match = now
-        if self._all_matched is None and all(matched) and waited:
-            self._all_matched = now
-        if ((self._all_matched is not None and now >= self._all_matched + 0.2)
-                or (self._first_match is not None and now >= self._first_match + PARTIAL_MATCH_S) or now >= self._wait_end):
+        note = self._start.update(time.monotonic(), matched, all(self.count_subscribers(t) for t in self.p["wait_topics"]))
+        if note is not None:
             self._matched.set()
             self._matched_timer.cancel()
-            note = (" (no subscriber yet)" if self._first_match is None else "" if all(matched)
-                    else f" (subscribers on {sum(matched)} of {len(matched)} image topics)")
             self.get_logger().info("playing" + note)
 
     def _make_source(self, camera: str):
