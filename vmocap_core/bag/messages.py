@@ -54,11 +54,14 @@ _MARKERS_FIELDS = _CLOUD_FIELDS + [
     {"name": "cameras", "offset": 48, "datatype": 6, "count": 1},
 ]
 # Lattice markers that follow a fed-back skeleton carry that skeleton's check against the images
-# (method/consistency.py): per keypoint the fraction of agreeing views and the cameras that disagree.
-CHECKED_DTYPE = np.dtype(MARKERS_DTYPE.descr + [("confidence", "<f8"), ("disagree", "<u4")])
+# (method/consistency.py): per keypoint the fraction of agreeing views and the cameras that
+# disagree and agree (recordings made before the `agree` field still read, without it).
+CHECKED_V1_DTYPE = np.dtype(MARKERS_DTYPE.descr + [("confidence", "<f8"), ("disagree", "<u4")])
+CHECKED_DTYPE = np.dtype(CHECKED_V1_DTYPE.descr + [("agree", "<u4")])
 _CHECKED_FIELDS = _MARKERS_FIELDS + [
     {"name": "confidence", "offset": 52, "datatype": 8, "count": 1},
     {"name": "disagree", "offset": 60, "datatype": 6, "count": 1},
+    {"name": "agree", "offset": 64, "datatype": 6, "count": 1},
 ]
 
 
@@ -272,10 +275,10 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
 # ------------------------------------------------------------------------------- clouds
 def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | None = None, kind: str = "none",
                    residual_px: np.ndarray | None = None, cameras: np.ndarray | None = None,
-                   frame_id: str = WORLD_FRAME, check: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+                   frame_id: str = WORLD_FRAME, check: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> dict:
     """PointCloud2 of the 25 KEYPOINTS (positions None: an empty cloud, e.g. 'lost'); with
     `residual_px` and `cameras` the virtual markers' layout (MARKERS_DTYPE), with `check` too
-    (confidence, disagree) that of checked markers (CHECKED_DTYPE)."""
+    (confidence, disagree, agree) that of checked markers (CHECKED_DTYPE)."""
     markers = residual_px is not None
     checked = markers and check is not None
     dtype, fields = ((CHECKED_DTYPE, _CHECKED_FIELDS) if checked else (MARKERS_DTYPE, _MARKERS_FIELDS) if markers
@@ -296,6 +299,7 @@ def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | N
             assert check is not None  # checked implies it
             pts["confidence"] = np.asarray(check[0], dtype=np.float64)
             pts["disagree"] = np.asarray(check[1], dtype=np.uint32)
+            pts["agree"] = np.asarray(check[2], dtype=np.uint32)
     return {
         "header": header(ns, frame_id),
         "height": 1,
@@ -312,7 +316,7 @@ def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | N
 def _cloud_points(msg: dict) -> np.ndarray:
     n = msg["width"] * msg["height"]
     names = [f["name"] for f in msg["fields"]]
-    for dtype in (CLOUD_DTYPE, MARKERS_DTYPE, CHECKED_DTYPE):
+    for dtype in (CLOUD_DTYPE, MARKERS_DTYPE, CHECKED_DTYPE, CHECKED_V1_DTYPE):
         if names == list(dtype.names) and msg["point_step"] == dtype.itemsize:
             return np.frombuffer(msg["data"], dtype=dtype, count=n)
     raise BagError(f"point cloud fields {names} are not vmocap's keypoint layout")
@@ -353,23 +357,28 @@ def cloud_marker_extras(msg: dict) -> tuple[np.ndarray, np.ndarray]:
     residual, cameras = np.full(len(KEYPOINTS), np.nan), np.zeros(len(KEYPOINTS), np.uint32)
     if msg["width"] * msg["height"]:
         pts = _cloud_points(msg)
-        if pts.dtype in (MARKERS_DTYPE, CHECKED_DTYPE):
+        if pts.dtype in (MARKERS_DTYPE, CHECKED_DTYPE, CHECKED_V1_DTYPE):
             ids = pts["id"].astype(np.intp)
             residual[ids], cameras[ids] = pts["residual_px"], pts["cameras"]
     return residual, cameras
 
 
-def cloud_marker_check(msg: dict) -> tuple[np.ndarray, np.ndarray] | None:
-    """(confidence (25,), disagree camera bit masks (25,)) of checked markers, else None."""
+def cloud_marker_check(msg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+    """(confidence (25,), disagree and agree camera bit masks (25,)) of checked markers, else
+    None; agree is None in recordings made before it was carried."""
     if msg["width"] * msg["height"] == 0:
         return None
     pts = _cloud_points(msg)
-    if pts.dtype != CHECKED_DTYPE:
+    if pts.dtype not in (CHECKED_DTYPE, CHECKED_V1_DTYPE):
         return None
     confidence, disagree = np.full(len(KEYPOINTS), np.nan), np.zeros(len(KEYPOINTS), np.uint32)
     ids = pts["id"].astype(np.intp)
     confidence[ids], disagree[ids] = pts["confidence"], pts["disagree"]
-    return confidence, disagree
+    agree = None
+    if pts.dtype == CHECKED_DTYPE:
+        agree = np.zeros(len(KEYPOINTS), np.uint32)
+        agree[ids] = pts["agree"]
+    return confidence, disagree, agree
 
 
 # ------------------------------------------------------------------------------- outputs

@@ -149,8 +149,12 @@ class SkeletonConfig(_Stage):
     # output, tracking goes on), below `check_fail_agreement` for `check_fail_frames` in a row
     # (1: at once; a frame set every view contradicts is a body the skeleton is not on), until
     # `check_recover_frames` agree in a row; uncertain for `check_lost_frames` in a row: "lost",
-    # start over from triangulation. check_min_agreement 0 disables the check.
+    # start over from triangulation. check_min_agreement 0 disables the check. A frame set
+    # also counts as disagreeing when fewer than `check_min_support` of the keypoints seen are
+    # held by two cameras or more (one camera's rays do not fix a point); and a frame set whose
+    # own lattice markers are below it is not output (uncertain for that frame set alone).
     check_min_agreement: float = 0.6
+    check_min_support: float = 0.6
     check_fail_agreement: float = 0.35
     check_uncertain_frames: int = 3
     check_fail_frames: int = 1
@@ -166,6 +170,8 @@ class SkeletonConfig(_Stage):
 
         if not 0 <= self.check_fail_agreement <= self.check_min_agreement <= 1:
             raise ConfigError("check_fail_agreement <= check_min_agreement must lie in [0, 1]")
+        if not 0 <= self.check_min_support <= 1:
+            raise ConfigError("check_min_support must lie in [0, 1]")
         if min(self.check_uncertain_frames, self.check_fail_frames, self.check_recover_frames, self.check_lost_frames) < 1:
             raise ConfigError("check_uncertain_frames, check_fail_frames, check_recover_frames and check_lost_frames must be >= 1")
         if self.check_confirm_frames < 0:

@@ -17,9 +17,13 @@ peaks, or beside the person, reads low values; a view whose map for the keypoint
 
 Per keypoint, `confidence` = the fraction of the views that see it (in front of the camera,
 a channel for it) that agree: what a controller can weigh each keypoint by (NS/keypoints'
-score). Per frame, `agreement` = the mean confidence over the keypoints some view sees: the
-skeleton stage's verdict, with hysteresis (skeleton_stage.py). Cost: one bilinear sample per
-view and keypoint and one maximum per map.
+score). Per frame, `agreement` = the mean confidence over the keypoints some view sees, and
+`support` = the share of those keypoints that two cameras or more agree on: a point in space
+is fixed by two rays, and a body held by one camera's maps (the others flat, or on another
+limb) can drift anywhere along that camera's rays while half the views still agree. Both go
+into the skeleton stage's verdict, with hysteresis (skeleton_stage.py). Cost: one bilinear
+sample per view and keypoint and one maximum per map (PcmViews.peaks, computed once per
+frame set).
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ class ViewCheck:
 
     confidence: np.ndarray  # (25,) fraction of the views seeing the keypoint that agree; NaN: no view sees it
     disagree: np.ndarray  # (25,) uint32 bit masks: rig cameras whose maps disagree on the keypoint
+    agree: np.ndarray | None = None  # (25,) uint32 bit masks: rig cameras whose maps agree (None: not recorded)
 
     @property
     def agreement(self) -> float:
@@ -52,12 +57,22 @@ class ViewCheck:
         seen = np.isfinite(self.confidence)
         return float(self.confidence[seen].mean()) if seen.any() else 0.0
 
-    def warning(self, status: str, min_agreement: float, names: list[str]) -> str:
+    @property
+    def support(self) -> float | None:
+        """The share of the keypoints some view sees that two cameras or more agree on (0 when
+        none is seen; None for a check recorded without the agreeing cameras)."""
+        if self.agree is None:
+            return None
+        return two_camera_share(self.agree, np.isfinite(self.confidence))
+
+    def warning(self, status: str, min_agreement: float, min_support: float, names: list[str]) -> str:
         """The WARN of a skeleton stage whose status the check turned `status` (uncertain or
         lost): how much agrees, what it means for the output, which keypoints and cameras."""
         then = "tracking goes on without output" if status == "uncertain" else "starting over"
+        support = self.support
+        held = "" if support is None else f", {support:.0%} of the keypoints held by two cameras (check_min_support {min_support:.0%})"
         return (f"{status}: the skeleton disagrees with the images ({self.agreement:.0%} of the views agree per "
-                f"keypoint, below check_min_agreement {min_agreement:.0%}), {then}; keypoints (disagreeing "
+                f"keypoint, check_min_agreement {min_agreement:.0%}{held}), {then}; keypoints (disagreeing "
                 f"cameras): {self.describe(names)}")
 
     def describe(self, names: list[str], threshold: float = AGREE) -> str:
@@ -72,9 +87,18 @@ class ViewCheck:
         return ", ".join(parts)
 
 
+def two_camera_share(cameras: np.ndarray, counted: np.ndarray) -> float:
+    """The share of the `counted` keypoints ((25,) bool) whose camera bit masks ((25,) uint32)
+    name two cameras or more (0 when none is counted)."""
+    if not counted.any():
+        return 0.0
+    return float((np.bitwise_count(np.asarray(cameras, np.uint32)[counted]) >= 2).mean())
+
+
 def check_views(rig: Rig, pcm: PcmViews, keypoints: np.ndarray, sampler: PcmSampler | None = None) -> ViewCheck:
     """The skeleton's keypoints (25, 3) against the PCMs they should lie on (module doc)."""
-    out = ViewCheck(np.full(N_KP, np.nan), np.zeros(N_KP, np.uint32))
+    agreeing = np.zeros(N_KP, np.uint32)
+    out = ViewCheck(np.full(N_KP, np.nan), np.zeros(N_KP, np.uint32), agreeing)
     kp = np.asarray(pcm.keypoints, dtype=np.intp)
     pts = np.asarray(keypoints, dtype=np.float64)[kp]
     known = np.asarray(np.isfinite(pts).all(axis=1))
@@ -94,6 +118,7 @@ def check_views(rig: Rig, pcm: PcmViews, keypoints: np.ndarray, sampler: PcmSamp
     # views of one camera (several crops) share the camera's bit
     bits = np.left_shift(np.uint32(1), cam.astype(np.uint32))[:, None]
     out.disagree[kp] = np.bitwise_or.reduce(np.where(sees & ~agree, bits, np.uint32(0)), axis=0)
+    agreeing[kp] = np.bitwise_or.reduce(np.where(agree, bits, np.uint32(0)), axis=0)
     return out
 
 
@@ -105,8 +130,9 @@ class Verdict:
     one bad frame set (a view's wrong peak, a blurred limb) does not flip the status."""
 
     def __init__(self, min_agreement: float, uncertain_frames: int, recover_frames: int, lost_frames: int,
-                 fail_agreement: float = 0.0, fail_frames: int = 2) -> None:
+                 fail_agreement: float = 0.0, fail_frames: int = 2, min_support: float = 0.0) -> None:
         self.min_agreement, self.fail_agreement, self.fail_frames = min_agreement, fail_agreement, fail_frames
+        self.min_support = min_support
         self.uncertain_frames, self.recover_frames, self.lost_frames = uncertain_frames, recover_frames, lost_frames
         self.last: ViewCheck | None = None
         self.reset()
@@ -126,7 +152,8 @@ class Verdict:
     def update(self, check: ViewCheck | None) -> str:
         if check is not None and self.min_agreement > 0:
             self.last = check
-            bad = check.agreement < self.min_agreement
+            support = check.support
+            bad = check.agreement < self.min_agreement or (support is not None and support < self.min_support)
             self._bad, self._good = (self._bad + 1, 0) if bad else (0, self._good + 1)
             self._fail = self._fail + 1 if check.agreement < self.fail_agreement else 0
             # frame sets most views contradict are not noise: no need to wait for more

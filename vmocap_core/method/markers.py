@@ -116,6 +116,8 @@ class MarkerStage:
         out = nan_markers(pcm.stamp_ns, "lattice")
         out.positions[pcm.keypoints] = markers
         out.weights[pcm.keypoints] = np.where(seen, weights, 0.0)
+        # the cameras whose maps confirm each marker: this frame set's own evidence (Markers.support)
+        out.cameras = check_views(self.rig, pcm, out.positions, sampler).agree
         n_cam = max(len(np.unique(pcm.camera[pcm.valid.any(axis=1)])), 1)
         observed = max(int(pcm.valid.any(axis=0).sum()), 1)
         out.score = float(out.weights.sum() / (n_cam * observed))

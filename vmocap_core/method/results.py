@@ -28,10 +28,24 @@ class Markers:
     score: float = 0.0  # mean weight per view over the observed keypoints (0..1)
     # triangulated markers: what a stalled initialization is diagnosed from (init_report.py)
     residual_px: np.ndarray | None = None  # (25,) triangulation residual, NaN: not triangulated
-    cameras: np.ndarray | None = None  # (25,) bit masks of the cameras whose peaks went in
+    # (25,) bit masks of the cameras whose peaks went in (triangulated), or whose maps agree
+    # with the marker (lattice: consistency.check_views of the markers in their own frame set)
+    cameras: np.ndarray | None = None
     presence: dict[str, float] | None = None  # CNN presence per camera (not in messages)
     # the previous frame set's skeleton checked against its PCMs (consistency.py; None: no skeleton was fed back)
     check: ViewCheck | None = None
+
+
+    @property
+    def support(self) -> float | None:
+        """Lattice markers: the share of the markers found (weight > 0) whose position two
+        cameras' maps or more confirm (consistency.py), from this frame set alone; None for
+        other markers."""
+        if self.kind != "lattice" or self.cameras is None:
+            return None
+        from .consistency import two_camera_share
+
+        return two_camera_share(self.cameras, self.weights > 0)
 
 
 def nan_markers(stamp_ns: int, kind: str = "none") -> Markers:

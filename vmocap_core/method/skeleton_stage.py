@@ -54,9 +54,11 @@ class SkeletonStage:
         self.status = "initializing"
         cfg = self.config
         self.verdict = Verdict(cfg.check_min_agreement, cfg.check_uncertain_frames, cfg.check_recover_frames,
-                               cfg.check_lost_frames, cfg.check_fail_agreement, cfg.check_fail_frames)
+                               cfg.check_lost_frames, cfg.check_fail_agreement, cfg.check_fail_frames,
+                               cfg.check_min_support)
         self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
         self.disagreement: ViewCheck | None = None  # the check behind an "uncertain" or check-"lost" step
+        self.unsupported: float | None = None  # the markers' support behind an "uncertain" step (below check_min_support)
         self._last_stamp: int | None = None
         # The skeleton identified for the subject: kept when the subject is lost, so that finding
         # it again needs no new identification phase (II-C identifies a body once).
@@ -81,8 +83,19 @@ class SkeletonStage:
         self.verdict.reset()
         self.status = "initializing"
 
+    def warning(self, status: str, names: list[str]) -> str | None:
+        """Why the last step's status is `status` (uncertain or lost) when the images said so,
+        for the diagnostics (None when they did not)."""
+        cfg = self.config
+        if self.disagreement is not None:
+            return self.disagreement.warning(status, cfg.check_min_agreement, cfg.check_min_support, names)
+        if self.unsupported is not None:
+            return (f"{status}: {self.unsupported:.0%} of this frame set's markers are held by two cameras or more "
+                    f"(check_min_support {cfg.check_min_support:.0%}), this frame set is not output")
+        return None
+
     def step(self, markers: Markers) -> TrackResult:
-        self.disagreement = None
+        self.disagreement = self.unsupported = None
         if markers.kind == "lattice" and self.skeleton is not None:
             # markers again after frame sets without any (every view covered, or none came for
             # RESUME_GAP_S): the skeleton is the one from before, so the output waits for the
@@ -95,6 +108,12 @@ class SkeletonStage:
                 verdict = "uncertain"
             if verdict != "ok":  # what the diagnostics name: the keypoints and views that disagree
                 self.disagreement = self.verdict.last
+            support = markers.support
+            if verdict == "ok" and self.verdict.min_agreement > 0 and support is not None \
+                    and support < self.config.check_min_support:
+                # this frame set's own markers, most of them seen by one camera only: the skeleton
+                # fitted to them is not output, the track goes on (the next check decides)
+                verdict, self.unsupported = "uncertain", support
             if verdict == "lost":  # the images disagreed for check_lost_frames: start over
                 self.reset()
                 self.status = "lost"

@@ -29,7 +29,10 @@ HEADER = "std_msgs/msg/Header"  # a bare stamp: vmocap_pcm's NS/pcm/done
 
 def markers_message(markers: Markers) -> dict:
     residual = markers.residual_px if markers.residual_px is not None else np.full(len(KEYPOINTS), np.nan)
-    check = None if markers.check is None else (markers.check.confidence, markers.check.disagree)
+    check = None
+    if markers.check is not None:
+        c = markers.check
+        check = (c.confidence, c.disagree, np.zeros(len(KEYPOINTS), np.uint32) if c.agree is None else c.agree)
     return M.keypoint_cloud(markers.stamp_ns, markers.positions, markers.weights, markers.kind, residual, markers.cameras,
                             check=check)
 

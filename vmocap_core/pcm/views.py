@@ -14,7 +14,7 @@ pixels [x*s - 0.5, (x+1)*s - 0.5).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -53,6 +53,8 @@ class PcmViews:
     valid: np.ndarray  # (V, J) bool, False where the view says nothing about a keypoint
     presence: np.ndarray  # (V,) float in [0, 1], the model's confidence a person is there
     stamp_ns: int = 0
+    # peaks() of every channel, kept: the consistency check reads them twice per frame set
+    _all_peaks: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.maps = np.asarray(self.maps, dtype=np.float32)
@@ -114,7 +116,10 @@ class PcmViews:
 
     def peaks(self, channels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Per view and channel (all, or the given channel indices), the image pixel of the
-        heatmap maximum (V, J', 2) and its value (V, J'); NaN cells are ignored."""
+        heatmap maximum (V, J', 2) and its value (V, J'); NaN cells are ignored. The maps are
+        not to change after the first call (every channel's peaks are kept)."""
+        if channels is None and self._all_peaks is not None:
+            return self._all_peaks
         chans = np.arange(self.maps.shape[1]) if channels is None else np.asarray(channels)
         valid = self.valid[:, chans]
         V, _, H, W = self.maps.shape
@@ -134,7 +139,10 @@ class PcmViews:
         xy = np.stack([arg % W, arg // W], axis=-1).astype(np.float64)
         inv = invert_affine(self.image_to_map)  # (V, 2, 3)
         uv = np.einsum("vij,vkj->vki", inv[:, :, :2], xy) + inv[:, None, :, 2]
-        return uv, np.clip(np.where(valid, val, 0.0), 0.0, 1.0)
+        out = uv, np.clip(np.where(valid, val, 0.0), 0.0, 1.0)
+        if channels is None:
+            self._all_peaks = out
+        return out
 
     def centroids(self, threshold: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
         """Per view and channel, the image pixel of the PCM centroid around the peak (V, J, 2)

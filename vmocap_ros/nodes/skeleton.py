@@ -64,11 +64,10 @@ class SkeletonNode(VmocapNode):
     def _check_images(self, status: str) -> None:
         """WARN (held DISAGREE_WARN_S) while the skeleton disagrees with the images: which
         keypoints, which cameras (consistency.py); joint_states stop meanwhile."""
-        check = self.stage.disagreement
-        if check is None:
-            return
         names = self.rig.names if self.rig is not None else [f"camera {c}" for c in range(32)]
-        self.warn_for("images", check.warning(status, self.stage.config.check_min_agreement, names), DISAGREE_WARN_S)
+        text = self.stage.warning(status, names)
+        if text is not None:
+            self.warn_for("images", text, DISAGREE_WARN_S)
 
     def status(self) -> dict[str, Any]:
         last = self.stage.verdict.last
