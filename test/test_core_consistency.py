@@ -181,3 +181,37 @@ def test_a_body_one_camera_holds_is_not_output():
             assert text is not None and "held by two cameras" in text, text
     assert statuses[60:90] == ["tracking"] * 30, statuses[55:]
     assert statuses[90] == "uncertain" and "tracking" not in statuses[90:], statuses[85:]
+
+
+def test_verdict_reads_the_support_of_the_fed_back_skeleton():
+    """Agreement 1 throughout: support below check_min_support (0.6) turns the status after
+    check_uncertain_frames (3) in a row, below check_fail_support (0.35) at once; a check
+    recorded without the agreeing cameras is judged by its agreement alone."""
+    from vmocap_core.method.config import SkeletonConfig
+    from vmocap_core.method.consistency import ViewCheck, Verdict
+
+    cfg = SkeletonConfig()
+
+    def verdict() -> Verdict:
+        return Verdict(cfg.check_min_agreement, cfg.check_uncertain_frames, cfg.check_recover_frames,
+                       cfg.check_lost_frames, cfg.check_fail_agreement, cfg.check_fail_frames,
+                       cfg.check_min_support, cfg.check_fail_support)
+
+    def check(two: int, one: int = 0) -> ViewCheck:
+        """Every keypoint seen and agreed on: `two` of them by cameras 0 and 1, `one` by camera 0."""
+        agree = np.zeros(25, np.uint32)
+        agree[:two] = 0b11
+        agree[two:two + one] = 0b01
+        confidence = np.full(25, np.nan)
+        confidence[:two + one] = 1.0
+        return ViewCheck(confidence, np.zeros(25, np.uint32), agree)
+
+    half = check(10, 10)
+    assert half.agreement == 1.0 and half.support == 0.5
+    v = verdict()
+    assert [v.update(half) for _ in range(3)] == ["ok", "ok", "uncertain"]
+    v = verdict()
+    assert v.update(check(4, 16)) == "uncertain"  # support 0.2
+    legacy = ViewCheck(half.confidence, half.disagree)
+    v = verdict()
+    assert legacy.support is None and [v.update(legacy) for _ in range(3)] == ["ok"] * 3

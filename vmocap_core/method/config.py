@@ -152,10 +152,12 @@ class SkeletonConfig(_Stage):
     # start over from triangulation. check_min_agreement 0 disables the check. A frame set
     # also counts as disagreeing when fewer than `check_min_support` of the keypoints seen are
     # held by two cameras or more (one camera's rays do not fix a point); and a frame set whose
-    # own lattice markers are below it is not output (uncertain for that frame set alone).
+    # own lattice markers are below it is not output (uncertain for that frame set alone);
+    # below `check_fail_support` it counts as failing, like check_fail_agreement.
     check_min_agreement: float = 0.6
     check_min_support: float = 0.6
     check_fail_agreement: float = 0.35
+    check_fail_support: float = 0.35
     check_uncertain_frames: int = 3
     check_fail_frames: int = 1
     check_recover_frames: int = 5
@@ -170,8 +172,8 @@ class SkeletonConfig(_Stage):
 
         if not 0 <= self.check_fail_agreement <= self.check_min_agreement <= 1:
             raise ConfigError("check_fail_agreement <= check_min_agreement must lie in [0, 1]")
-        if not 0 <= self.check_min_support <= 1:
-            raise ConfigError("check_min_support must lie in [0, 1]")
+        if not 0 <= self.check_fail_support <= self.check_min_support <= 1:
+            raise ConfigError("check_fail_support <= check_min_support must lie in [0, 1]")
         if min(self.check_uncertain_frames, self.check_fail_frames, self.check_recover_frames, self.check_lost_frames) < 1:
             raise ConfigError("check_uncertain_frames, check_fail_frames, check_recover_frames and check_lost_frames must be >= 1")
         if self.check_confirm_frames < 0:

@@ -130,9 +130,10 @@ class Verdict:
     one bad frame set (a view's wrong peak, a blurred limb) does not flip the status."""
 
     def __init__(self, min_agreement: float, uncertain_frames: int, recover_frames: int, lost_frames: int,
-                 fail_agreement: float = 0.0, fail_frames: int = 2, min_support: float = 0.0) -> None:
+                 fail_agreement: float = 0.0, fail_frames: int = 2, min_support: float = 0.0,
+                 fail_support: float = 0.0) -> None:
         self.min_agreement, self.fail_agreement, self.fail_frames = min_agreement, fail_agreement, fail_frames
-        self.min_support = min_support
+        self.min_support, self.fail_support = min_support, fail_support
         self.uncertain_frames, self.recover_frames, self.lost_frames = uncertain_frames, recover_frames, lost_frames
         self.last: ViewCheck | None = None
         self.reset()
@@ -152,10 +153,11 @@ class Verdict:
     def update(self, check: ViewCheck | None) -> str:
         if check is not None and self.min_agreement > 0:
             self.last = check
-            support = check.support
-            bad = check.agreement < self.min_agreement or (support is not None and support < self.min_support)
+            support = -1.0 if check.support is None else check.support  # not recorded: not judged
+            bad = check.agreement < self.min_agreement or 0 <= support < self.min_support
             self._bad, self._good = (self._bad + 1, 0) if bad else (0, self._good + 1)
-            self._fail = self._fail + 1 if check.agreement < self.fail_agreement else 0
+            fail = check.agreement < self.fail_agreement or 0 <= support < self.fail_support
+            self._fail = self._fail + 1 if fail else 0
             # frame sets most views contradict are not noise: no need to wait for more
             if not self.uncertain and (self._bad >= self.uncertain_frames or self._fail >= self.fail_frames):
                 self.uncertain, self._since = True, 0

@@ -55,7 +55,7 @@ class SkeletonStage:
         cfg = self.config
         self.verdict = Verdict(cfg.check_min_agreement, cfg.check_uncertain_frames, cfg.check_recover_frames,
                                cfg.check_lost_frames, cfg.check_fail_agreement, cfg.check_fail_frames,
-                               cfg.check_min_support)
+                               cfg.check_min_support, cfg.check_fail_support)
         self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
         self.disagreement: ViewCheck | None = None  # the check behind an "uncertain" or check-"lost" step
         self.unsupported: float | None = None  # the markers' support behind an "uncertain" step (below check_min_support)
