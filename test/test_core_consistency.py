@@ -188,7 +188,7 @@ def test_verdict_reads_the_support_of_the_fed_back_skeleton():
     check_uncertain_frames (3) in a row, below check_fail_support (0.35) at once; a check
     recorded without the agreeing cameras is judged by its agreement alone."""
     from vmocap_core.method.config import SkeletonConfig
-    from vmocap_core.method.consistency import ViewCheck, Verdict
+    from vmocap_core.method.consistency import Verdict, ViewCheck
 
     cfg = SkeletonConfig()
 
