@@ -215,34 +215,3 @@ def test_verdict_reads_the_support_of_the_fed_back_skeleton():
     legacy = ViewCheck(half.confidence, half.disagree)
     v = verdict()
     assert legacy.support is None and [v.update(legacy) for _ in range(3)] == ["ok"] * 3
-
-
-def test_markers_no_body_of_the_subjects_dimensions_reaches_are_not_output():
-    """After 90 frame sets of tracking, markers whose left foot lies 35 cm beyond the subject's
-    shank (every camera confirming them): the first IK cannot reach them, the frame set is
-    uncertain and the WARN says why; the true markers of the next frame set are output."""
-    from vmocap_core.method.results import Markers
-
-    m = _motion()
-    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
-    true = SyntheticPcmSource(rig, m.positions, m.present, seed=5, noise=CLEAN)
-    tracker = Pipeline(rig, PipelineConfig.of(fps=60.0))
-    for t in range(90):
-        status = tracker.step(true.render(t)).status
-        assert status == "tracking" or t < 60, (t, status)
-    stage = tracker.skeleton
-    every = np.uint32((1 << len(rig)) - 1)
-
-    def markers(t: int, positions: np.ndarray) -> Markers:
-        return Markers(true.render(t).stamp_ns, positions, m.present.astype(float), "lattice",
-                       cameras=np.full(25, every, np.uint32))
-
-    body = m.positions[90].copy()
-    shank = body[INDEX["left_ankle"]] - body[INDEX["left_knee"]]
-    foot = [INDEX[k] for k in ("left_ankle", "left_heel", "left_toe")]
-    body[foot] += 0.35 * shank / np.linalg.norm(shank)
-    res = stage.step(markers(90, body))
-    assert res.status == "uncertain" and stage.fit_error_m > stage.config.check_max_fit_error_m
-    text = stage.warning("uncertain", rig.names)
-    assert text is not None and "not one body" in text, text
-    assert stage.step(markers(91, m.positions[91])).status == "tracking"

@@ -158,10 +158,6 @@ class SkeletonConfig(_Stage):
     check_min_support: float = 0.6
     check_fail_agreement: float = 0.35
     check_fail_support: float = 0.35
-    # A frame set whose markers the subject's skeleton fits (first IK) with a weighted RMS
-    # residual above this is not output: no body of the subject's dimensions has them as its
-    # keypoints (uncertain for that frame set alone).
-    check_max_fit_error_m: float = 0.075
     check_uncertain_frames: int = 3
     check_fail_frames: int = 1
     check_recover_frames: int = 5
@@ -178,8 +174,6 @@ class SkeletonConfig(_Stage):
             raise ConfigError("check_fail_agreement <= check_min_agreement must lie in [0, 1]")
         if not 0 <= self.check_fail_support <= self.check_min_support <= 1:
             raise ConfigError("check_fail_support <= check_min_support must lie in [0, 1]")
-        if self.check_max_fit_error_m <= 0:
-            raise ConfigError("check_max_fit_error_m must be positive")
         if min(self.check_uncertain_frames, self.check_fail_frames, self.check_recover_frames, self.check_lost_frames) < 1:
             raise ConfigError("check_uncertain_frames, check_fail_frames, check_recover_frames and check_lost_frames must be >= 1")
         if self.check_confirm_frames < 0:

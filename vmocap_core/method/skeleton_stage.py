@@ -59,8 +59,6 @@ class SkeletonStage:
         self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
         self.disagreement: ViewCheck | None = None  # the check behind an "uncertain" or check-"lost" step
         self.unsupported: float | None = None  # the markers' support behind an "uncertain" step (below check_min_support)
-        self.misfit: float | None = None  # the first IK's residual behind an "uncertain" step (check_max_fit_error_m)
-        self.fit_error_m = 0.0  # the last first IK's weighted RMS residual to its markers
         self._last_stamp: int | None = None
         # The skeleton identified for the subject: kept when the subject is lost, so that finding
         # it again needs no new identification phase (II-C identifies a body once).
@@ -94,14 +92,10 @@ class SkeletonStage:
         if self.unsupported is not None:
             return (f"{status}: {self.unsupported:.0%} of this frame set's markers are held by two cameras or more "
                     f"(check_min_support {cfg.check_min_support:.0%}), this frame set is not output")
-        if self.misfit is not None:
-            return (f"{status}: the subject's skeleton fits this frame set's markers {1000 * self.misfit:.0f} mm RMS "
-                    f"(check_max_fit_error_m {1000 * cfg.check_max_fit_error_m:.0f} mm): they are not one body of its "
-                    f"dimensions, this frame set is not output")
         return None
 
     def step(self, markers: Markers) -> TrackResult:
-        self.disagreement = self.unsupported = self.misfit = None
+        self.disagreement = self.unsupported = None
         if markers.kind == "lattice" and self.skeleton is not None:
             # markers again after frame sets without any (every view covered, or none came for
             # RESUME_GAP_S): the skeleton is the one from before, so the output waits for the
@@ -126,11 +120,6 @@ class SkeletonStage:
                 result = self._empty(markers, "lost")
             else:
                 result = self._track(markers)
-                if verdict == "ok" and self.verdict.min_agreement > 0 \
-                        and self.fit_error_m > self.config.check_max_fit_error_m:
-                    # the subject's skeleton cannot reach these markers: they are not one body
-                    # of its dimensions (a limb on another limb's maps), this frame set is not output
-                    verdict, self.misfit = "uncertain", self.fit_error_m
                 if verdict == "uncertain" and result.status == "tracking":
                     result.status = self.status = "uncertain"
             if markers.check is not None:
@@ -156,7 +145,6 @@ class SkeletonStage:
                          damping=cfg.ik_damping, regularization=cfg.ik_regularization,
                          prior=self._q_raw, prior_weight=cfg.ik_prior_weight * (rate / 60.0) ** 2)
         self._q_raw = first.q
-        self.fit_error_m = float(np.sqrt(first.cost)) if np.isfinite(first.cost) else 0.0
         sites = self._sites(first.keypoints, first.q)
         if self._identify is not None:
             return self._identifying(markers, centres, sites)
