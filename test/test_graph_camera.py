@@ -319,7 +319,7 @@ def test_camera_sends_only_what_a_busy_cnn_can_take_unless_someone_records_the_i
             # "CNN" answers from the start all the same
             t_end = time.monotonic() + 60.0
             next_done = time.monotonic() + 0.25
-            playing = False
+            playing, answers = False, 0
             while time.monotonic() < t_end:
                 if not playing and "playing" in "".join(launch._lines):
                     playing, t_end = True, time.monotonic() + 4.0
@@ -331,6 +331,7 @@ def test_camera_sends_only_what_a_busy_cnn_can_take_unless_someone_records_the_i
                     h = Header(frame_id="cam0")
                     h.stamp.sec, h.stamp.nanosec = s // 10**9, s % 10**9
                     done.publish(h)
+                    answers += 1
                     next_done += 0.25
         finally:
             log = stop(launch, signal.SIGINT)
@@ -339,7 +340,10 @@ def test_camera_sends_only_what_a_busy_cnn_can_take_unless_someone_records_the_i
     if record_images:
         assert n > 60, n  # ~30 Hz for 4 s: every frame goes out for the recorder
     else:
-        assert 0 < n <= 2 * (4.0 / 0.25 + 2) + 4, n  # ~2 frame sets per answer, not 30 Hz
+        # at most max_in_flight frame sets before the first answer and after each one (not 30 Hz),
+        # counted against the answers this "CNN" gave: a slow machine's late log line or a
+        # loaded spin loop changes how many there are, not what each one lets through
+        assert 0 < n <= 2 * (answers + 1) + 2, (n, answers)
         # a frame set goes out on every camera or on none
         assert len(set(got["cam0"]) ^ set(got["cam1"])) <= 2, (got["cam0"], got["cam1"])
 

@@ -82,6 +82,8 @@ class CameraNode(VmocapNode):
         matched = [bool(self.count_subscribers(t) + len(self.transport.bus.subscribers.get(t, ()))) for t in self._image_topics]
         note = self._start.update(time.monotonic(), matched, all(self.count_subscribers(t) for t in self.p["wait_topics"]))
         if note is not None:
+            if self._flow is not None:  # decided before the first frame set, not up to 0.5 s into the replay
+                self._check_flow()
             self._matched.set()
             self._matched_timer.cancel()
             self.get_logger().info("playing" + note)
