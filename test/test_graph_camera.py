@@ -348,6 +348,130 @@ def test_camera_sends_only_what_a_busy_cnn_can_take_unless_someone_records_the_i
         assert len(set(got["cam0"]) ^ set(got["cam1"])) <= 2, (got["cam0"], got["cam1"])
 
 
+def test_camera_hands_frames_to_a_pcm_node_of_this_machine_through_shared_memory(tmp_path: Path) -> None:
+    """Under flow control the camera node puts its frames in shared memory for the PCM nodes that
+    take NS/CAM/image_raw/shm (cameras/shm.py): a node named vmocap_pcm in this process gets the
+    references, reads the bag's pixels through them and gets nothing on image_raw; once it stops
+    taking the references (as a PCM node on another machine does) the images come over DDS again."""
+    from std_msgs.msg import Header
+
+    from vmocap_core.cameras.rig_file import save_rig
+    from vmocap_core.cameras.shm import FrameReader
+    from vmocap_ros.common import msg_class, prepare_env, qos
+    from vmocap_ros.run_node import probe_node
+
+    rig = small_rig()
+    bag = tmp_path / "c.mcap"
+    images = compressed_bag(bag, rig, 4)
+    rig_path = tmp_path / "rig.yaml"
+    save_rig(rig, rig_path)
+    cfg = write_config(tmp_path / "g.yaml", rig_path, [], ["vmocap_camera"], mode="processes", output=tmp_path / "o.mcap",
+                       extra={"vmocap_camera": {"uri": str(bag), "rate": 1.0, "loop": True, "restamp": True,
+                                                "wait_subscribers": 60.0, "max_in_flight": 2}})
+    env = prepare_env(domain_env(36))
+    reader = FrameReader()
+    got: dict[str, list] = {"raw": [], "shm": []}  # (time, camera, stamp, image)
+
+    def on_image(kind: str, cam: str, data: bytes) -> None:
+        m = cdr.decode("sensor_msgs/msg/Image", data)
+        if kind == "shm":
+            m["data"] = reader.read(cam, m["data"])
+        got[kind].append((time.monotonic(), cam, M.stamp_ns(m), None if m["data"] is None else M.image_array(m)))
+
+    with probe_node("vmocap_pcm", env) as (node, ex):
+        image = msg_class("sensor_msgs/msg/Image")
+        shm_subs = []
+        for c in rig:
+            node.create_subscription(image, f"/vmocap/{c.name}/image_raw",
+                                     lambda data, n=c.name: on_image("raw", n, data), qos(10), raw=True)
+            shm_subs.append(node.create_subscription(image, f"/vmocap/{c.name}/image_raw/shm",
+                                                     lambda data, n=c.name: on_image("shm", n, data), qos(10), raw=True))
+        done = node.create_publisher(msg_class("std_msgs/msg/Header"), "/vmocap/pcm/done", qos(10))
+        launch = vmocap(["launch", str(cfg)], env)
+        t_switch = t_end = float("inf")
+        try:
+            assert wait_ready(launch, ["vmocap_camera"]), stop(launch)
+            deadline = time.monotonic() + 60.0
+            next_done = time.monotonic()
+            while time.monotonic() < min(t_end, deadline):
+                if t_switch == float("inf") and "playing" in "".join(launch._lines):
+                    t_switch = time.monotonic() + 3.0
+                if time.monotonic() >= t_switch and shm_subs:  # as a PCM node that cannot reach the memory
+                    for sub in shm_subs:
+                        node.destroy_subscription(sub)
+                    shm_subs, t_end = [], time.monotonic() + 3.0
+                ex.spin_once(timeout_sec=0.02)
+                stamps = [s for k in got.values() for _, c, s, _ in k if c == "cam0"]
+                if stamps and time.monotonic() >= next_done:  # a CNN that finishes a frame set every 0.1 s
+                    s = max(stamps)
+                    h = Header(frame_id="cam0")
+                    h.stamp.sec, h.stamp.nanosec = s // 10**9, s % 10**9
+                    done.publish(h)
+                    next_done = time.monotonic() + 0.1
+        finally:
+            log = stop(launch, signal.SIGINT)
+            reader.close()
+    assert launch.returncode == 0 and t_end < float("inf"), log
+    first = min(t for t, *_ in got["shm"])
+    shm_frames = [x for x in got["shm"] if x[0] < t_switch]
+    assert len(shm_frames) >= 2 * len(rig) * 10, len(shm_frames)  # ~20 frame sets over 3 s, 2 per answer
+    assert not [x for x in got["raw"] if first < x[0] < t_switch], "images over DDS while shared memory was taken"
+    for _, cam, _, img in shm_frames:  # the bag's pixels, every frame read through its reference
+        assert img is not None and any(np.array_equal(img, images[(cam, t)]) for t in {t for c, t in images if c == cam})
+    back = [x for x in got["raw"] if x[0] > t_switch + 1.5]
+    assert {c for _, c, _, _ in back} == set(rig.names) and len(back) >= 2 * len(rig) * 5, (len(back), log)
+
+
+def test_pcm_node_in_another_process_takes_the_frames_through_shared_memory(tmp_path: Path) -> None:
+    """The processes layout: vmocap_pcm follows the camera node's references (its /diagnostics
+    count the frames read so, none lost) and finishes frame sets; the camera node says it sends
+    references."""
+    import ast
+
+    from vmocap_core.cameras.rig_file import save_rig
+    from vmocap_core.outputs.messages import DIAG
+    from vmocap_ros.common import msg_class, prepare_env, qos
+    from vmocap_ros.run_node import probe_node
+
+    rig = small_rig()
+    bag = tmp_path / "c.mcap"
+    compressed_bag(bag, rig, 4)
+    rig_path = tmp_path / "rig.yaml"
+    save_rig(rig, rig_path)
+    nodes = ["vmocap_camera", "vmocap_pcm"]
+    cfg = write_config(tmp_path / "g.yaml", rig_path, [], nodes, mode="processes", output=tmp_path / "o.mcap",
+                       extra={"vmocap_camera": {"uri": str(bag), "rate": 1.0, "loop": True, "restamp": True,
+                                                "wait_subscribers": 60.0}})
+    env = prepare_env(domain_env(37))
+    status: dict[str, dict] = {}
+
+    def on_diagnostics(data: bytes) -> None:
+        for st in cdr.decode(DIAG, data)["status"]:
+            status[st["name"]] = {kv["key"]: kv["value"] for kv in st["values"]}
+
+    def read() -> tuple[dict, dict, int]:
+        pcm, cam = status.get("vmocap_pcm", {}), status.get("vmocap_camera", {})
+        shared = pcm.get("shared_memory", "off")
+        return (ast.literal_eval(shared) if shared.startswith("{") else {"state": shared},
+                ast.literal_eval(cam.get("flow", "{}")), int(pcm.get("frames", 0)))
+
+    with probe_node("vmocap_test_probe", env) as (node, ex):
+        node.create_subscription(msg_class(DIAG), "/diagnostics", on_diagnostics, qos(50), raw=True)
+        launch = vmocap(["launch", str(cfg)], env)
+        try:
+            assert wait_ready(launch, nodes), stop(launch)
+            deadline = time.monotonic() + 60.0
+            while time.monotonic() < deadline and not (read()[0].get("received", 0) >= 40 and read()[2] >= 20
+                                                       and read()[1].get("shared_memory")):
+                ex.spin_once(timeout_sec=0.1)
+        finally:
+            log = stop(launch, signal.SIGINT)
+    shared, flow, frames = read()
+    assert shared.get("received", 0) >= 40 and frames >= 20, (shared, flow, frames, log)
+    assert shared["overwritten"] == 0 and shared["gone"] == 0, shared
+    assert flow["on"] and flow["shared_memory"], flow
+
+
 def test_camera_waits_for_every_image_topic(tmp_path: Path) -> None:
     """A recorded source plays 0.2 s after every camera's image topic has a subscriber (a frame
     sent before a reader matched is lost to it); a reader of some cameras only gets them

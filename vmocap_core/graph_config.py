@@ -63,6 +63,10 @@ COMMON = [
     Param("lockstep", False, "recorded sources: vmocap_camera sends a frame set once the skeleton's feedback for the one "
           "before came back (the paper's causal loop), so every frame set is processed in order at the speed of this "
           "machine and the outputs equal `vmocap process`'s; `rate` is then ignored. Live cameras ignore it"),
+    Param("shm_images", True, "vmocap_camera hands its frames to vmocap_pcm nodes in other processes of this machine "
+          "through shared memory (NS/CAM/image_raw/shm carries references, cameras/shm.py) instead of sending the "
+          "pixels over DDS, while flow control applies; a PCM node that cannot reach the memory (another machine) "
+          "stops taking the references and gets the images over DDS"),
     Param("lockstep_timeout_ms", 10000.0, "lockstep: a frame set nobody answers (no person in any view, a node down) "
           "releases the next one after this long; the PCM and markers nodes wait for feedback at least this long", 1.0, 1e6),
 ]

@@ -88,6 +88,7 @@ class VmocapNode(Node):
         self._held: dict[str, float] = {}  # problem key -> monotonic time its WARN ends (warn_for)
         self._pending_subs: list = []
         self._dds_pubs: dict[str, Any] = {}  # topic -> rclpy publisher, for matched-subscriber counts
+        self._dds_subs: dict[str, Any] = {}  # topic -> rclpy subscription (drop_subscription)
         self._diag = self.create_publisher(msg_class(DIAG), Topics.diagnostics, qos(10))
         self.create_timer(1.0, self._publish_diagnostics)
 
@@ -133,9 +134,15 @@ class VmocapNode(Node):
                 continue
             # images and heatmaps: numpy views into the received bytes (no further copy)
             copy = type_name != IMAGE
-            self.create_subscription(msg_class(type_name), topic,
-                                     lambda data, g=guarded, t=type_name, c=copy: g(cdr.decode(t, data, copy=c)),
-                                     qos(depth, latched=latched), raw=True)
+            self._dds_subs[topic] = self.create_subscription(
+                msg_class(type_name), topic, lambda data, g=guarded, t=type_name, c=copy: g(cdr.decode(t, data, copy=c)),
+                qos(depth, latched=latched), raw=True)
+
+    def drop_subscription(self, topic: str) -> None:
+        """Stop taking a topic subscribed over DDS by `subscribe` (its publishers see one reader less)."""
+        sub = self._dds_subs.pop(topic, None)
+        if sub is not None:
+            self.destroy_subscription(sub)
 
     # -- diagnostics ---------------------------------------------------------------------
     def status(self) -> dict[str, Any]:

@@ -13,6 +13,7 @@ import numpy as np
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.bag import check_binning
+from vmocap_core.cameras.shm import FrameReader, ShmUnavailable
 from vmocap_core.cameras.sync import ApproximateSync
 from vmocap_core.errors import VmocapError
 from vmocap_core.method.camera_check import image_problem
@@ -49,6 +50,14 @@ class PcmNode(VmocapNode):
         for name in names:
             self.subscribe(IMAGE, self.topics.image(name), lambda m, n=name: self._on_image(n, m), depth=max(2, p["queue_depth"]))
             self.subscribe(INFO, self.topics.camera_info(name), lambda m, n=name: self._on_info(n, m))
+        # frames of a camera node in another process of this machine come through shared memory
+        self._shm: FrameReader | None = FrameReader() if p["shm_images"] else None
+        self.shm_received = 0
+        self.shm_off = ""  # why the references are not taken (another machine)
+        if self._shm is not None:
+            for name in names:
+                self.subscribe(IMAGE, self.topics.image_shm(name), lambda m, n=name: self._on_shm(n, m),
+                               depth=max(2, p["queue_depth"]))
         self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
         # one view per camera exists from the start (publishers created late would lose their
         # first messages while discovery matches them); extra views (CAM_1...) come on demand
@@ -127,6 +136,23 @@ class PcmNode(VmocapNode):
                 self.sets.popleft()
                 self.counts["queue_dropped"] += 1
         self._pump()
+
+    def _on_shm(self, cam: str, msg: dict) -> None:
+        if self._shm is None:
+            return
+        try:
+            data = self._shm.read(cam, msg["data"])
+        except ShmUnavailable as exc:  # the camera node then sends the pixels over DDS
+            self.shm_off = str(exc)
+            self.get_logger().info(f"images over DDS, not shared memory: {exc}")
+            for name in self.rig.names:
+                self.drop_subscription(self.topics.image_shm(name))
+            self._shm.close()
+            self._shm = None
+            return
+        if data is not None:
+            self.shm_received += 1
+            self._on_image(cam, dict(msg, data=data))
 
     def _check_timeout(self) -> None:
         if self.awaiting is not None and time.monotonic() - self.awaiting_since > self.wait:
@@ -221,6 +247,8 @@ class PcmNode(VmocapNode):
             self._kp_pubs[n](M.image_keypoints_msg(stamp_ns, n, uv[c], w[c]))
 
     def close(self) -> None:
+        if self._shm is not None:
+            self._shm.close()
         if self.worker is not None:
             self.worker.shutdown(wait=True, cancel_futures=True)
         super().close()
@@ -247,5 +275,8 @@ class PcmNode(VmocapNode):
         return dict(self.counts, frames=self.frames, bad_images=self.bad_images, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
                     queued=len(self.sets), precision=getattr(self.provider, "precision", "n/a"),
                     precision_reason=getattr(self.provider, "precision_reason", "n/a"),
+                    shared_memory=(self.shm_off and f"off: {self.shm_off}") or
+                    (self._shm is not None and {"received": self.shm_received, "overwritten": self._shm.overwritten,
+                                                "gone": self._shm.gone}) or "off",
                     others_in_view=max(others.values(), default=0),
                     others_in_view_by_camera=", ".join(f"{n}: {k}" for n, k in others.items() if k) or "none")
