@@ -66,20 +66,55 @@ def test_in_flight_sends_a_frame_set_only_while_the_cnn_has_room():
 
     period = 1 / 30
     f = InFlight(2, period, stale_s=1.0)
-    t = [int(1e9 + k * period * 1e9) for k in range(6)]
+    t = [int(1e9 + k * period * 1e9) for k in range(12)]
     # frame set 0 and 1 go out, each camera's frame alike (stamps a few ms apart)
     assert f.admit(t[0], 0.0) and f.admit(t[0] + 2_000_000, 0.001)
     assert f.admit(t[1], 0.033) and f.admit(t[1] - 3_000_000, 0.034)
     # frame set 2: two in flight, not sent, on every camera
     assert not f.admit(t[2], 0.066) and not f.admit(t[2] + 1_000_000, 0.067)
     assert (f.sent, f.skipped, f.in_flight) == (2, 1, 2)
-    f.done(t[0])  # the CNN finished frame set 0: room for the next one
-    assert f.admit(t[3], 0.1) and f.in_flight == 2
-    f.done(t[3])  # a later frame set finished: everything before it is out of flight too
+    f.done(t[0], 0.09)  # the CNN finished frame set 0 in 0.09 s: it should finish frame set 1 at 0.18
+    assert not f.admit(t[3], 0.1)  # room, but it would wait there 0.08 s
+    assert f.admit(t[4], 0.15) and f.in_flight == 2  # from a period before 0.18
+    f.done(t[4], 0.25)  # a later frame set finished: everything before it is out of flight too
     assert f.in_flight == 0
-    # a frame set nobody finishes (no CNN running) stops counting after stale_s
-    assert f.admit(t[4], 0.2) and f.admit(t[5], 0.25)
-    assert not f.admit(t[5] + int(period * 1e9), 0.3)
-    assert f.admit(t[5] + int(2 * period * 1e9), 1.3)
+    assert f.admit(t[8], 0.27) and f.admit(t[9], 0.34)  # the CNN's time is 0.095 s: free at 0.365
+    assert not f.admit(t[10], 0.37)
+    # frame sets nobody finishes (no CNN running) stop counting after stale_s
+    assert f.admit(t[11], 1.4)
     with pytest.raises(ValueError):
         InFlight(0, period)
+
+
+def test_in_flight_sends_the_second_frame_set_just_before_the_cnn_is_free():
+    """A CNN that takes 0.1 s a frame set, frames every 1/60 s: after the first answers the
+    second frame set goes out only from one period before the CNN is expected to be free, so
+    it waits there at most a period instead of a whole CNN run."""
+    from vmocap_core.cameras.flow import InFlight
+
+    period, cnn = 1 / 60, 0.1
+    f = InFlight(2, period, stale_s=1.0)
+    waits = []  # how long each frame set waited for the CNN
+    queue: list[tuple[int, float]] = []  # sent, not yet in the CNN: (stamp, sent at)
+    running: tuple[int, float] | None = None  # (stamp, finishes at)
+    for k in range(240):
+        now = k * period
+        while running is not None and running[1] <= now:  # the CNN answers, then takes the next
+            end = running[1]
+            f.done(running[0], end)
+            running = None
+            if queue:
+                s, sent_at = queue.pop(0)
+                waits.append(end - sent_at)
+                running = (s, end + cnn)
+        stamp = int(1e9 + k * period * 1e9)
+        if f.admit(stamp, now):
+            if running is None:
+                waits.append(0.0)
+                running = (stamp, now + cnn)
+            else:
+                queue.append((stamp, now))
+    late = waits[3:]  # once the CNN's time is known
+    assert max(late) <= period + 1e-9, late
+    done_sets = len(waits)
+    assert done_sets >= 0.9 * 240 * period / cnn  # the CNN stays busy: about 40 frame sets in 4 s

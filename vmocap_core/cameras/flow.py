@@ -8,10 +8,18 @@ between it and the end of the CNN (the PCM node's NS/pcm/done says which frame s
 so an overloaded graph spends its cores on the frame sets it processes: the newest wins at the
 source, nothing queues, latency stays bounded. The decision is per frame set: every camera's
 frame of one instant (stamps within half a period) is sent or skipped alike.
+
+A second frame set in flight keeps the CNN busy while the first one's results travel (the
+throughput of `limit` 2), but sent at once it would wait there for a whole CNN run, which
+doubles the latency under overload. So a frame set beyond the first is sent only from one
+period before the CNN is expected to be free (its time per frame set measured from the `done`
+answers): it waits at most a period, and the camera's next frame would come too late to keep
+the CNN busy.
 """
 
 from __future__ import annotations
 
+import statistics
 import threading
 from collections import deque
 
@@ -36,6 +44,7 @@ class InFlight:
         if limit < 1:
             raise ValueError("at least one frame set must be allowed in flight")
         self.limit = int(limit)
+        self.period_s = float(period_s)
         self.tol_ns = int(0.5 * period_s * 1e9)
         self.stale_s = float(stale_s)
         self._lock = threading.Lock()
@@ -43,6 +52,8 @@ class InFlight:
         self._decided: deque[tuple[int, bool]] = deque(maxlen=64)  # recent frame sets and their decision
         self.skipped = 0  # frame sets not sent (counted once per frame set)
         self.sent = 0
+        self._service: deque[float] = deque(maxlen=9)  # the CNN's recent times per frame set (s)
+        self._last_done = float("-inf")  # monotonic time of the last answer
 
     def admit(self, stamp_ns: int, now_s: float) -> bool:
         with self._lock:
@@ -52,6 +63,9 @@ class InFlight:
             while self._sent and now_s - self._sent[0][1] > self.stale_s:
                 self._sent.popleft()
             ok = len(self._sent) < self.limit
+            if ok and self._sent and self._service:  # the CNN is busy until about free_at
+                free_at = max(self._sent[0][1], self._last_done) + len(self._sent) * statistics.median(self._service)
+                ok = now_s >= free_at - self.period_s
             if ok:
                 self._sent.append((int(stamp_ns), now_s))
                 self.sent += 1
@@ -60,11 +74,17 @@ class InFlight:
             self._decided.append((int(stamp_ns), ok))
             return ok
 
-    def done(self, stamp_ns: int) -> None:
-        """The CNN finished the frame set stamped `stamp_ns`: it and older ones are out of flight."""
+    def done(self, stamp_ns: int, now_s: float) -> None:
+        """The CNN finished the frame set stamped `stamp_ns` (answer received at monotonic
+        `now_s`): it and older ones are out of flight."""
         with self._lock:
+            finished = None
             while self._sent and self._sent[0][0] <= stamp_ns + self.tol_ns:
-                self._sent.popleft()
+                finished = self._sent.popleft()
+            if finished is not None and abs(finished[0] - stamp_ns) <= self.tol_ns:
+                # its time in the CNN: from when it was sent, or from the answer before if it waited
+                self._service.append(now_s - max(finished[1], self._last_done))
+            self._last_done = now_s
 
     @property
     def in_flight(self) -> int:

@@ -72,7 +72,7 @@ class CameraNode(VmocapNode):
         if self._gate is not None:
             self.subscribe(CLOUD, self.topics.feedback, lambda m: self._gate.answered(M.stamp_ns(m)), depth=50, latched=True)
         if self._flow is not None:
-            self.subscribe(HEADER, self.topics.pcm_done, lambda m: self._flow.done(M.stamp_ns(m["stamp"])), depth=10)
+            self.subscribe(HEADER, self.topics.pcm_done, lambda m: self._flow.done(M.stamp_ns(m["stamp"]), time.monotonic()), depth=10)
             self.create_timer(0.5, self._check_flow)
         for th, _ in self._threads:
             th.start()
