@@ -34,6 +34,15 @@ def applies(cnn_answers: bool, local_takers: list[str], remote_takers: list[str]
             and all(n.startswith("vmocap_pcm") for n in remote_takers))
 
 
+def newest_only(cnn_times_s: "deque[float]", period_s: float) -> bool:
+    """Whether a CNN with these recent times per frame set should take only the newest of the
+    frame sets waiting for it: when it is slower than the cameras it never catches up, so an
+    older frame set taken first only ages the output by the periods between them (and the
+    newer one then waits a whole CNN run); a CNN that is faster on the whole takes them in
+    order and catches up after a slow frame set, without dropping it."""
+    return len(cnn_times_s) >= 3 and statistics.median(cnn_times_s) > period_s
+
+
 class InFlight:
     """Thread-safe; shared by the camera threads of one node. `admit` decides (once per frame
     set) whether a frame goes out, `done` is called with the stamp of each frame set the CNN

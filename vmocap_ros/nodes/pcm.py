@@ -13,6 +13,7 @@ import numpy as np
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.bag import check_binning
+from vmocap_core.cameras.flow import newest_only
 from vmocap_core.cameras.shm import FrameReader, ShmUnavailable
 from vmocap_core.cameras.sync import ApproximateSync
 from vmocap_core.errors import VmocapError
@@ -77,6 +78,7 @@ class PcmNode(VmocapNode):
         self.awaiting_since = 0.0
         if self.wait > 0:
             self.create_timer(min(0.02, self.wait / 2), self._check_timeout)
+        self.cnn_times: deque[float] = deque(maxlen=9)  # recent seconds per frame set in the CNN
         self.busy = False  # a frame set is in the inference thread
         self.worker = ThreadPoolExecutor(1, thread_name_prefix=self.get_name()) if p["inference_thread"] else None
 
@@ -167,6 +169,10 @@ class PcmNode(VmocapNode):
         With inference_thread the CNN runs beside the spin loop (onnxruntime releases the GIL),
         so camera frames, markers and skeleton of the previous frame set go on meanwhile."""
         while self.sets and self.awaiting is None and not self.busy:
+            if len(self.sets) > 1 and self.wait == 0 and newest_only(self.cnn_times, 1.0 / self.p["fps"]):
+                while len(self.sets) > 1:  # live and overloaded: the older ones would only add latency
+                    self.sets.popleft()
+                    self.counts["queue_dropped"] += 1
             fs = self.sets.popleft()
             cams = [n for n in self.rig.names if n in fs.items and self._usable(n, fs.items[n])]
             fb = self.predictor.predict(fs.stamp_ns) if self.p["use_feedback"] else None
@@ -229,6 +235,7 @@ class PcmNode(VmocapNode):
         if pcm.n_views == 0 and self.awaiting is not None:
             self.awaiting = None  # nothing published: no skeleton will answer this frame
         self.errors.pop("inference", None)
+        self.cnn_times.append(seconds)
         self.frames += 1
         self.proc.add(1e3 * (seconds + time.perf_counter() - t0))
         self.record_age(fs.stamp_ns)
