@@ -425,7 +425,7 @@ def test_camera_hands_frames_to_a_pcm_node_of_this_machine_through_shared_memory
 def test_pcm_node_in_another_process_takes_the_frames_through_shared_memory(tmp_path: Path) -> None:
     """The processes layout: vmocap_pcm follows the camera node's references (its /diagnostics
     count the frames read so, none lost) and finishes frame sets; the camera node says it sends
-    references."""
+    references; vmocap_markers gets the heatmaps the same way."""
     import ast
 
     from vmocap_core.cameras.rig_file import save_rig
@@ -438,7 +438,7 @@ def test_pcm_node_in_another_process_takes_the_frames_through_shared_memory(tmp_
     compressed_bag(bag, rig, 4)
     rig_path = tmp_path / "rig.yaml"
     save_rig(rig, rig_path)
-    nodes = ["vmocap_camera", "vmocap_pcm"]
+    nodes = ["vmocap_camera", "vmocap_pcm", "vmocap_markers"]
     cfg = write_config(tmp_path / "g.yaml", rig_path, [], nodes, mode="processes", output=tmp_path / "o.mcap",
                        extra={"vmocap_camera": {"uri": str(bag), "rate": 1.0, "loop": True, "restamp": True,
                                                 "wait_subscribers": 60.0}})
@@ -449,11 +449,13 @@ def test_pcm_node_in_another_process_takes_the_frames_through_shared_memory(tmp_
         for st in cdr.decode(DIAG, data)["status"]:
             status[st["name"]] = {kv["key"]: kv["value"] for kv in st["values"]}
 
+    def shm_status(node: str) -> dict:
+        value = status.get(node, {}).get("shared_memory", "off")
+        return ast.literal_eval(value) if value.startswith("{") else {"state": value}
+
     def read() -> tuple[dict, dict, int]:
-        pcm, cam = status.get("vmocap_pcm", {}), status.get("vmocap_camera", {})
-        shared = pcm.get("shared_memory", "off")
-        return (ast.literal_eval(shared) if shared.startswith("{") else {"state": shared},
-                ast.literal_eval(cam.get("flow", "{}")), int(pcm.get("frames", 0)))
+        return (shm_status("vmocap_pcm"), ast.literal_eval(status.get("vmocap_camera", {}).get("flow", "{}")),
+                int(status.get("vmocap_pcm", {}).get("frames", 0)))
 
     with probe_node("vmocap_test_probe", env) as (node, ex):
         node.create_subscription(msg_class(DIAG), "/diagnostics", on_diagnostics, qos(50), raw=True)
@@ -462,7 +464,8 @@ def test_pcm_node_in_another_process_takes_the_frames_through_shared_memory(tmp_
             assert wait_ready(launch, nodes), stop(launch)
             deadline = time.monotonic() + 60.0
             while time.monotonic() < deadline and not (read()[0].get("received", 0) >= 40 and read()[2] >= 20
-                                                       and read()[1].get("shared_memory")):
+                                                       and read()[1].get("shared_memory")
+                                                       and shm_status("vmocap_markers").get("received", 0) >= 20):
                 ex.spin_once(timeout_sec=0.1)
         finally:
             log = stop(launch, signal.SIGINT)
@@ -470,6 +473,9 @@ def test_pcm_node_in_another_process_takes_the_frames_through_shared_memory(tmp_
     assert shared.get("received", 0) >= 40 and frames >= 20, (shared, flow, frames, log)
     assert shared["overwritten"] == 0 and shared["gone"] == 0, shared
     assert flow["on"] and flow["shared_memory"], flow
+    maps = shm_status("vmocap_markers")  # 2 views a frame set
+    assert maps.get("received", 0) >= 20 and maps["overwritten"] == maps["gone"] == 0, (maps, log)
+    assert status["vmocap_pcm"]["heatmaps_shared_memory"] == "True"
 
 
 def test_camera_waits_for_every_image_topic(tmp_path: Path) -> None:

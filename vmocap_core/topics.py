@@ -12,11 +12,6 @@ class Topics:
     def image(self, cam: str) -> str:
         return f"{self.ns}/{cam}/image_raw"
 
-    def image_shm(self, cam: str) -> str:
-        """References to the camera's frames in shared memory (cameras/shm.py), for vmocap_pcm
-        nodes on the same machine: sensor_msgs/Image whose `data` is the reference, not pixels."""
-        return f"{self.ns}/{cam}/image_raw/shm"
-
     def camera_info(self, cam: str) -> str:
         return f"{self.ns}/{cam}/camera_info"
 

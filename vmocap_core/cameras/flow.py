@@ -34,13 +34,21 @@ def applies(cnn_answers: bool, local_takers: list[str], remote_takers: list[str]
             and all(n.startswith("vmocap_pcm") for n in remote_takers))
 
 
-def newest_only(cnn_times_s: "deque[float]", period_s: float) -> bool:
+OVERLOAD_MARGIN = 1.2  # newest_only: the CNN's time per frame set over this many arrival intervals
+
+
+def newest_only(cnn_times_s: "deque[float]", arrivals_s: "deque[float]") -> bool:
     """Whether a CNN with these recent times per frame set should take only the newest of the
-    frame sets waiting for it: when it is slower than the cameras it never catches up, so an
-    older frame set taken first only ages the output by the periods between them (and the
-    newer one then waits a whole CNN run); a CNN that is faster on the whole takes them in
-    order and catches up after a slow frame set, without dropping it."""
-    return len(cnn_times_s) >= 3 and statistics.median(cnn_times_s) > period_s
+    frame sets waiting for it, given the recent intervals between frame sets' arrivals: when it
+    is slower than they come it never catches up, so an older frame set taken first only ages
+    the output by the periods between them (and the newer one then waits a whole CNN run); a
+    CNN that is faster on the whole takes them in order and catches up after a slow frame set,
+    without dropping it. Arrivals, not the cameras' nominal rate: a replay paced slower than
+    recorded is no overload; and a margin, so that a CNN about as fast as the frame sets come
+    keeps taking them all. The caller asks only while its queue is full (dropping already): a
+    slow start (the detector's first runs) with room in the queue is caught up in order."""
+    return (len(cnn_times_s) >= 3 and len(arrivals_s) >= 3
+            and statistics.fmean(cnn_times_s) > OVERLOAD_MARGIN * statistics.fmean(arrivals_s))
 
 
 class InFlight:

@@ -1,8 +1,8 @@
-"""Camera frames to the CNN through shared memory, between processes of one machine.
+"""Camera frames (and heatmaps) between processes of one machine through shared memory.
 
 When the camera and PCM nodes run in separate processes, each image (2.4 MB at 1024x768) crosses
 DDS: encoded, serialized, cut into fragments by the transport, reassembled and taken again, a
-copy at each step, on the cores the CNN needs. A `FrameRing` keeps a camera's last frames in an
+copy at each step, on the cores the CNN needs (the heatmaps to the markers node likewise). A `FrameRing` keeps a camera's last frames in an
 anonymous memory file (memfd) owned by the camera process; a small reference (`Ref`) names the
 slot, and the reader copies the pixels out once (`FrameReader`). The reader opens the file
 through /proc/PID/fd/FD, so nothing is left in /dev/shm when a process dies: the memory goes

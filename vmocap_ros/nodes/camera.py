@@ -15,11 +15,11 @@ from vmocap_core.cameras.bag import bin_image, check_binning
 from vmocap_core.cameras.clock import LoopedStamps, PlaybackClock
 from vmocap_core.cameras.flow import InFlight, applies
 from vmocap_core.cameras.lockstep import LockstepGate
-from vmocap_core.cameras.shm import FrameRing
 from vmocap_core.cameras.start import StartGate
 from vmocap_core.errors import VmocapError
 from vmocap_core.outputs.messages import CLOUD, HEADER, IMAGE, INFO
 
+from ..shm_link import ShmOut
 from ..transport import Output, Transport
 from .base import VmocapNode
 
@@ -44,9 +44,7 @@ class CameraNode(VmocapNode):
         self._flow = InFlight(self.p["max_in_flight"], 1.0 / self.p["fps"]) if self.p["max_in_flight"] and not self._gate else None
         self._flow_on = False  # set by _check_flow: a PCM node answers, and only PCM nodes take the images
         # under flow control, frames go to PCM nodes of this machine through shared memory
-        self._shm_pubs: dict[str, Output] = {}
-        self._rings: dict[str, FrameRing] = {}
-        self._shm_on = False  # set by _check_flow: every PCM node taking the images takes the references
+        self._shm: dict[str, ShmOut] = {}
         self._image_topics: list[str] = []
         self._matched = threading.Event()
         self._threads = []
@@ -65,7 +63,7 @@ class CameraNode(VmocapNode):
             pub_img = self.publisher(IMAGE, self.topics.image(cam.name))
             pub_info = self.publisher(INFO, self.topics.camera_info(cam.name))
             if self._flow is not None and self.p["shm_images"]:
-                self._shm_pubs[cam.name] = self.publisher(IMAGE, self.topics.image_shm(cam.name))
+                self._shm[cam.name] = ShmOut(self, self.topics.image(cam.name))
             self._image_topics.append(self.topics.image(cam.name))
             th = threading.Thread(target=self._run, args=(src, cam, pub_img, pub_info), daemon=True)
             self._threads.append((th, src))
@@ -228,17 +226,15 @@ class CameraNode(VmocapNode):
         local = [n for t in self._image_topics for n in bus.subscriber_nodes.get(t, [])]
         remote = [i.node_name for t in self._image_topics for i in self.get_subscriptions_info_by_topic(t)]
         self._flow_on = applies(answered, local, remote)
-        self._shm_on = self._flow_on and bool(self._shm_pubs) and all(
-            self._readers(t) <= self._readers(self.topics.image_shm(c)) for c, t in zip(self.rig.names, self._image_topics))
-
-    def _readers(self, topic: str) -> set[tuple[str, str]]:
-        return {(i.node_namespace, i.node_name) for i in self.get_subscriptions_info_by_topic(topic)}
+        for out in self._shm.values():
+            out.check()
 
     def _send(self, cam: str, img: tuple, info: tuple, pub_img: Output, pub_info: Output) -> None:
         if self._flow_on and self._flow is not None and not self._flow.admit(M.stamp_ns(img[0]), time.monotonic()):
             return  # the CNN is busy with newer-than-useful work: this frame set is not sent
-        if self._shm_on and cam in self._shm_pubs:  # the pixels into shared memory, a reference over DDS
-            self._shm_pubs[cam](dict(img[0], data=self._ring(cam, img[0]["data"]).write(img[0]["data"])))
+        shm = self._shm.get(cam)
+        if self._flow_on and shm is not None and shm.on:  # the pixels into shared memory, a reference over DDS
+            shm.send(img[0])
         else:
             if img[1] is None:  # deferred (above) or no DDS reader when prepared
                 img = pub_img.prepare(img[0])
@@ -246,15 +242,6 @@ class CameraNode(VmocapNode):
         pub_info.send(info)
         self.published[cam] += 1
         self.record_age(M.stamp_ns(img[0]))  # how late the frame went out
-
-    def _ring(self, cam: str, data: Any) -> FrameRing:
-        n = len(data) if isinstance(data, bytes) else memoryview(data).nbytes
-        ring = self._rings.get(cam)
-        if ring is None or ring.capacity < n:  # the first frame, or a larger one (readers follow the new ring)
-            if ring is not None:
-                ring.close()
-            ring = self._rings[cam] = FrameRing(n, name=f"vmocap-{cam}")
-        return ring
 
     def status(self) -> dict[str, Any]:
         # checked here, at 1 Hz, not by the camera's reader thread: that may be the one stuck
@@ -269,7 +256,8 @@ class CameraNode(VmocapNode):
                "disconnects": self.disconnects, "reconnects": self.reconnects}
         if self._flow is not None:
             out["flow"] = {"on": self._flow_on, "sent": self._flow.sent, "skipped": self._flow.skipped,
-                           "in_flight": self._flow.in_flight, "shared_memory": self._shm_on}
+                           "in_flight": self._flow.in_flight,
+                           "shared_memory": self._flow_on and bool(self._shm) and all(o.on for o in self._shm.values())}
         if self._gate is not None:
             if self._gate.timeouts:
                 self.warn_for("lockstep", f"lockstep: {self._gate.timeouts} frame sets got no feedback within "
@@ -282,5 +270,5 @@ class CameraNode(VmocapNode):
         for th, src in self._threads:
             th.join(timeout=2.0)
             src.close()
-        for ring in self._rings.values():
-            ring.close()
+        for out in self._shm.values():
+            out.close()

@@ -18,6 +18,7 @@ from vmocap_core.method.time_offsets import TimingCheck
 from vmocap_core.outputs.messages import CLOUD, IMAGE, INFO, markers_message
 from vmocap_core.pcm.assembly import PcmAssembler, channel_keypoints
 
+from ..shm_link import ShmIn
 from ..transport import Transport
 from .base import InitWatch, VmocapNode
 
@@ -58,9 +59,14 @@ class MarkersNode(VmocapNode):
         # subscription matched (start-up) is still delivered, keeping the chain deterministic
         self.pub = self.publisher(CLOUD, self.topics.markers, depth=p["queue_depth"], latched=True)
         latched = bool(p["lockstep"])  # as vmocap_pcm publishes them in lockstep
+        # from a vmocap_pcm in another process of this machine the maps come through shared memory
+        self._shm_in = ShmIn(self) if p["shm_images"] and not latched else None
         for v in views:
             self.subscribe(IMAGE, self.topics.pcm(v), lambda m, v=v: self._enqueue(self.asm.add_image(v, m)), depth=p["queue_depth"],
                            latched=latched)
+            if self._shm_in is not None:
+                self._shm_in.subscribe(self.topics.pcm(v), v, lambda m, v=v: self._enqueue(self.asm.add_image(v, m)),
+                                       depth=p["queue_depth"])
             self.subscribe(INFO, self.topics.pcm_info(v), lambda m, v=v: self._enqueue(self.asm.add_info(v, m)), depth=p["queue_depth"],
                            latched=latched)
         self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
@@ -161,6 +167,8 @@ class MarkersNode(VmocapNode):
 
     def close(self) -> None:
         self.timing.close()
+        if self._shm_in is not None:
+            self._shm_in.close()
         super().close()
 
     def _on_feedback(self, msg: dict) -> None:
@@ -186,6 +194,7 @@ class MarkersNode(VmocapNode):
         # `missing` includes the frame sets dropped from our own queue
         self.watch_dropped(self.counts["missing"], f"frame sets dropped or missing (stamps further apart than 1/{self.p['fps']:g} s)")
         return dict(self.counts, queued=len(self.queue), sync=st.as_dict(), silent=list(st.silent),
-                    rejected_frame_sets=self.asm.bad_views, presence={k: round(v, 3) for k, v in self.presence.items()},
+                    rejected_frame_sets=self.asm.bad_views,
+                    shared_memory=self._shm_in.status() if self._shm_in is not None else "off", presence={k: round(v, 3) for k, v in self.presence.items()},
                     **{f"residual_px:{k}": round(v, 1) for k, v in self.cameras.medians().items()})
 

@@ -14,7 +14,6 @@ from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.bag import check_binning
 from vmocap_core.cameras.flow import newest_only
-from vmocap_core.cameras.shm import FrameReader, ShmUnavailable
 from vmocap_core.cameras.sync import ApproximateSync
 from vmocap_core.errors import VmocapError
 from vmocap_core.method.camera_check import image_problem
@@ -24,6 +23,7 @@ from vmocap_core.pcm.assembly import channel_keypoints
 from vmocap_core.pcm.peaks import camera_keypoints
 from vmocap_core.pcm.views import blank_views
 
+from ..shm_link import ShmIn, ShmOut
 from ..transport import Output, Transport
 from .base import VmocapNode
 
@@ -52,21 +52,24 @@ class PcmNode(VmocapNode):
             self.subscribe(IMAGE, self.topics.image(name), lambda m, n=name: self._on_image(n, m), depth=max(2, p["queue_depth"]))
             self.subscribe(INFO, self.topics.camera_info(name), lambda m, n=name: self._on_info(n, m))
         # frames of a camera node in another process of this machine come through shared memory
-        self._shm: FrameReader | None = FrameReader() if p["shm_images"] else None
-        self.shm_received = 0
-        self.shm_off = ""  # why the references are not taken (another machine)
-        if self._shm is not None:
+        self._shm_in = ShmIn(self) if p["shm_images"] else None
+        if self._shm_in is not None:
             for name in names:
-                self.subscribe(IMAGE, self.topics.image_shm(name), lambda m, n=name: self._on_shm(n, m),
-                               depth=max(2, p["queue_depth"]))
+                self._shm_in.subscribe(self.topics.image(name), name, lambda m, n=name: self._on_image(n, m),
+                                       depth=max(2, p["queue_depth"]))
         self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
         # one view per camera exists from the start (publishers created late would lose their
         # first messages while discovery matches them); extra views (CAM_1...) come on demand
         # in lockstep the heatmaps are transient-local, as markers and feedback are: a view the
         # markers node matched late still gets its first heatmaps (one lost one stalls the loop)
         self._latched = bool(p["lockstep"])
+        # heatmaps for vmocap_markers nodes of this machine through shared memory (not in lockstep:
+        # a reference read late by a transient-local reader could find its slot written again)
+        self._hm_shm: dict[str, ShmOut] = {}
         for name in names:
             self._pubs[name] = self._view_publishers(name)
+        if self._hm_shm:
+            self.create_timer(0.5, self._check_shm)
         self._kp_pubs = {name: self.publisher(CLOUD, self.topics.pcm_keypoints(name)) for name in names}
         self._done = self.publisher(HEADER, self.topics.pcm_done)  # vmocap_camera's flow control
         self.frames = 0
@@ -79,10 +82,18 @@ class PcmNode(VmocapNode):
         if self.wait > 0:
             self.create_timer(min(0.02, self.wait / 2), self._check_timeout)
         self.cnn_times: deque[float] = deque(maxlen=9)  # recent seconds per frame set in the CNN
+        self.arrivals: deque[float] = deque(maxlen=9)  # recent seconds between frame sets' arrivals
+        self._last_arrival: float | None = None
         self.busy = False  # a frame set is in the inference thread
         self.worker = ThreadPoolExecutor(1, thread_name_prefix=self.get_name()) if p["inference_thread"] else None
 
+    def _check_shm(self) -> None:
+        for out in self._hm_shm.values():
+            out.check()
+
     def _view_publishers(self, view: str) -> tuple[Output, Output]:
+        if self.p["shm_images"] and not self._latched:
+            self._hm_shm[view] = ShmOut(self, self.topics.pcm(view))
         return (self.publisher(IMAGE, self.topics.pcm(view), latched=self._latched),
                 self.publisher(INFO, self.topics.pcm_info(view), latched=self._latched))
 
@@ -133,28 +144,15 @@ class PcmNode(VmocapNode):
     def _on_image(self, cam: str, msg: dict) -> None:
         t = M.stamp_ns(msg)
         for fs in self.sync.add(cam, t, M.image_array(msg)):
+            now = time.monotonic()
+            if self._last_arrival is not None:
+                self.arrivals.append(now - self._last_arrival)
+            self._last_arrival = now
             self.sets.append(fs)
             if len(self.sets) > self.p["queue_depth"]:
                 self.sets.popleft()
                 self.counts["queue_dropped"] += 1
         self._pump()
-
-    def _on_shm(self, cam: str, msg: dict) -> None:
-        if self._shm is None:
-            return
-        try:
-            data = self._shm.read(cam, msg["data"])
-        except ShmUnavailable as exc:  # the camera node then sends the pixels over DDS
-            self.shm_off = str(exc)
-            self.get_logger().info(f"images over DDS, not shared memory: {exc}")
-            for name in self.rig.names:
-                self.drop_subscription(self.topics.image_shm(name))
-            self._shm.close()
-            self._shm = None
-            return
-        if data is not None:
-            self.shm_received += 1
-            self._on_image(cam, dict(msg, data=data))
 
     def _check_timeout(self) -> None:
         if self.awaiting is not None and time.monotonic() - self.awaiting_since > self.wait:
@@ -169,7 +167,8 @@ class PcmNode(VmocapNode):
         With inference_thread the CNN runs beside the spin loop (onnxruntime releases the GIL),
         so camera frames, markers and skeleton of the previous frame set go on meanwhile."""
         while self.sets and self.awaiting is None and not self.busy:
-            if len(self.sets) > 1 and self.wait == 0 and newest_only(self.cnn_times, 1.0 / self.p["fps"]):
+            full = len(self.sets) > 1 and len(self.sets) >= self.p["queue_depth"]  # dropping at the queue already
+            if full and self.wait == 0 and newest_only(self.cnn_times, self.arrivals):
                 while len(self.sets) > 1:  # live and overloaded: the older ones would only add latency
                     self.sets.popleft()
                     self.counts["queue_dropped"] += 1
@@ -226,7 +225,10 @@ class PcmNode(VmocapNode):
                 self._pubs[view] = self._view_publishers(view)
             pi, pc = self._pubs[view]
             pc(info)
-            if data:
+            shm = self._hm_shm.get(view)
+            if data and shm is not None and shm.on:  # the maps into shared memory, a reference over DDS
+                shm.send(img)
+            elif data:
                 pi(img)
             else:
                 pi.send((img, None))  # to our nodes only
@@ -254,8 +256,10 @@ class PcmNode(VmocapNode):
             self._kp_pubs[n](M.image_keypoints_msg(stamp_ns, n, uv[c], w[c]))
 
     def close(self) -> None:
-        if self._shm is not None:
-            self._shm.close()
+        if self._shm_in is not None:
+            self._shm_in.close()
+        for out in self._hm_shm.values():
+            out.close()
         if self.worker is not None:
             self.worker.shutdown(wait=True, cancel_futures=True)
         super().close()
@@ -282,8 +286,7 @@ class PcmNode(VmocapNode):
         return dict(self.counts, frames=self.frames, bad_images=self.bad_images, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
                     queued=len(self.sets), precision=getattr(self.provider, "precision", "n/a"),
                     precision_reason=getattr(self.provider, "precision_reason", "n/a"),
-                    shared_memory=(self.shm_off and f"off: {self.shm_off}") or
-                    (self._shm is not None and {"received": self.shm_received, "overwritten": self._shm.overwritten,
-                                                "gone": self._shm.gone}) or "off",
+                    shared_memory=self._shm_in.status() if self._shm_in is not None else "off",
+                    heatmaps_shared_memory=bool(self._hm_shm) and all(o.on for o in self._hm_shm.values()),
                     others_in_view=max(others.values(), default=0),
                     others_in_view_by_camera=", ".join(f"{n}: {k}" for n, k in others.items() if k) or "none")
