@@ -43,7 +43,7 @@ class ShmOut:
     def send(self, msg: dict) -> None:
         """The message's pixels into the ring, the reference out (call only while `on`)."""
         data = msg["data"]
-        n = len(data) if isinstance(data, bytes) else memoryview(data).nbytes
+        n = memoryview(data).nbytes
         if self.ring is None or self.ring.capacity < n:  # the first message, or a larger one
             if self.ring is not None:
                 self.ring.close()

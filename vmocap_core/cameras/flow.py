@@ -34,21 +34,38 @@ def applies(cnn_answers: bool, local_takers: list[str], remote_takers: list[str]
             and all(n.startswith("vmocap_pcm") for n in remote_takers))
 
 
-OVERLOAD_MARGIN = 1.2  # newest_only: the CNN's time per frame set over this many arrival intervals
+OVERLOAD_MARGIN = 1.2  # CnnPace.behind: the CNN's time per frame set over this many arrival intervals
 
 
-def newest_only(cnn_times_s: "deque[float]", arrivals_s: "deque[float]") -> bool:
-    """Whether a CNN with these recent times per frame set should take only the newest of the
-    frame sets waiting for it, given the recent intervals between frame sets' arrivals: when it
-    is slower than they come it never catches up, so an older frame set taken first only ages
-    the output by the periods between them (and the newer one then waits a whole CNN run); a
-    CNN that is faster on the whole takes them in order and catches up after a slow frame set,
-    without dropping it. Arrivals, not the cameras' nominal rate: a replay paced slower than
-    recorded is no overload; and a margin, so that a CNN about as fast as the frame sets come
-    keeps taking them all. The caller asks only while its queue is full (dropping already): a
-    slow start (the detector's first runs) with room in the queue is caught up in order."""
-    return (len(cnn_times_s) >= 3 and len(arrivals_s) >= 3
-            and statistics.fmean(cnn_times_s) > OVERLOAD_MARGIN * statistics.fmean(arrivals_s))
+class CnnPace:
+    """The PCM node's view of whether its CNN keeps up: the recent intervals between frame
+    sets' arrivals and the CNN's recent times per frame set (the last 9 of each)."""
+
+    def __init__(self) -> None:
+        self.arrivals: deque[float] = deque(maxlen=9)
+        self.cnn_times: deque[float] = deque(maxlen=9)
+        self._last_arrival: float | None = None
+
+    def arrived(self, now_s: float) -> None:
+        if self._last_arrival is not None:
+            self.arrivals.append(now_s - self._last_arrival)
+        self._last_arrival = now_s
+
+    def finished(self, seconds: float) -> None:
+        self.cnn_times.append(seconds)
+
+    def newest_only(self, waiting: int, capacity: int) -> bool:
+        """Whether to take only the newest of the `waiting` frame sets (a queue of `capacity`):
+        when the CNN is slower than they come it never catches up, so an older frame set taken
+        first only ages the output by the periods between them (and the newer one then waits a
+        whole CNN run); a CNN that is faster on the whole takes them in order and catches up
+        after a slow frame set, without dropping it. Only while the queue is full (dropping
+        already): a slow start (the detector's first runs) with room left is caught up in order.
+        Arrivals, not the cameras' nominal rate: a replay paced slower than recorded is no
+        overload; and a margin, so that a CNN about as fast as the frame sets come keeps taking
+        them all."""
+        return (1 < waiting and capacity <= waiting and len(self.cnn_times) >= 3 and len(self.arrivals) >= 3
+                and statistics.fmean(self.cnn_times) > OVERLOAD_MARGIN * statistics.fmean(self.arrivals))
 
 
 class InFlight:

@@ -76,7 +76,7 @@ class FrameRing:
 
     def write(self, data: memoryview | bytes) -> bytes:
         """Copy one frame's bytes into the next slot; the reference (`Ref` bytes) to send."""
-        n = len(data) if isinstance(data, bytes) else data.nbytes
+        n = memoryview(data).nbytes
         if n > self.capacity:
             raise ValueError(f"a frame of {n} bytes does not fit a ring of {self.capacity}-byte slots")
         slot, self._next = self._next, (self._next + 1) % self.slots

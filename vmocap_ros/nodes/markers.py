@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 from collections import deque
 from typing import Any
@@ -62,16 +63,18 @@ class MarkersNode(VmocapNode):
         # from a vmocap_pcm in another process of this machine the maps come through shared memory
         self._shm_in = ShmIn(self) if p["shm_images"] and not latched else None
         for v in views:
-            self.subscribe(IMAGE, self.topics.pcm(v), lambda m, v=v: self._enqueue(self.asm.add_image(v, m)), depth=p["queue_depth"],
-                           latched=latched)
+            on_maps = functools.partial(self._on_maps, v)
+            self.subscribe(IMAGE, self.topics.pcm(v), on_maps, depth=p["queue_depth"], latched=latched)
             if self._shm_in is not None:
-                self._shm_in.subscribe(self.topics.pcm(v), v, lambda m, v=v: self._enqueue(self.asm.add_image(v, m)),
-                                       depth=p["queue_depth"])
+                self._shm_in.subscribe(self.topics.pcm(v), v, on_maps, depth=p["queue_depth"])
             self.subscribe(INFO, self.topics.pcm_info(v), lambda m, v=v: self._enqueue(self.asm.add_info(v, m)), depth=p["queue_depth"],
                            latched=latched)
         self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
         if self.timeout > 0:
             self.create_timer(min(0.02, self.timeout / 2), self._check_timeout)
+
+    def _on_maps(self, view: str, msg: dict) -> None:
+        self._enqueue(self.asm.add_image(view, msg))
 
     def _enqueue(self, pcms: list) -> None:
         for pcm in pcms:

@@ -13,7 +13,7 @@ import numpy as np
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.bag import check_binning
-from vmocap_core.cameras.flow import newest_only
+from vmocap_core.cameras.flow import CnnPace
 from vmocap_core.cameras.sync import ApproximateSync
 from vmocap_core.errors import VmocapError
 from vmocap_core.method.camera_check import image_problem
@@ -81,9 +81,7 @@ class PcmNode(VmocapNode):
         self.awaiting_since = 0.0
         if self.wait > 0:
             self.create_timer(min(0.02, self.wait / 2), self._check_timeout)
-        self.cnn_times: deque[float] = deque(maxlen=9)  # recent seconds per frame set in the CNN
-        self.arrivals: deque[float] = deque(maxlen=9)  # recent seconds between frame sets' arrivals
-        self._last_arrival: float | None = None
+        self.pace = CnnPace()  # whether the CNN keeps up with the frame sets
         self.busy = False  # a frame set is in the inference thread
         self.worker = ThreadPoolExecutor(1, thread_name_prefix=self.get_name()) if p["inference_thread"] else None
 
@@ -144,10 +142,7 @@ class PcmNode(VmocapNode):
     def _on_image(self, cam: str, msg: dict) -> None:
         t = M.stamp_ns(msg)
         for fs in self.sync.add(cam, t, M.image_array(msg)):
-            now = time.monotonic()
-            if self._last_arrival is not None:
-                self.arrivals.append(now - self._last_arrival)
-            self._last_arrival = now
+            self.pace.arrived(time.monotonic())
             self.sets.append(fs)
             if len(self.sets) > self.p["queue_depth"]:
                 self.sets.popleft()
@@ -167,8 +162,7 @@ class PcmNode(VmocapNode):
         With inference_thread the CNN runs beside the spin loop (onnxruntime releases the GIL),
         so camera frames, markers and skeleton of the previous frame set go on meanwhile."""
         while self.sets and self.awaiting is None and not self.busy:
-            full = len(self.sets) > 1 and len(self.sets) >= self.p["queue_depth"]  # dropping at the queue already
-            if full and self.wait == 0 and newest_only(self.cnn_times, self.arrivals):
+            if self.wait == 0 and self.pace.newest_only(len(self.sets), self.p["queue_depth"]):
                 while len(self.sets) > 1:  # live and overloaded: the older ones would only add latency
                     self.sets.popleft()
                     self.counts["queue_dropped"] += 1
@@ -237,7 +231,7 @@ class PcmNode(VmocapNode):
         if pcm.n_views == 0 and self.awaiting is not None:
             self.awaiting = None  # nothing published: no skeleton will answer this frame
         self.errors.pop("inference", None)
-        self.cnn_times.append(seconds)
+        self.pace.finished(seconds)
         self.frames += 1
         self.proc.add(1e3 * (seconds + time.perf_counter() - t0))
         self.record_age(fs.stamp_ns)
