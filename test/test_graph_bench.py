@@ -11,10 +11,10 @@ from graph_helpers import REPO, domain_env
 
 @pytest.mark.graph_replay
 def test_bench_graph_json(tmp_path):
-    env = domain_env(21)
+    env = {**domain_env(21), "TMPDIR": str(tmp_path)}  # no --workdir: its own temp dir must go at the end
     r = subprocess.run(
         [sys.executable, "-m", "vmocap_core.cli", "bench", "graph", "--json", "--seconds", "3", "--warmup", "1",
-         "--size", "320x240", "--frames", "10", "--workdir", str(tmp_path)],
+         "--size", "320x240", "--frames", "10"],
         env=env, cwd=REPO, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-4000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
@@ -32,3 +32,4 @@ def test_bench_graph_json(tmp_path):
         assert 0.0 <= m["tracking_pct"] <= 100.0  # a 10-frame loop jumps back: tracking is not the point here
         assert m["precision"] == "n/a"  # heatmaps from the bag: no CNN
     assert out["offline_ms_per_frame"] > 0
+    assert not list(tmp_path.glob("vmocap_bench_graph_*")), "the benchmark left its ~180 MB work folder behind"

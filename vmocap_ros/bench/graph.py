@@ -62,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scaling", action="store_true",
                         help="also the default mode on 1 and 2 cores (taskset) with 2, 4 and 6 cameras (--images pose2sim: "
                              "cameras beyond the 4 videos repeat them), to size a machine")
-    parser.add_argument("--workdir", default=None, help="where the bag and configs go (default: a temp dir)")
+    parser.add_argument("--workdir", default=None, help="where the bag and configs go, kept (default: a temp dir, removed at the end)")
     parser.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
                         help="a parameter of the benchmarked graph (e.g. vmocap_pcm.inference_thread=false)")
 
@@ -190,9 +190,16 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.workdir:
+        work = Path(args.workdir)
+        work.mkdir(parents=True, exist_ok=True)
+        return _run(args, work)
+    # a temp dir of our own goes when we are done: each run writes a ~180 MB bag there
+    with tempfile.TemporaryDirectory(prefix="vmocap_bench_graph_") as tmp:
+        return _run(args, Path(tmp))
 
-    work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="vmocap_bench_graph_"))
-    work.mkdir(parents=True, exist_ok=True)
+
+def _run(args: argparse.Namespace, work: Path) -> int:
     if not args.json:
         print(f"bench graph: preparing the bag in {work} ...", file=sys.stderr)
     if args.images == "pose2sim":
