@@ -42,22 +42,43 @@ def _arm_errors(solver: Any, err: Any) -> dict[str, float]:
             for side, p in (("r", "R"), ("l", "L"))}
 
 
+def _objective(solver: Any, err: Any, weights: dict[str, float]) -> float:
+    """IK's weighted sum of squared marker errors (m^2) in the current pose."""
+    solver.computeCurrentMarkerErrors(err)
+    return float(np.nansum([weights.get(solver.getMarkerNameForIndex(k), 0.0) * err.getElt(k) ** 2 for k in range(err.size())]))
+
+
+def _pose(state: Any, coords: Any) -> list[float]:
+    return [coords.get(j).getValue(state) for j in range(coords.getSize())]
+
+
+def _set_pose(state: Any, coords: Any, q: list[float]) -> None:
+    for j, v in enumerate(q):
+        coords.get(j).setValue(state, v, False)
+
+
 def _assemble_arms(solver: Any, state: Any, coords: Any, err: Any) -> None:
     """Assemble from the current pose and from several guesses of each arm's axial rotation and
     elbow flexion, and keep, per arm, the one that fits its elbow and wrist markers best: with
     markers on joint centres, an elbow that straightens leaves the arm's axial rotation free, and
     IK may come out of it with the arm turned away and the elbow held straight (its range), a
-    pose it then tracks on from (30-45 mm off at the elbow where the right one fits within 10)."""
+    pose it then tracks on from (30-45 mm off at the elbow where the right one fits within 10).
+    Every guess starts from the current pose of the rest of the body: an assembly moves the
+    whole body, and one started from the last guess's result can land the legs and pelvis on
+    another branch (a high kick's first frame after a gap: 12 -> 24 mm)."""
+    start = _pose(state, coords)
     guesses = [tuple(coords.get(f"{c}_{side}").getValue(state) for side in "rl" for c in ("arm_rot", "elbow_flex"))]
     guesses += [(rot, flex, rot, flex) for rot, flex in ARM_GUESSES]
     fits: dict[str, list[tuple[float, float, float]]] = {"r": [], "l": []}
     for guess in guesses:
+        _set_pose(state, coords, start)
         for k, side in enumerate("rl"):
             coords.get(f"arm_rot_{side}").setValue(state, guess[2 * k], False)
             coords.get(f"elbow_flex_{side}").setValue(state, guess[2 * k + 1], False)
         solver.assemble(state)
         for side, e in _arm_errors(solver, err).items():
             fits[side].append((e, coords.get(f"arm_rot_{side}").getValue(state), coords.get(f"elbow_flex_{side}").getValue(state)))
+    _set_pose(state, coords, start)
     for side in "rl":
         _, rot, flex = min(fits[side], key=lambda f: f[0])
         coords.get(f"arm_rot_{side}").setValue(state, rot, False)
@@ -98,7 +119,14 @@ def inverse_kinematics(osim: Any, setup: IKWeights, model_path: Path, trc: Path,
             state.setTime(float(times[i]))
             solver.track(state)
             if max(_arm_errors(solver, err).values()) > ARM_RETRY_M2:
+                # A fresh assembly moves the whole body and can land on another branch of the
+                # legs and pelvis (a high kick: 17 -> 51 mm): kept only where it fits better.
+                tracked = _pose(state, coords)
+                before = _objective(solver, err, setup.marker_weights)
                 _assemble_arms(solver, state, coords, err)
+                if _objective(solver, err, setup.marker_weights) > before:
+                    _set_pose(state, coords, tracked)
+                    solver.track(state)
             Q[i] = [coords.get(j).getValue(state) for j in range(C)]
             solver.computeCurrentMarkerErrors(err)
             e = np.array([err.getElt(k) for k in range(err.size())])
