@@ -101,3 +101,49 @@ def test_offline_identification_from_confident_markers() -> None:
     assert confident(markers, weights, 0.0) is markers
     with pytest.raises(ConfigError):
         PipelineConfig.from_dict({"offline_identify_quantile": 1.0})
+
+
+def test_offline_segments_bridge_a_few_uncertain_frame_sets_only() -> None:
+    """offline_bridge_frames: up to that many frame sets in a row that the images disagreed with
+    ("uncertain") stay inside one segment; a longer run, another status or missing frame sets
+    (a stamp jump) still end it."""
+    from vmocap_core.method.offline import segments
+
+    stamps = np.arange(20, dtype=np.int64) * 16_666_667
+    tracked = np.ones(20, bool)
+    tracked[[5, 10, 11, 12, 13]] = False
+    uncertain = ~tracked
+    assert segments(stamps, tracked) == [slice(0, 5), slice(6, 10), slice(14, 20)]
+    assert segments(stamps, tracked, uncertain, 3) == [slice(0, 10), slice(14, 20)]
+    assert segments(stamps, tracked, uncertain, 4) == [slice(0, 20)]
+    lost = uncertain.copy()
+    lost[5] = False  # lost, not uncertain: the tracker started over there
+    assert segments(stamps, tracked, lost, 3) == [slice(0, 5), slice(6, 10), slice(14, 20)]
+    jumped = stamps.copy()
+    jumped[6:] += 100_000_000  # frame sets missing after the uncertain one
+    assert segments(jumped, tracked, uncertain, 3) == [slice(0, 5), slice(6, 10), slice(14, 20)]
+
+
+def test_offline_keeps_a_bridged_uncertain_frame_set_a_gap(walk) -> None:
+    """One uncertain frame set inside a track: its neighbours are tracked and smoothed as one
+    segment, the frame set itself is output as it came (uncertain, nothing interpolated). Split
+    there (offline_bridge_frames 0), the second segment starts afresh: the keypoints jump (81 mm
+    beyond the true motion on this clip) where bridged they move with the body (7 mm)."""
+    from vmocap_core.method.offline import reconstruct
+    from vmocap_core.method.pipeline import Pipeline
+    from vmocap_core.pcm.synthetic import SyntheticPcmSource, benchmark_rig
+
+    rig = benchmark_rig(np.nanmean(walk.positions[:, 0], axis=0))
+    src = SyntheticPcmSource(rig, walk.positions, walk.present, seed=0)
+    tracker = Pipeline(rig, PipelineConfig.of(fps=RATE_HZ))
+    live = [tracker.step(src.render(t)).skeleton for t in range(len(walk.positions))]
+    k = next(t for t in range(60, len(live)) if live[t - 1].status == live[t].status == live[t + 1].status == "tracking")
+    live[k] = dataclasses.replace(live[k], status="uncertain")
+    truth = np.linalg.norm(walk.positions[k + 1] - walk.positions[k - 1], axis=1)
+    steps = {}
+    for bridge in (0, 3):
+        out = reconstruct(live, PipelineConfig.of(fps=RATE_HZ, offline=True, offline_bridge_frames=bridge).skeleton)
+        assert out[k].status == "uncertain" and out[k - 1].status == out[k + 1].status == "tracking", bridge
+        assert out[k] is live[k]
+        steps[bridge] = np.nanmax(np.linalg.norm(out[k + 1].keypoints - out[k - 1].keypoints, axis=1) - truth)
+    assert steps[3] < 0.02 and steps[0] > 2 * steps[3], steps

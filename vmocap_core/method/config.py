@@ -128,6 +128,10 @@ class SkeletonConfig(_Stage):
     offline_ik_iterations: int = 3
     offline_ik_prior_weight: float = 5e-4  # weaker than live: the smoother does the prior's work
     offline_second_ik_iterations: int = 3
+    # At most this many frame sets in a row that the images disagreed with ("uncertain") inside
+    # a track do not end its segment: they stay gaps in the output, but the smoother carries the
+    # motion across them (0: every such frame set ends a segment).
+    offline_bridge_frames: int = 3
     # Identification from confident markers only: each keypoint's markers whose weight reaches
     # this quantile of its weights over the recording (0: every marker). On rendered images with
     # the real CNN 0.75 identifies better (docs/image_benchmark.md); on the synthetic noise
@@ -189,8 +193,9 @@ class SkeletonConfig(_Stage):
             raise ConfigError(f"filter_kind must be 'one_euro' or 'butterworth', not {self.filter_kind!r}")
         if self.smoothing_lag_frames < 0 or self.offline_smoother not in ("rts", "gaussian"):
             raise ConfigError("smoothing_lag_frames must be >= 0, offline_smoother 'rts' or 'gaussian'")
-        if self.offline_ik_iterations < 1 or self.offline_second_ik_iterations < 1 or self.offline_ik_prior_weight < 0:
-            raise ConfigError("offline IK iterations must be >= 1 and the prior weight >= 0")
+        if (self.offline_ik_iterations < 1 or self.offline_second_ik_iterations < 1 or self.offline_ik_prior_weight < 0
+                or self.offline_bridge_frames < 0):
+            raise ConfigError("offline IK iterations must be >= 1, the prior weight and offline_bridge_frames >= 0")
         if not 0 <= self.offline_identify_quantile < 1:
             raise ConfigError("offline_identify_quantile must lie in [0, 1)")
         from .landmarks import LandmarkError, load_landmarks

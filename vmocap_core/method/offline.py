@@ -7,7 +7,8 @@ virtual markers and weights are kept. Then, on the whole recording:
    `offline_identify_quantile`): medians over thousands of frames instead of the live 0.5 s,
    so the link lengths are robust to outliers;
    the waist height is chosen by the mean fit over frames spread through the recording;
-2. per tracked segment (a gap or re-initialization ends one; nothing is interpolated across):
+2. per tracked segment (a gap or re-initialization ends one; nothing is interpolated across;
+   up to `offline_bridge_frames` frame sets the images disagreed with stay gaps inside one):
    first IK (II-E) of the identified skeleton to the markers, forward;
 3. a Rauch-Tung-Striebel smoother (smoothing.py) of the first IK's keypoints, forward and
    backward over the segment (no lag);
@@ -97,9 +98,10 @@ def identify_subject(frames: np.ndarray, max_fit_error_m: float, n_fit: int = 16
     return refine_offsets(sk, sub, q0)
 
 
-def _first_ik(sk: Skeleton, markers: np.ndarray, weights: np.ndarray, config: SkeletonConfig,
+def _first_ik(sk: Skeleton, markers: np.ndarray, weights: np.ndarray, data: np.ndarray, config: SkeletonConfig,
               bar: tqdm) -> tuple[np.ndarray, np.ndarray]:
-    """Forward first IK over one segment: (q (T, nq), keypoints (T, 25, 3))."""
+    """Forward first IK over one segment: (q (T, nq), keypoints (T, 25, 3)); frames that are not
+    `data` (T,) keep the last pose and have NaN keypoints: no measurement for the smoother."""
     T = len(markers)
     w0 = np.where(np.isfinite(markers[0]).all(axis=1), weights[0], 0.0)
     q = solve_ik(sk, initial_pose(sk, markers[0]), markers[0], w0, 60, damping=1e-2, regularization=1e-6,
@@ -107,6 +109,9 @@ def _first_ik(sk: Skeleton, markers: np.ndarray, weights: np.ndarray, config: Sk
     qs, kps = np.empty((T, len(q))), np.empty((T, N_KP, 3))
     prior_w = config.offline_ik_prior_weight * (config.fps / 60.0) ** 2
     for t in range(T):
+        if not data[t]:
+            qs[t], kps[t] = q, np.nan
+            continue
         r = solve_ik(sk, q, markers[t], weights[t], config.offline_ik_iterations, damping=config.ik_damping,
                      regularization=config.ik_regularization, prior=q if prior_w > 0 else None, prior_weight=prior_w)
         q = r.q
@@ -124,6 +129,9 @@ def _second_ik(sk: Skeleton, targets: np.ndarray, q_first: np.ndarray, config: S
     qs, kps = np.empty_like(q_first), np.empty_like(targets)
     q = q_first[0]
     for t in range(T):
+        if not np.isfinite(targets[t]).all():  # a bridged gap: no output there
+            qs[t], kps[t] = q, np.nan
+            continue
         r = solve_ik(sk, q, targets[t], ones, config.offline_second_ik_iterations, damping=config.ik_damping,
                      regularization=config.ik_regularization)
         if r.cost > config.second_ik_restart_m**2:
@@ -136,9 +144,11 @@ def _second_ik(sk: Skeleton, targets: np.ndarray, q_first: np.ndarray, config: S
     return qs, kps
 
 
-def segments(stamps_ns: np.ndarray, tracked: np.ndarray) -> list[slice]:
+def segments(stamps_ns: np.ndarray, tracked: np.ndarray, bridgeable: np.ndarray | None = None,
+             bridge: int = 0) -> list[slice]:
     """Runs of tracked frames, also split where frame sets are missing (a stamp step over 1.5
-    frame periods): the smoother must not bridge a gap."""
+    frame periods): the smoother must not bridge a gap. Runs apart by at most `bridge` frames,
+    all `bridgeable`, are one segment (the frames between are not tracked: no data)."""
     if len(stamps_ns) > 1:
         dt = np.diff(stamps_ns)
         jump = np.concatenate([[False], dt > 1.5 * np.median(dt)])
@@ -148,7 +158,17 @@ def segments(stamps_ns: np.ndarray, tracked: np.ndarray) -> list[slice]:
     for seg in runs(tracked):
         cuts = [seg.start] + [int(i) for i in np.flatnonzero(jump[seg.start + 1:seg.stop]) + seg.start + 1] + [seg.stop]
         out += [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
-    return out
+    if bridgeable is None or bridge <= 0:
+        return out
+    merged: list[slice] = []
+    for seg in out:
+        prev = merged[-1] if merged else None
+        if (prev is not None and 0 < seg.start - prev.stop <= bridge and bridgeable[prev.stop:seg.start].all()
+                and not jump[prev.stop:seg.start + 1].any()):
+            merged[-1] = slice(prev.start, seg.stop)
+        else:
+            merged.append(seg)
+    return merged
 
 
 def tracked_frames(status: Sequence[str], stamps_ns: np.ndarray) -> np.ndarray:
@@ -186,14 +206,17 @@ def identify_and_reconstruct(results: Sequence[TrackResult], config: SkeletonCon
     out = list(results)
     names = results[0].joint_names
     lengths = sk.dims.bone_lengths()
-    segs = segments(np.array([r.stamp_ns for r in results], dtype=np.int64), tracked)
+    uncertain = np.array([r.status == "uncertain" for r in results])
+    segs = segments(np.array([r.stamp_ns for r in results], dtype=np.int64), tracked, uncertain, config.offline_bridge_frames)
     bar = tqdm(total=2 * int(tracked.sum()), desc="offline IK", unit="frame", disable=not progress, leave=False)
     for seg in segs:
         m, w = markers[seg], weights[seg]
-        q1, kp1 = _first_ik(sk, m, w, config, bar)
-        smooth = smooth_keypoints(kp1, config)
+        q1, kp1 = _first_ik(sk, m, w, tracked[seg], config, bar)
+        smooth = np.where(tracked[seg][:, None, None], smooth_keypoints(kp1, config), np.nan)
         q2, kp2 = _second_ik(sk, smooth, q1, config, bar)
         for i, t in enumerate(range(seg.start, seg.stop)):
+            if not tracked[t]:
+                continue  # a bridged gap keeps its input (uncertain) result
             r = results[t]
             out[t] = TrackResult(r.stamp_ns, "tracking", sk.to_angles(q2[i]), names, kp2[i], kp1[i], r.scores,
                                  r.markers, lengths, sk.dims, confidence=r.confidence)
