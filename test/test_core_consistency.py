@@ -141,22 +141,26 @@ def _blank(pcm: PcmViews, views: list[int]) -> PcmViews:
 
 def test_one_bad_frame_set_does_not_flip_the_status():
     """Hysteresis: two frame sets where half the views' maps are flat (agreement 0.5, between
-    check_fail_agreement and check_min_agreement), then consistent maps again: tracking
-    throughout. One frame set that every view contradicts: uncertain at once, tracking again
-    after check_recover_frames."""
+    check_fail_agreement and check_min_agreement), then consistent maps again: the verdict
+    stays tracking throughout (the markers' own weight rule off). With it on, those two frame
+    sets weigh half the track's and are not output, and the next one is. One frame set that
+    every view contradicts: uncertain at once, tracking again after check_recover_frames."""
     m = _motion()
     rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
     true = SyntheticPcmSource(rig, m.positions, m.present, seed=3, noise=CLEAN)
     aside = SyntheticPcmSource(rig, m.positions + np.array([0.0, 0.0, 0.4]), m.present, seed=3, noise=CLEAN)
-    tracker = Pipeline(rig, PipelineConfig.of(fps=60.0))
-    agreement = []
-    statuses = []
-    for t in range(120):
-        res = tracker.step(_blank(true.render(t), [2, 3]) if t in (90, 91) else true.render(t))
-        statuses.append(res.status)
-        agreement.append(res.markers.check.agreement if res.markers.check is not None else None)
-    assert statuses[60:] == ["tracking"] * 60
-    assert agreement[91] == agreement[92] == 0.5
+    for ratio in (0.0, None):
+        cfg = PipelineConfig.of(fps=60.0) if ratio is None else PipelineConfig.of(fps=60.0, check_min_weight_ratio=ratio)
+        tracker = Pipeline(rig, cfg)
+        agreement = []
+        statuses = []
+        for t in range(120):
+            res = tracker.step(_blank(true.render(t), [2, 3]) if t in (90, 91) else true.render(t))
+            statuses.append(res.status)
+            agreement.append(res.markers.check.agreement if res.markers.check is not None else None)
+        held = [] if ratio == 0.0 else [90, 91]
+        assert [t for t in range(60, 120) if statuses[t] != "tracking"] == held, (ratio, statuses[85:])
+        assert agreement[91] == agreement[92] == 0.5
     tracker = Pipeline(rig, PipelineConfig.of(fps=60.0))
     statuses = [tracker.step(aside.render(t) if t == 90 else true.render(t)).status for t in range(100)]
     # frame set 90's own markers find nothing two cameras hold (the body is 40 cm off the
@@ -215,3 +219,37 @@ def test_verdict_reads_the_support_of_the_fed_back_skeleton():
     legacy = ViewCheck(half.confidence, half.disagree)
     v = verdict()
     assert legacy.support is None and [v.update(legacy) for _ in range(3)] == ["ok"] * 3
+
+
+def _faded(pcm: PcmViews, factor: float) -> PcmViews:
+    """The PCMs with every view's maps scaled down: the body still where it is, its maps fading."""
+    return PcmViews(pcm.maps * factor, pcm.image_to_map, pcm.camera, pcm.keypoints, pcm.valid, pcm.presence, pcm.stamp_ns)
+
+
+def test_fading_maps_are_not_output_and_a_stopped_camera_is_not_fading():
+    """From frame set 90 to 92 every view's maps hold 0.4 of their height (a body turning over,
+    the CNN losing it everywhere at once): the markers weigh ~0.4 of the track's recent median,
+    below check_min_weight_ratio (0.55), so those frame sets are not output and the WARN says
+    why; the frame set after them is output again. From 100 on camera 3's maps are flat (a
+    covered camera): a quarter of the weight, tracking goes on."""
+    from vmocap_core.method.consistency import WeightTrend
+
+    m = _motion()
+    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
+    true = SyntheticPcmSource(rig, m.positions, m.present, seed=5, noise=CLEAN)
+    tracker = Pipeline(rig, PipelineConfig.of(fps=60.0))
+    statuses = []
+    for t in range(130):
+        pcm = true.render(t)
+        pcm = _faded(pcm, 0.4) if 90 <= t < 93 else _blank(pcm, [3]) if t >= 100 else pcm
+        statuses.append(tracker.step(pcm).status)
+        if t == 90:
+            text = tracker.skeleton.warning("uncertain", rig.names)
+            assert text is not None and "fading" in text, text
+    assert statuses[60:90] == ["tracking"] * 30, statuses[55:]
+    assert statuses[90:93] == ["uncertain"] * 3 and statuses[93:] == ["tracking"] * 37, statuses[85:]
+    off = Pipeline(rig, PipelineConfig.of(fps=60.0, check_min_weight_ratio=0.0))
+    assert [off.step(_faded(true.render(t), 0.4) if 90 <= t < 93 else true.render(t)).status
+            for t in range(95)][90:93] == ["tracking"] * 3
+    trend = WeightTrend(30)
+    assert trend.ratio(np.ones(25), None) is None  # no check: not judged

@@ -170,6 +170,12 @@ class SkeletonConfig(_Stage):
     # frame sets agreed with its skeleton (the first check of a new skeleton is the next frame
     # set's); 0: output from its first frame set.
     check_confirm_frames: int = 1
+    # A frame set whose markers weigh less than this share of the track's median over its last
+    # `check_weight_window` frame sets (mean weight of the keypoints seen) is not output: the
+    # CNN's maps fading, or the crops losing the body in several cameras at once, as a body
+    # turns over while the tracker still follows what is left (0: off).
+    check_min_weight_ratio: float = 0.55
+    check_weight_window: int = 30
 
     def validate(self) -> None:
         from .filter import make_filter, smoother_model
@@ -182,6 +188,8 @@ class SkeletonConfig(_Stage):
             raise ConfigError("check_uncertain_frames, check_fail_frames, check_recover_frames and check_lost_frames must be >= 1")
         if self.check_confirm_frames < 0:
             raise ConfigError("check_confirm_frames must be >= 0")
+        if not 0 <= self.check_min_weight_ratio < 1 or self.check_weight_window < 2:
+            raise ConfigError("check_min_weight_ratio must lie in [0, 1) and check_weight_window be >= 2")
 
         if self.fps <= 0 or self.identify_seconds < 0:
             raise ConfigError("fps must be positive and identify_seconds >= 0")

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..keypoints import INDEX
 from .config import SkeletonConfig
-from .consistency import RESUME_GAP_S, Verdict, ViewCheck
+from .consistency import RESUME_GAP_S, Verdict, ViewCheck, WeightTrend
 from .filter import make_filter, smoother_model
 from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
@@ -59,6 +59,8 @@ class SkeletonStage:
         self.init_problem: str | None = None  # why the last skeleton fit failed (init_report.py)
         self.disagreement: ViewCheck | None = None  # the check behind an "uncertain" or check-"lost" step
         self.unsupported: float | None = None  # the markers' support behind an "uncertain" step (below check_min_support)
+        self.weights = WeightTrend(cfg.check_weight_window)
+        self.faded: float | None = None  # the markers' weight ratio behind an "uncertain" step (below check_min_weight_ratio)
         self._last_stamp: int | None = None
         # The skeleton identified for the subject: kept when the subject is lost, so that finding
         # it again needs no new identification phase (II-C identifies a body once).
@@ -81,6 +83,7 @@ class SkeletonStage:
             self._lag.reset()
         self._delayed.clear()
         self.verdict.reset()
+        self.weights.reset()
         self.status = "initializing"
 
     def warning(self, status: str, names: list[str]) -> str | None:
@@ -92,10 +95,14 @@ class SkeletonStage:
         if self.unsupported is not None:
             return (f"{status}: {self.unsupported:.0%} of this frame set's markers are held by two cameras or more "
                     f"(check_min_support {cfg.check_min_support:.0%}), this frame set is not output")
+        if self.faded is not None:
+            return (f"{status}: this frame set's markers weigh {self.faded:.0%} of the track's recent median "
+                    f"(check_min_weight_ratio {cfg.check_min_weight_ratio:.0%}): the CNN's maps are fading, "
+                    "this frame set is not output")
         return None
 
     def step(self, markers: Markers) -> TrackResult:
-        self.disagreement = self.unsupported = None
+        self.disagreement = self.unsupported = self.faded = None
         if markers.kind == "lattice" and self.skeleton is not None:
             # markers again after frame sets without any (every view covered, or none came for
             # RESUME_GAP_S): the skeleton is the one from before, so the output waits for the
@@ -114,6 +121,10 @@ class SkeletonStage:
                 # this frame set's own markers, most of them seen by one camera only: the skeleton
                 # fitted to them is not output, the track goes on (the next check decides)
                 verdict, self.unsupported = "uncertain", support
+            ratio = self.weights.ratio(markers.weights, markers.check)
+            if verdict == "ok" and self.verdict.min_agreement > 0 and ratio is not None \
+                    and ratio < self.config.check_min_weight_ratio:
+                verdict, self.faded = "uncertain", ratio
             if verdict == "lost":  # the images disagreed for check_lost_frames: start over
                 self.reset()
                 self.status = "lost"
