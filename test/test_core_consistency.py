@@ -27,6 +27,13 @@ def _motion():
     return m
 
 
+def _walk_maps(seed: int):
+    """The walk, its rig and clean synthetic PCMs of it."""
+    m = _motion()
+    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
+    return m, rig, SyntheticPcmSource(rig, m.positions, m.present, seed=seed, noise=CLEAN)
+
+
 def test_check_agrees_with_consistent_maps_and_names_a_displaced_keypoint():
     m = _motion()
     rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
@@ -173,9 +180,7 @@ def test_a_body_one_camera_holds_is_not_output():
     """From frame set 90 only camera 0's maps show the body (the other three flat): its lattice
     markers are held by one camera's rays, so that very frame set is not output (the check of
     the fed-back skeleton comes one frame set later), nor any after it, and the WARN says why."""
-    m = _motion()
-    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
-    true = SyntheticPcmSource(rig, m.positions, m.present, seed=4, noise=CLEAN)
+    _, rig, true = _walk_maps(4)
     tracker = Pipeline(rig, PipelineConfig.of(fps=60.0))
     statuses = []
     for t in range(100):
@@ -234,9 +239,7 @@ def test_fading_maps_are_not_output_and_a_stopped_camera_is_not_fading():
     covered camera): a quarter of the weight, tracking goes on."""
     from vmocap_core.method.consistency import WeightTrend
 
-    m = _motion()
-    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
-    true = SyntheticPcmSource(rig, m.positions, m.present, seed=5, noise=CLEAN)
+    _, rig, true = _walk_maps(5)
     tracker = Pipeline(rig, PipelineConfig.of(fps=60.0))
     statuses = []
     for t in range(130):
