@@ -127,7 +127,7 @@ def inverse_kinematics(osim: Any, setup: IKWeights, model_path: Path, trc: Path,
                 if _objective(solver, err, setup.marker_weights) > before:
                     _set_pose(state, coords, tracked)
                     solver.track(state)
-            Q[i] = [coords.get(j).getValue(state) for j in range(C)]
+            Q[i] = _pose(state, coords)
             solver.computeCurrentMarkerErrors(err)
             e = np.array([err.getElt(k) for k in range(err.size())])
             sq[i, : e.size] = e**2

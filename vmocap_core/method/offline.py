@@ -120,16 +120,16 @@ def _first_ik(sk: Skeleton, markers: np.ndarray, weights: np.ndarray, data: np.n
     return qs, kps
 
 
-def _second_ik(sk: Skeleton, targets: np.ndarray, q_first: np.ndarray, config: SkeletonConfig,
+def _second_ik(sk: Skeleton, targets: np.ndarray, q_first: np.ndarray, data: np.ndarray, config: SkeletonConfig,
                bar: tqdm) -> tuple[np.ndarray, np.ndarray]:
     """Second IK to the smoothed keypoints (warm start; restart from the first IK's pose when
-    the fit stays poor, as the live stage does)."""
+    the fit stays poor, as the live stage does); frames that are not `data` are skipped."""
     T = len(targets)
     ones = np.ones(N_KP)
     qs, kps = np.empty_like(q_first), np.empty_like(targets)
     q = q_first[0]
     for t in range(T):
-        if not np.isfinite(targets[t]).all():  # a bridged gap: no output there
+        if not data[t]:  # a bridged gap: no output there
             qs[t], kps[t] = q, np.nan
             continue
         r = solve_ik(sk, q, targets[t], ones, config.offline_second_ik_iterations, damping=config.ik_damping,
@@ -212,8 +212,7 @@ def identify_and_reconstruct(results: Sequence[TrackResult], config: SkeletonCon
     for seg in segs:
         m, w = markers[seg], weights[seg]
         q1, kp1 = _first_ik(sk, m, w, tracked[seg], config, bar)
-        smooth = np.where(tracked[seg][:, None, None], smooth_keypoints(kp1, config), np.nan)
-        q2, kp2 = _second_ik(sk, smooth, q1, config, bar)
+        q2, kp2 = _second_ik(sk, smooth_keypoints(kp1, config), q1, tracked[seg], config, bar)
         for i, t in enumerate(range(seg.start, seg.stop)):
             if not tracked[t]:
                 continue  # a bridged gap keeps its input (uncertain) result
