@@ -65,6 +65,7 @@ def process_bag(
     binning: int = 1,
     overwrite: bool = False,
     inputs: Iterable[str | Path] = (),
+    max_people: int = 1,
 ) -> dict[str, Any]:
     """Run the pipeline over the PCM topics of a bag (or, when it has none, over its camera
     images with the CNN `model`, or the given PCM `provider`); write the graph's outputs to
@@ -73,7 +74,9 @@ def process_bag(
     CNN cuts its crops from them (ModelPcmProvider's binning): for subjects whose crops span
     more than binning x the CNN's 256 px, the same crops for a fraction of the decoding.
     out_path is never one of in_path and `inputs` (rig, config); an existing out_path is
-    replaced only with `overwrite` (vmocap_core.files)."""
+    replaced only with `overwrite` (vmocap_core.files).
+    max_people > 1: everyone in view up to that many, from images (method/people_tracker.py);
+    the subject topics follow the first of them, every person is a REP-155 body (outputs/people.py)."""
     from tqdm import tqdm
 
     from ..files import check_output
@@ -84,6 +87,10 @@ def process_bag(
     cfg = config if isinstance(config, PipelineConfig) else PipelineConfig.from_dict(config)
     # Offline: the live pass without lag; its results are kept for the whole-recording pass.
     offline = cfg.skeleton.offline
+    if max_people < 1:
+        raise BagError(f"max_people {max_people}: at least 1")
+    if max_people > 1 and offline:
+        raise BagError("several people (max_people > 1) are tracked live only: without --offline")
     live_cfg = cfg.replace(smoothing_lag_frames=0) if offline else cfg
     topics = Topics(namespace)
     stats: dict[str, Any] = {"frames": 0, "tracking": 0, "seconds": 0.0}
@@ -92,6 +99,8 @@ def process_bag(
     with BagReader(in_path, recover=recover) as reader:
         view_names = pcm_topics(reader.topics, topics, views)
         frames: Iterator[PcmViews | ImageSet]
+        if view_names and max_people > 1:
+            raise BagError(f"{in_path}: several people (max_people {max_people}) need the camera images, the bag has PCMs")
         if view_names:
             pipe = Pipeline(rig, live_cfg)
             frames, total, sync_stats = _pcm_frame_sets(reader, rig, topics, view_names, channel_keypoints(keypoints),
@@ -113,6 +122,7 @@ def process_bag(
             stats["bad_images"] = {c: 0 for c in cams}
             frames, total, sync_stats = _image_frame_sets(reader, rig, topics, cams, max(tolerance_ns, 8_000_000),
                                                           min_views, binning, recorded, stats["bad_images"])
+        people = _people(pipe, rig, live_cfg, max_people, topics.ns) if max_people > 1 else None
         warm_up = getattr(pipe.pcm, "warm_up", None)
         if warm_up is not None:  # the CNN's first run allocates and picks kernels: start-up, as in vmocap_pcm
             warm_up()
@@ -124,7 +134,16 @@ def process_bag(
             for frame in tqdm(frames, total=total, unit="frame", desc="process", disable=not progress, file=sys.stderr):
                 stamps.append(frame.stamp_ns)
                 t0 = time.perf_counter()
-                res = pipe.step(frame)
+                if people is None:
+                    res = pipe.step(frame)
+                else:
+                    first = people.step(frame, writer, stats)
+                    stats["seconds"] += time.perf_counter() - t0
+                    if first is None:  # nobody in view: the subject topics say nothing
+                        stats["frames"] += 1
+                        continue
+                    res = first
+                    t0 = time.perf_counter()
                 stats["seconds"] += time.perf_counter() - t0
                 tracked_any = tracked_any or res.status == "tracking"
                 if len(stamps) <= OFFSET_WINDOW:  # the cameras' 2D keypoints of the first frame sets
@@ -172,6 +191,45 @@ def process_bag(
                                  for o in offsets}
         stats["out_of_step"] = [o.describe(fps) for o in offsets if o.out_of_step]
     return stats
+
+
+class _People:
+    """process_bag with several people: the tracker, its REP-155 outputs into the bag."""
+
+    def __init__(self, tracker: Any, outputs: Any) -> None:
+        self.tracker, self.outputs = tracker, outputs
+
+    def step(self, frame: ImageSet, writer: BagWriter, stats: dict[str, Any]) -> FrameResult | None:
+        images: list[np.ndarray | None] = [None] * len(self.tracker.rig)
+        for c, image in zip(frame.cameras, frame.images):
+            images[int(c)] = image
+        people = self.tracker.step(images, frame.stamp_ns)
+        hri = self.outputs.step(people)
+        for ch in hri.opened:
+            writer.add_topic(ch.topic, ch.type, latched=ch.latched)
+        for topic, ty, msg in hri.messages:
+            writer.write(topic, ty, msg, frame.stamp_ns)
+        tracked = sum(p.status == "tracking" for p in people.people)
+        stats["people_max"] = max(stats.get("people_max", 0), tracked)
+        stats["people_ended"] = stats.get("people_ended", 0) + len(people.ended)
+        with_body = [p for p in people.people if p.last is not None]
+        return min(with_body, key=lambda p: p.number).last if with_body else None
+
+
+def _people(pipe: Pipeline, rig: Rig, config: PipelineConfig, max_people: int, namespace: str) -> _People:
+    """The multi-person tracker over the pipeline's CNN (BlazePose's detector and landmark model)."""
+    from ..method.people_tracker import PeopleConfig, PeopleTracker
+    from ..outputs.people import PeopleOutputs
+
+    source: Any = pipe.pcm
+    if source is None or not hasattr(getattr(source, "pcm", None), "detect_people"):
+        raise BagError("several people (max_people > 1) need the BlazePose CNN on camera images")
+    if getattr(source, "binning", 1) != 1:
+        raise BagError("several people (max_people > 1) with --binning: not supported yet")
+    tracker = PeopleTracker(rig, source.pcm, config, PeopleConfig(max_people=max_people),
+                            landmarks=getattr(source, "landmarks", "auto"),
+                            crop_prediction=getattr(source, "crop_prediction", "rigid"))
+    return _People(tracker, PeopleOutputs(namespace))
 
 
 def _why_not_tracked(pipe: Pipeline, rig: Rig) -> str:
@@ -356,6 +414,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="decode compressed images reduced this many times (JPEG DCT scaling, much cheaper) and "
                              "cut the CNN's crops from them; for crops larger than binning x 256 px. Images recorded "
                              "binned (CameraInfo binning_x) are recognized without it")
+    parser.add_argument("--max-people", type=int, default=1,
+                        help="track everyone in view up to this many (camera images, BlazePose): each person a "
+                             "REP-155 body on /humans/bodies/...; the subject topics follow the first one")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -386,7 +447,7 @@ def run(args: argparse.Namespace) -> int:
         views=p["views"] or None, namespace=p["namespace"], tolerance_ns=int(p["sync_tolerance_ms"] * 1e6),
         min_views=p["min_cameras"], recover=args.recover, progress=not args.no_progress, binning=args.binning,
         model=cfg.node_params("vmocap_pcm")["model"] if cfg.node_params("vmocap_pcm")["source"] == "model" else "blazepose",
-        overwrite=args.overwrite, inputs=[rig_path, cfg_path],
+        overwrite=args.overwrite, inputs=[rig_path, cfg_path], max_people=args.max_people,
     )
     bad = {c: n for c, n in stats.get("bad_images", {}).items() if n}
     if bad:

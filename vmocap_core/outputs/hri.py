@@ -112,12 +112,13 @@ class BodyIds:
     """The tracked subject's body id over frame sets (module docstring): `update` gives the id
     of a frame set (None when it is not tracked), `retired` the ended ids whose topics may go."""
 
-    def __init__(self, seed: int | None = None, grace_s: float = GRACE_S, retire_s: float = RETIRE_S) -> None:
+    def __init__(self, seed: int | None = None, grace_s: float = GRACE_S, retire_s: float = RETIRE_S,
+                 used: set[str] | None = None) -> None:
         self._rng: random.Random = random.Random(seed) if seed is not None else random.SystemRandom()
         self.grace_ns, self.retire_ns = int(grace_s * 1e9), int(retire_s * 1e9)
         self.current: str | None = None
         self._untracked_since: int | None = None  # stamp of the first untracked frame set after the last tracked one
-        self._used: set[str] = set()
+        self._used: set[str] = set() if used is None else used  # shared by the bodies of several people
         self._ended: dict[str, int] = {}  # id -> stamp of the frame set that ended it
 
     def update(self, stamp_ns: int, status: str) -> str | None:
@@ -182,9 +183,9 @@ class HriOutputs:
     frames join its static frames); `tf`: whether /tf and /tf_static are published at all."""
 
     def __init__(self, subject: SubjectOutputs | None = None, tf: bool = True, seed: int | None = None,
-                 grace_s: float = GRACE_S, retire_s: float = RETIRE_S) -> None:
+                 grace_s: float = GRACE_S, retire_s: float = RETIRE_S, used: set[str] | None = None) -> None:
         self.subject, self.tf = subject, tf
-        self.ids = BodyIds(seed, grace_s, retire_s)
+        self.ids = BodyIds(seed, grace_s, retire_s, used)
         self._described: tuple[str, BodyDimensions] | None = None
         self._kinematics: UrdfKinematics | None = None
         self._names: list[str] = []  # the suffixed JOINT_NAMES of the described body

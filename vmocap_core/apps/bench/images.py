@@ -182,6 +182,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--people", type=int, default=1,
                         help="people in the scene (2 or 3, people.py): the subject (first of --clips) among others "
                              "walking around it (the next clips), scored alone and among them: swaps, ghosts, missed")
+    parser.add_argument("--max-people", type=int, default=1,
+                        help="with --people: track up to this many (vmocap process --max-people) and score every "
+                             "person: MPJPE, identity switches, missed frames, ghost bodies")
     parser.add_argument("--json", action="store_true")
     add_tracker_arguments(parser)  # --offline: the node graph (live by nature) is not run
 

@@ -25,6 +25,7 @@ import numpy as np
 from ...errors import VmocapError
 from ...keypoints import INDEX
 from .accuracy import RATE_HZ
+from .clouds import read_clouds
 from .images import CONFIGS, FALSE_TRACKING_MM, _Provider, default_motions, frame_mpjpe, read_estimates, score
 
 MAX_PEOPLE = 3
@@ -94,6 +95,58 @@ def identity_figures(est: np.ndarray, truths: np.ndarray, present: np.ndarray) -
     return out
 
 
+def body_tracks(path: Path, stamps: np.ndarray, namespace: str = "/vmocap") -> dict[str, np.ndarray]:
+    """Per REP-155 body id, its keypoints (T, 25, 3) at the truth stamps (NaN where not tracked)."""
+    from ...bag import BagReader
+
+    with BagReader(path) as r:
+        topics = [t for t in r.topics if t.startswith(f"{namespace}/bodies/") and t.endswith("/keypoints")]
+    return {t.split("/")[-2]: read_clouds(path, stamps, t) for t in sorted(topics)}
+
+
+def people_figures(bodies: dict[str, np.ndarray], truths: np.ndarray, present: np.ndarray) -> dict[str, Any]:
+    """Every person's truth (P, T, 25, 3) against the bodies (id -> (T, 25, 3)); present (P, T):
+    the person is seen by >= 2 cameras. Per frame the bodies are matched to the people one to
+    one (least summed MPJPE, pairs over FALSE_TRACKING_MM apart are no match). Per person, from
+    their first match on: MPJPE and PCK@50 over their matched frames, the share of the frames
+    they are present without a body (missed), and identity switches (their matched body's id
+    changes). Frames with a body matched to nobody are ghosts."""
+    from scipy.optimize import linear_sum_assignment
+
+    ids = list(bodies)
+    P, T = truths.shape[:2]
+    d = np.full((len(ids), P, T), np.inf)
+    for b, est in enumerate(bodies.values()):
+        for k in range(P):
+            d[b, k] = np.nan_to_num(frame_mpjpe(est, truths[k]), nan=np.inf)
+    match = np.full((P, T), -1)
+    ghosts = 0
+    for t in range(T):
+        shown = np.flatnonzero(np.isfinite(d[:, :, t]).any(axis=1))
+        if shown.size == 0:
+            continue
+        cost = np.minimum(d[shown, :, t], 1e6)
+        rows, cols = linear_sum_assignment(cost)
+        ok = cost[rows, cols] <= FALSE_TRACKING_MM
+        match[cols[ok], t] = shown[rows[ok]]
+        ghosts += int(shown.size - ok.sum())
+    persons: list[dict[str, Any]] = []
+    for k in range(P):
+        m = np.flatnonzero(match[k] >= 0)
+        if m.size == 0:
+            persons.append({"mpjpe_mm": None, "pck50": None, "missed_pct": None, "identity_switches": 0, "first_s": None})
+            continue
+        f = np.arange(m[0], T)
+        kp = np.linalg.norm(np.stack([bodies[ids[match[k, t]]][t] for t in m]) - truths[k, m], axis=-1) * 1000
+        kp = kp[:, np.isfinite(truths[k]).all(axis=(0, 2))]
+        seen = present[k, f]
+        persons.append({"mpjpe_mm": float(kp.mean()), "pck50": float(100 * (kp < 50).mean()),
+                        "missed_pct": float(100 * (seen & (match[k, f] < 0)).sum() / max(seen.sum(), 1)),
+                        "identity_switches": int(np.count_nonzero(np.diff(match[k, m]))),
+                        "first_s": float(m[0] / RATE_HZ), "ids": sorted({ids[b] for b in match[k, m]})})
+    return {"persons": persons, "ghost_frames": ghosts, "bodies": len(ids)}
+
+
 def subject_figures(est: np.ndarray, truths: np.ndarray, present: np.ndarray) -> dict[str, Any]:
     return {**score(est, truths[0]), **identity_figures(est, truths, present)}
 
@@ -109,6 +162,9 @@ def run(args: argparse.Namespace, rig) -> int:
         raise VmocapError(f"--people {args.people}: between 2 and {MAX_PEOPLE} (1: the benchmark without --people)")
     if getattr(args, "leave_one_out", False):
         raise VmocapError("--people scores the shipped landmark model: without --leave-one-out")
+    max_people = getattr(args, "max_people", 1)
+    if max_people < 1:
+        raise VmocapError(f"--max-people {max_people}: at least 1")
     files = person_clips(args.clips, args.people)
     seconds = args.frames / RATE_HZ if args.frames > 0 else DEFAULT_SECONDS[args.people]
     frames = int(round(seconds * RATE_HZ))
@@ -124,7 +180,7 @@ def run(args: argparse.Namespace, rig) -> int:
     present = seen[0] >= 2
     persons = [{"clip": s.label(), "shape": s.shape(), "size": SIZES[k], "present_pct": float(100 * (seen[k] >= 2).mean())}
                for k, s in enumerate([subject] + [w.clip for w in walkers])]
-    result: dict[str, Any] = {"people": args.people, "frames": frames, "persons": persons, "recording": str(group),
+    result: dict[str, Any] = {"people": args.people, "max_people": max_people, "frames": frames, "persons": persons, "recording": str(group),
                               "ratio_target": RATIO_TARGET, "tracker": args.tracker, "runs": {}}
     for name in args.configs:
         rotation, precision = CONFIGS[name]
@@ -132,10 +188,15 @@ def run(args: argparse.Namespace, rig) -> int:
         for what, rec in (("group", group), ("alone", alone)):
             out = args.out / f"{rec.stem}_{name}.mcap"
             process_bag(rec, out, rig, config=args.tracker, progress=not args.json,
-                        provider=_Provider(rig, rotation, precision), overwrite=True)
+                        provider=_Provider(rig, rotation, precision), overwrite=True,
+                        max_people=max_people if what == "group" else 1)
             runs[what] = read_estimates(out, stamps)
+            if what == "group" and max_people > 1:
+                everyone = people_figures(body_tracks(out, stamps), truths, seen >= 2)
         row: dict[str, Any] = {"group": subject_figures(runs["group"], truths, present),
                                "alone": subject_figures(runs["alone"], truths[:1], present)}
+        if max_people > 1:
+            row["everyone"] = everyone
         graph = "none" if args.tracker.get("offline") else args.graph
         if graph == "all" or (graph == "first" and name == args.configs[0]):
             g = importlib.import_module("vmocap_ros.bench.images_graph")  # by name: vmocap_core never imports rclpy
@@ -167,6 +228,10 @@ def verdict(result: dict[str, Any]) -> int:
             elif r["swap_frames"]:
                 print(f"vmocap bench images --people: WARNING {name} {run}: the output followed another person in "
                       f"{r['swap_frames']} frames (first at {r['first_swap_s']:.2f} s)", file=sys.stderr)
+        for k, r in enumerate(row.get("everyone", {}).get("persons", [])):
+            if r["mpjpe_mm"] is None and result["persons"][k]["present_pct"] > 0:
+                print(f"vmocap bench images --people: {name}: person {k} was present and never tracked", file=sys.stderr)
+                status = 1
         ratio = row["mpjpe_ratio"]
         if ratio is not None and ratio > result["ratio_target"]:
             print(f"vmocap bench images --people: WARNING {name}: the subject's MPJPE among others is {ratio:.2f}x "
@@ -191,3 +256,9 @@ def print_people(result: dict[str, Any]) -> None:
                       f"{r.get('init_frames', '-'):>6}")
         print(f"{name}: subject MPJPE among others / alone = {f(row['mpjpe_ratio'], '.3f')} "
               f"(target <= {result['ratio_target']:.2f}, 0 swaps)")
+        every = row.get("everyone")
+        if every:
+            print(f"{name}, max_people {result['max_people']}: {every['bodies']} body ids, {every['ghost_frames']} ghost frames")
+            for k, r in enumerate(every["persons"]):
+                print(f"  person {k}: MPJPE {f(r['mpjpe_mm'])} mm, PCK50 {f(r['pck50'])}, missed {f(r['missed_pct'])} %, "
+                      f"switches {r['identity_switches']}, first body at {f(r['first_s'], '.2f')} s")

@@ -1,0 +1,274 @@
+"""Several people from the CNN (our extension; the paper tracks one person): one pipeline per
+person, one CNN call per frame set.
+
+Each tracked person's crops follow their own skeleton (the paper's feedback, III-B), so each
+lattice search reads maps of its own person. The detector runs only when someone is not
+tracked (a person just found, or lost: their crops come from it until their skeleton is fed
+back) and every `detect_every_s` while fewer than `max_people` are tracked, to find people who
+walked in. A detection that a tracked person's pelvis projects onto is theirs; the others are
+grouped across cameras (pcm/choice.py: hip centres triangulated from two cameras that project
+onto a detection in both) into new people, the one seen by the most cameras first. The crops of
+everyone go through the landmark model together (one batched call per frame set).
+
+People end when they have had no skeleton for `end_after_s` (left the room, or lost and not
+found again near where they were), or when their skeleton lies on another person's (two tracks
+converged on one body: the younger one ends). Nothing here reads ground truth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..cameras.projection import Rig
+from ..errors import VmocapError
+from ..keypoints import INDEX, KEYPOINTS
+from ..pcm.choice import AGREE_FRACTION, choose_subject
+from ..pcm.crops import Crops
+from ..pcm.detector import Detection
+from ..pcm.views import PcmViews
+from .config import PipelineConfig
+from .landmarks import resolve
+from .pipeline import FrameResult, Pipeline
+from .prediction import BodyPredictor
+
+PELVIS = INDEX["pelvis"]
+HIDE_MARGIN = 0.15  # a tracked body's box grown by this share of its size before it is hidden from the detector
+
+
+class PeopleError(VmocapError):
+    """A setting the multi-person tracker cannot work with."""
+
+
+@dataclass
+class PeopleConfig:
+    max_people: int = 2  # people tracked at once; more in view are counted, not tracked
+    detect_every_s: float = 0.5  # while fewer are tracked: the detector looks for newcomers this often
+    end_after_s: float = 1.0  # a person without a skeleton for this long is ended
+    reacquire_m: float = 1.0  # a lost person is found again within this of their last hip centre
+    same_body_m: float = 0.15  # two skeletons whose keypoints lie this close (median): one body
+    hold_s: float = 0.25  # before their skeleton: a camera that lost a person's detection keeps its last crop this long
+
+    def __post_init__(self) -> None:
+        if int(self.max_people) < 1:
+            raise PeopleError(f"max_people must be at least 1, got {self.max_people}")
+
+
+@dataclass
+class Person:
+    """One tracked person: `number` counts people in order of appearance (0, 1, ...); the
+    outputs give them REP-155 ids."""
+
+    number: int
+    pipeline: Pipeline
+    seed: np.ndarray  # (3,) their hip centre when last seen: where to look for them when lost
+    seen_ns: int  # stamp of their last frame set with a skeleton (or of their detection)
+    last: FrameResult | None = None
+    views: int = 0  # views the CNN ran for them in the last frame set
+    held: dict[int, tuple[int, Any]] = field(default_factory=dict)  # camera -> (stamp, detector crop) before a skeleton
+
+    @property
+    def status(self) -> str:
+        return "initializing" if self.last is None else self.last.status
+
+
+@dataclass
+class PeopleFrame:
+    """One frame set: every person's result (people ended in it are not among them), the
+    people the detector saw but nobody tracks (per camera), and whether it ran."""
+
+    stamp_ns: int
+    people: list[Person]
+    untracked: np.ndarray  # (C,) detections per camera nobody's skeleton explains (-1: not looked)
+    detected: bool
+    ended: list[int] = field(default_factory=list)  # numbers of the people ended in this frame set
+
+
+def _empty_views(J: int, size: int, stamp_ns: int) -> PcmViews:
+    return PcmViews(np.zeros((0, J, size, size)), np.zeros((0, 2, 3)), np.zeros(0), np.arange(J),
+                    np.zeros((0, J), bool), np.zeros(0), stamp_ns)
+
+
+def _subset(pcm: PcmViews, keep: np.ndarray) -> PcmViews:
+    return PcmViews(pcm.maps[keep], pcm.image_to_map[keep], pcm.camera[keep], pcm.keypoints, pcm.valid[keep],
+                    pcm.presence[keep], pcm.stamp_ns)
+
+
+def _concat(crops: Sequence[Crops]) -> Crops:
+    return Crops(np.concatenate([c.camera for c in crops]), np.concatenate([c.center for c in crops]),
+                 np.concatenate([c.side for c in crops]), np.concatenate([c.rotation for c in crops]),
+                 np.concatenate([c.valid for c in crops if c.valid is not None]))
+
+
+def explained(rig: Rig, found: Sequence[Sequence[Detection]], pelvises: np.ndarray) -> list[list[Detection]]:
+    """Per camera, the detections no tracked person (pelvises (P, 3)) projects onto: the
+    detection's hip within AGREE_FRACTION of its hip-to-head length of a projected pelvis
+    (pcm/choice.py's rule for one person's detections in two cameras)."""
+    if len(pelvises) == 0:
+        return [list(d) for d in found]
+    uv, front = rig.project(np.asarray(pelvises, dtype=np.float64))  # (C, P, 2), (C, P)
+    out: list[list[Detection]] = []
+    for c, dets in enumerate(found):
+        if not dets:
+            out.append([])
+            continue
+        hips = np.array([d.keypoints[0] for d in dets])
+        reach = np.array([np.linalg.norm(d.keypoints[1] - d.keypoints[0]) for d in dets])
+        dist = np.linalg.norm(hips[:, None] - uv[c][None], axis=-1)  # (n, P)
+        taken = (front[c][None] & (dist < AGREE_FRACTION * np.maximum(reach[:, None], 1e-6))).any(axis=1)
+        out.append([d for d, t in zip(dets, taken) if not t])
+    return out
+
+
+def hidden(rig: Rig, images: Sequence[np.ndarray | None], skeletons: np.ndarray, margin: float = HIDE_MARGIN) -> list:
+    """The images with each skeleton's ((P, 25, 3) keypoints) projected bounding box, grown by
+    `margin` of its larger side, filled grey: the person detector finds the most prominent
+    people of an image and misses a smaller one beside them (the BlazePose detector is a
+    one-person model), so the people already tracked are taken out of the search for others."""
+    out = list(images)
+    if len(skeletons) == 0:
+        return out
+    uv, front = rig.project(np.asarray(skeletons, dtype=np.float64))  # (C, P, 25, 2), (C, P, 25)
+    for c, im in enumerate(images):
+        if im is None:
+            continue
+        copy = None
+        h, w = im.shape[:2]
+        for p in range(uv.shape[1]):
+            ok = front[c, p] & np.isfinite(uv[c, p]).all(axis=1)
+            if not ok.any():
+                continue
+            lo, hi = uv[c, p, ok].min(axis=0), uv[c, p, ok].max(axis=0)
+            grow = margin * float(max(hi - lo))
+            x0, y0 = np.clip(np.floor(lo - grow), 0, [w, h]).astype(int)
+            x1, y1 = np.clip(np.ceil(hi + grow), 0, [w, h]).astype(int)
+            if x1 <= x0 or y1 <= y0:
+                continue
+            if copy is None:
+                copy = im.copy()
+            copy[y0:y1, x0:x1] = 127
+        if copy is not None:
+            out[c] = copy
+    return out
+
+
+class PeopleTracker:
+    """Up to `people.max_people` people through one BlazePose PCM source (pcm.pipeline.BlazePosePcm:
+    `detect_people`, `crops_from_skeleton`, `landmark`); `step(images,
+    stamp_ns)` per frame set (module doc)."""
+
+    def __init__(self, rig: Rig, pcm: Any, config: PipelineConfig | None = None, people: PeopleConfig | None = None,
+                 landmarks: str = "blazepose", crop_prediction: str = "rigid") -> None:
+        self.rig, self.pcm = rig, pcm
+        cfg = config or PipelineConfig()
+        self.config = cfg.replace(landmarks=resolve(cfg.skeleton.landmarks, landmarks))
+        self.people_config = people or PeopleConfig()
+        self.crop_prediction = crop_prediction
+        self.people: list[Person] = []
+        self._next = 0
+        self._last_detection_ns: int | None = None
+
+    def _new_person(self, seed: np.ndarray, stamp_ns: int) -> Person:
+        pipe = Pipeline(self.rig, self.config)
+        pipe.predictor = BodyPredictor(enabled=self.crop_prediction == "rigid")
+        p = Person(self._next, pipe, np.asarray(seed, dtype=np.float64), stamp_ns)
+        self._next += 1
+        self.people.append(p)
+        return p
+
+    def _detection_due(self, stamp_ns: int, waiting: list[Person]) -> bool:
+        if waiting:
+            return True
+        if len(self.people) >= self.people_config.max_people:
+            return False
+        last = self._last_detection_ns
+        return last is None or not 0 <= stamp_ns - last < self.people_config.detect_every_s * 1e9
+
+    def _crops(self, p: Person, index: np.ndarray, found: Sequence[Sequence[Detection]], have: np.ndarray,
+               stamp_ns: int) -> Crops:
+        """A person's detector crops (MediaPipe's rule, rotated already): this frame set's
+        detection per camera (index (C,), -1: none), else the camera's last one for hold_s. In
+        one camera a person crossing another is often not found, or found as one with them,
+        for a few frame sets, and the initialization needs consecutive ones."""
+        for c in range(len(found)):
+            if index[c] >= 0:
+                p.held[c] = (stamp_ns, found[c][index[c]].crop())
+        hold = self.people_config.hold_s * 1e9
+        cams = [c for c, (t, _) in sorted(p.held.items()) if have[c] and 0 <= stamp_ns - t <= hold]
+        rects = [p.held[c][1] for c in cams]
+        return Crops(cams, [r[0] for r in rects] or np.zeros((0, 2)), [r[1] for r in rects], [r[2] for r in rects])
+
+    def step(self, images: Sequence[np.ndarray | None], stamp_ns: int) -> PeopleFrame:
+        cfg = self.people_config
+        have = np.array([im is not None for im in images], dtype=bool)
+        crops: dict[int, Crops] = {}
+        tracked: dict[int, np.ndarray] = {}
+        for p in self.people:
+            kp = p.pipeline.predictor.predict(stamp_ns)
+            if kp is not None:
+                tracked[p.number] = kp
+                c = self.pcm.crops_from_skeleton(kp)
+                crops[p.number] = c.select(have[c.camera])
+        waiting = [p for p in self.people if p.number not in tracked]
+        detected = self._detection_due(stamp_ns, waiting)
+        untracked = np.full(len(self.rig), -1)
+        if detected:
+            self._last_detection_ns = stamp_ns
+            skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
+            found = self.pcm.detect_people(hidden(self.rig, images, skeletons))
+            pelvises = skeletons[:, PELVIS]
+            left = explained(self.rig, found, pelvises[np.isfinite(pelvises).all(axis=1)])
+            # the lost first (near where they were), then newcomers, the best seen first
+            for p in waiting:
+                choice = choose_subject(self.rig, left, p.seed)
+                point = choice.point
+                near = point is not None and np.linalg.norm(point - p.seed) <= cfg.reacquire_m
+                crops[p.number] = self._crops(p, choice.index if near else np.full(len(self.rig), -1), left, have,
+                                              stamp_ns)
+                if near and point is not None:
+                    left = explained(self.rig, left, point[None])
+            while len(self.people) < cfg.max_people:
+                choice = choose_subject(self.rig, left, None)
+                if choice.point is None:
+                    break
+                p = self._new_person(choice.point, stamp_ns)
+                crops[p.number] = self._crops(p, choice.index, left, have, stamp_ns)
+                left = explained(self.rig, left, choice.point[None])
+            untracked = np.array([len(d) for d in left])
+        pcm = self._infer(images, crops, stamp_ns)
+        for p in self.people:
+            own = pcm.get(p.number)
+            p.views = 0 if own is None else own.n_views
+            J = len(KEYPOINTS)
+            p.last = p.pipeline.step(own if own is not None else _empty_views(J, self.pcm.landmark.map_size, stamp_ns))
+            fb = p.pipeline.feedback
+            if fb is not None and np.isfinite(fb[PELVIS]).all():
+                p.seed, p.seen_ns = fb[PELVIS].copy(), stamp_ns
+                p.held.clear()
+        ended = self._end(stamp_ns)
+        return PeopleFrame(stamp_ns, list(self.people), untracked, detected, ended)
+
+    def _infer(self, images: Sequence[np.ndarray | None], crops: dict[int, Crops], stamp_ns: int) -> dict[int, PcmViews]:
+        """Everyone's crops through the landmark model at once, split back per person."""
+        order = [n for n, c in crops.items() if len(c)]
+        if not order:
+            return {}
+        views = self.pcm.landmark.infer(list(images), _concat([crops[n] for n in order]), stamp_ns)
+        owner = np.concatenate([np.full(len(crops[n]), n) for n in order])
+        return {n: _subset(views, owner == n) for n in order}
+
+    def _end(self, stamp_ns: int) -> list[int]:
+        cfg = self.people_config
+        gone = {p.number for p in self.people if not 0 <= stamp_ns - p.seen_ns <= cfg.end_after_s * 1e9}
+        # two skeletons on one body (a track that jumped to its neighbour): the younger ends
+        fed = [(p.number, p.pipeline.feedback) for p in self.people if p.number not in gone]
+        bodies = [(n, kp) for n, kp in fed if kp is not None]
+        for i, (na, a) in enumerate(bodies):
+            for nb, b in bodies[i + 1:]:
+                d = np.linalg.norm(a - b, axis=1)
+                if np.isfinite(d).any() and float(np.nanmedian(d)) < cfg.same_body_m:
+                    gone.add(max(na, nb))
+        self.people = [p for p in self.people if p.number not in gone]
+        return sorted(gone)

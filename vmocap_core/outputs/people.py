@@ -1,0 +1,78 @@
+"""ROS4HRI (REP-155) outputs of several tracked people, without ROS.
+
+Each person of method/people_tracker.py is a body with its own id (hri.HriOutputs per person,
+the ids drawn from one set, so no two bodies share one): `/humans/bodies/tracked` lists every
+body tracked in the frame set (one message, an empty list when nobody is), and each body has
+its `urdf` and `joint_states` as for one subject, plus its keypoints (the same PointCloud2 as
+`NS/keypoints`) on `NS/bodies/<id>/keypoints`. An ended person's topics close RETIRE_S after
+their end, as a single subject's do. /tf is not published per body here.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..bag import messages as M
+from ..graph_config import Topics
+from .hri import GRACE_S, IDS_LIST, RETIRE_S, TRACKED, Channel, HriFrame, HriOutputs, body_channels
+from .messages import CLOUD
+
+
+def keypoints_topic(namespace: str, body_id: str) -> str:
+    return f"{namespace}/bodies/{body_id}/keypoints"
+
+
+class PeopleOutputs:
+    """`step(frame)` of a PeopleFrame -> the HriFrame (topics to open, messages, topics to close)."""
+
+    def __init__(self, namespace: str = Topics().ns, seed: int | None = None, grace_s: float = GRACE_S,
+                 retire_s: float = RETIRE_S) -> None:
+        self.namespace, self.seed, self.grace_s, self.retire_s = namespace, seed, grace_s, retire_s
+        self._used: set[str] = set()
+        self._bodies: dict[int, HriOutputs] = {}
+        self._closing: dict[str, int] = {}  # id of an ended person -> stamp of their end
+
+    def body_id(self, number: int) -> str | None:
+        hri = self._bodies.get(number)
+        return None if hri is None else hri.body_id
+
+    def _channels(self, body_id: str) -> list[Channel]:
+        return body_channels(body_id) + [Channel(keypoints_topic(self.namespace, body_id), CLOUD, False)]
+
+    def step(self, frame: Any) -> HriFrame:
+        t = frame.stamp_ns
+        out = HriFrame()
+        ids: list[str] = []
+        for p in frame.people:
+            if p.last is None:
+                continue
+            hri = self._bodies.get(p.number)
+            if hri is None:
+                seed = None if self.seed is None else self.seed + p.number
+                hri = self._bodies[p.number] = HriOutputs(None, tf=False, seed=seed, grace_s=self.grace_s,
+                                                          retire_s=self.retire_s, used=self._used)
+            result = p.last.skeleton
+            f = hri.step(result)
+            body = hri.body_id
+            if f.opened and body is not None:  # a new id: its channels, ours included
+                out.opened += self._channels(body)
+            # ids its BodyIds retired (ended RETIRE_S ago, /humans/bodies/<id>/urdf): every channel, ours included
+            retired = [c.split("/")[3] for c in f.closed if c.endswith("/urdf")]
+            out.closed += [c.topic for i in retired for c in self._channels(i)]
+            out.messages += [m for m in f.messages if m[0] != TRACKED]
+            if body is not None and result.status == "tracking":
+                ids.append(body)
+                out.messages.append((keypoints_topic(self.namespace, body), CLOUD,
+                                     M.keypoint_cloud(t, result.keypoints, np.nan_to_num(result.confidence, nan=0.0))))
+        for n in frame.ended:  # people the tracker ended: their id ends now, the topics later
+            hri = self._bodies.pop(n, None)
+            if hri is not None and hri.body_id is not None:
+                self._closing[hri.body_id] = t
+        gone = [i for i, end in self._closing.items() if not 0 <= t - end <= self.retire_s * 1e9]
+        for i in gone:
+            del self._closing[i]
+            out.closed += [c.topic for c in self._channels(i)]
+        out.messages.append((TRACKED, IDS_LIST, {"header": M.header(t), "ids": ids}))
+        return out
