@@ -116,3 +116,22 @@ def test_skeleton_landmarks_follow_the_graphs_pcm_source(tmp_path):
     assert landmarks({"vmocap_pcm": {"source": "model", "model": "blazepose"},
                       "vmocap_skeleton": {"landmarks": "none"}}) == "none"
     assert graph_config.load(REPO / "config" / "live.yaml").skeleton_config().landmarks == "blazepose"
+
+
+def test_people_config_checks(tmp_path):
+    """config/people.yaml: vmocap_people in the camera's process, the stages' sections read by it."""
+    import subprocess
+    import sys
+
+    from vmocap_core.cameras.rig_file import save_rig
+    from vmocap_core.pcm.synthetic import benchmark_rig
+
+    save_rig(benchmark_rig(), tmp_path / "my_rig.yaml")
+    people = tmp_path / "people.yaml"
+    people.write_text((REPO / "config" / "people.yaml").read_text())
+    cfg = graph_config.load(people)
+    assert cfg.process_groups() == [["vmocap_camera", "vmocap_people"], ["vmocap_recorder"]]
+    assert cfg.node_params("vmocap_people")["max_people"] == 2 and cfg.pipeline_config().markers.lattice_k == 5
+    ok = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "config", "check", str(people)],
+                        capture_output=True, text=True, timeout=60)
+    assert ok.returncode == 0, ok.stderr

@@ -144,6 +144,8 @@ def _config(tmp_path: Path, rig: Path, **sections: dict) -> Path:
     ({"vmocap_camera": {"source": "video", "uri": "cam7=a.mp4"}}, ["vmocap_camera.uri", "cam7"]),
     ({"vmocap_markers": {"fps": 0.0}}, ["fps", "outside"]),
     ({"vmocap_recorder": {"output": "EXISTING"}}, ["vmocap_recorder.output", "exists", "--overwrite"]),
+    ({"vmocap_markers": {"max_people": 2}}, ["max_people", "vmocap_people"]),  # several people: not these nodes
+    ({"vmocap_people": {}, "vmocap_skeleton": {}}, ["vmocap_people", "vmocap_skeleton", "same subject topics"]),
 ])
 def test_config_values_that_cannot_work_are_refused(work, tmp_path: Path, sections: dict, words: list[str]) -> None:
     existing = tmp_path / "old.mcap"

@@ -143,3 +143,97 @@ def test_two_people_each_tracked_with_their_own_id(rig, tmp_path):
     subject = images.read_estimates(out, stamps)  # the subject topics: the first person found
     tracked = np.isfinite(subject).all(axis=(1, 2))
     assert np.nanmean(images.frame_mpjpe(subject, truths[0])[tracked]) < 40.0
+
+
+@rendering
+@pytest.mark.graph_replay
+def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, tmp_path):
+    """vmocap_camera plays the two-person recording in lockstep into vmocap_people (max_people 2).
+    A client that behaves like libhri's HRIListener (default QoS on /humans/bodies/tracked, a
+    body's urdf, joint_states and keypoints opened when its id appears) sees two bodies at once
+    with different ids, each URDF's movable joints equal to its JointState names suffixed with
+    its id, and each body's keypoints on a different person's truth."""
+    pytest.importorskip("hri_msgs.msg", reason="hri_msgs not built (bash scripts/build_ros_msgs.sh)")
+    pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (bash scripts/build_ros_msgs.sh)")
+    import os
+
+    from graph_helpers import domain_env, stop, vmocap, wait_for, wait_ready
+    from sensor_msgs.msg import PointCloud2
+    from test_graph_hri import HriListener, _stamp
+
+    from vmocap_core.apps.bench import images, people
+    from vmocap_core.apps.render.group import GroupSpec, Walker, render_group, truth_topic
+    from vmocap_core.apps.render.recording import ClipSpec, read_truth
+    from vmocap_core.bag.messages import CLOUD_DTYPE
+    from vmocap_core.cameras.rig_file import save_rig
+    from vmocap_core.outputs.people import keypoints_topic
+    from vmocap_core.outputs.tf import UrdfKinematics
+    from vmocap_core.outputs.urdf import JOINT_NAMES
+    from vmocap_core.pcm import selfcheck
+    from vmocap_ros.bench.images_graph import graph_config
+    from vmocap_ros.common import init_rclpy, qos
+    from vmocap_ros.run_node import make_executor
+
+    frames = 180
+    walker = Walker(ClipSpec(CLIP, frames, 60.0, 0, 1), people.walker_paths(2, frames / 60.0)[0], 0.93)
+    rec = render_group(GroupSpec(ClipSpec(CLIP, frames, 60.0, 0), (walker,)), rig, tmp_path / "cache", progress=False)
+    stamps, _ = read_truth(rec)
+    truths = np.stack([read_truth(rec, truth_topic(k))[1] for k in range(2)])
+    save_rig(rig, tmp_path / "rig.yaml")
+    cfg = graph_config(tmp_path, rec, tmp_path / "rig.yaml", "all", {"fps": 60.0}, 0.0, max_people=2)
+    env = domain_env(23)
+    env["VMOCAP_PCM_PRECISION"] = "int8" if selfcheck.verdict("full").int8_correct else "float"
+    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+    rclpy = init_rclpy()
+    clouds: dict[str, dict[int, np.ndarray]] = {}
+
+    def on_cloud(body: str):
+        def take(msg) -> None:
+            if msg.width:
+                pts = np.frombuffer(bytes(msg.data), dtype=CLOUD_DTYPE)
+                clouds[body][_stamp(msg.header)] = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)[np.argsort(pts["id"])]
+        return take
+
+    class Listener(HriListener):
+        def _on_tracked(self, msg) -> None:  # HRIListener's bookkeeping, and each new body's keypoints
+            for body in msg.ids:
+                if body not in clouds:
+                    clouds[body] = {}
+                    self.node.create_subscription(PointCloud2, keypoints_topic("/vmocap", body), on_cloud(body), qos(200))
+            super()._on_tracked(msg)
+
+    hri = Listener(rclpy)
+    executor = make_executor()
+    executor.add_node(hri.node)
+    launch = vmocap(["launch", str(cfg)], env)
+    try:
+        assert wait_ready(launch, ["vmocap_camera", "vmocap_people"], 120.0), stop(launch)
+        assert wait_for(lambda: (executor.spin_once(timeout_sec=0.1), hri.tracked and hri.tracked[-1][0])[1]
+                        == int(stamps[-1]), 600.0, 0.0), f"the last frame set never came out ({len(hri.tracked)} did)"
+    finally:
+        log = stop(launch)
+        executor.remove_node(hri.node)
+        executor.shutdown()
+        hri.node.destroy_node()
+        rclpy.shutdown()
+    assert launch.returncode == 0, log
+    both = [ids for _, ids in hri.tracked if len(ids) == 2]
+    assert both and all(a != b for a, b in both), hri.tracked[-3:]
+    for _, body in hri.appeared:
+        urdf = UrdfKinematics(hri.urdf[body])
+        js = hri.joint_states.get(body, [])
+        assert js and urdf.joint_names == list(js[-1].name) == [f"{n}_{body}" for n in JOINT_NAMES]
+    row = {int(s): i for i, s in enumerate(stamps)}
+    bodies = {}
+    for body, got in clouds.items():
+        est = np.full((len(stamps), 25, 3), np.nan)
+        for s, P in got.items():
+            est[row[s]] = P
+        bodies[body] = est
+    f = people.people_figures(bodies, truths, people.seen_by(rig, truths) >= 2)
+    print(f)
+    assert f["ghost_frames"] == 0, f
+    for r in f["persons"]:
+        assert r["mpjpe_mm"] is not None and r["mpjpe_mm"] < 40.0 and r["identity_switches"] == 0, f
+    assert set(f["persons"][0]["ids"]).isdisjoint(f["persons"][1]["ids"])
+    assert images.frame_mpjpe(bodies[f["persons"][0]["ids"][0]], truths[0]).size == len(stamps)

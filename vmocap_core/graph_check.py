@@ -23,6 +23,7 @@ def check_graph(cfg: GraphConfig, nodes: list[str] | None = None, overrides: dic
     cannot work with the rig or the file system."""
     nodes = cfg.node_names() if nodes is None else nodes
     params = {n: cfg.node_params(n, (overrides or {}).get(n)) for n in nodes}
+    _people(cfg, params)
     inputs: list[str] = []
     for node, p in params.items():
         cams = _cameras(cfg, node, p)
@@ -45,6 +46,21 @@ def check_graph(cfg: GraphConfig, nodes: list[str] | None = None, overrides: dic
                 check_output(p["output"], inputs + [str(cfg.path)], p["overwrite"])
             except OutputPathError as exc:
                 raise GraphConfigError(cfg.path, f"{node}.output", str(exc)) from None
+
+
+def _people(cfg: GraphConfig, params: dict[str, dict[str, Any]]) -> None:
+    """Several people run in vmocap_people, one person in vmocap_pcm/markers/skeleton: not both
+    (they would publish the same subject topics), and max_people > 1 only with vmocap_people."""
+    kinds = {node_type(n): n for n in params}
+    single = [kinds[k] for k in ("vmocap_pcm", "vmocap_markers", "vmocap_skeleton") if k in kinds]
+    if "vmocap_people" in kinds and single:
+        raise GraphConfigError(cfg.path, "vmocap_launch.nodes", f"vmocap_people tracks everyone itself: not with "
+                               f"{', '.join(single)} (they publish the same subject topics)")
+    many = [n for n, p in params.items() if p.get("max_people", 1) > 1 and node_type(n) != "vmocap_people"]
+    if many and "vmocap_people" not in kinds and single:
+        raise GraphConfigError(cfg.path, "max_people", f"{params[many[0]]['max_people']}: several people are tracked by "
+                               "vmocap_people (config/people.yaml), which this graph does not run; "
+                               "vmocap_pcm/markers/skeleton follow one subject")
 
 
 def _existing(cfg: GraphConfig, key: str, path: str, what: str) -> str:

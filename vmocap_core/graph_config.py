@@ -67,6 +67,9 @@ COMMON = [
           "through shared memory (NS/CAM/image_raw/shm carries references, cameras/shm.py) instead of sending the "
           "pixels over DDS, while flow control applies; a PCM node that cannot reach the memory (another machine) "
           "stops taking the references and gets the images over DDS"),
+    Param("max_people", 1, "people tracked at once. 1: the subject (vmocap_pcm, vmocap_markers, vmocap_skeleton); "
+          "more: vmocap_people tracks everyone in view up to this many, each a REP-155 body (method/people_tracker.py)",
+          1, 32),
     Param("lockstep_timeout_ms", 10000.0, "lockstep: a frame set nobody answers (no person in any view, a node down) "
           "releases the next one after this long; the PCM and markers nodes wait for feedback at least this long", 1.0, 1e6),
 ]
@@ -119,6 +122,7 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("inference_thread", True, "run the CNN in a thread of its own, beside the spin loop (the process's "
               "other nodes work while it runs); false: inside the subscription callback"),
     ],
+    "vmocap_people": [],  # filled below: the CNN's parameters of vmocap_pcm and its own
     "vmocap_markers": [
         Param("sync_tolerance_ms", 1.0, "max stamp difference of PCM views of one frame set", 0.0, 1000.0),
         Param("min_cameras", 2, "fewest views a frame set needs", 1, 64),
@@ -147,6 +151,18 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "(the graph's outputs fill 256 KiB in about a second; images much faster)", 16, 65536),
     ],
 }
+NODE_PARAMS["vmocap_people"] = [p for p in NODE_PARAMS["vmocap_pcm"] if p.name in (
+    "rotation", "crop_prediction", "threads", "sync_tolerance_ms", "min_cameras", "silent_after_ms", "queue_depth",
+    "inference_thread")] + [
+    Param("model", "blazepose", "the CNN: 'blazepose' / 'blazepose-lite' (its person detector finds the people)",
+          choices=("blazepose", "blazepose-lite")),
+    Param("detect_every_s", 0.5, "while fewer than max_people are tracked, the detector looks for newcomers this often "
+          "(s, capture time); it runs on every frame set while someone is being found or was lost", 0.0, 60.0),
+    Param("end_after_s", 1.0, "a person without a skeleton this long (s) is ended; their body id leaves "
+          "/humans/bodies/tracked", 0.05, 600.0),
+    Param("hri", True, "publish every person the ROS4HRI way (REP-155): /humans/bodies/tracked, "
+          "/humans/bodies/<id>/{joint_states,urdf} and NS/bodies/<id>/keypoints (needs hri_msgs)"),
+]
 # groups: nodes that share a process in `processes` mode (their messages stay in-process, e.g. a
 # camera's images and the PCM inference); nodes in no group get a process each
 LAUNCH_KEYS: dict[str, Any] = {"mode": "processes", "nodes": None, "groups": None, "env": {}, "fastdds_profile": "fastdds_shm.xml",

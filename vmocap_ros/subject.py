@@ -48,9 +48,10 @@ class HriPublishers:
     (transient local) and joint_states, opened when the id appears and destroyed when the core
     retires it; /tf and /tf_static through the node's own publishers."""
 
-    def __init__(self, node: Any, subject: SubjectOutputs, shared: dict[str, Any]) -> None:
+    def __init__(self, node: Any, subject: SubjectOutputs | None, shared: dict[str, Any], core: Any = None) -> None:
         self.node, self.shared = node, shared
-        self.core = HriOutputs(subject, tf=node.topics.tf in shared)
+        # core: the subject's HriOutputs, or outputs.people.PeopleOutputs for several people
+        self.core = core if core is not None else HriOutputs(subject, tf=node.topics.tf in shared)
         self.pubs = {TRACKED: node.publisher(IDS_LIST, TRACKED, depth=HRI_DEPTH)}
 
     def __call__(self, result: Any) -> None:
@@ -68,7 +69,7 @@ class HriPublishers:
         return pub is not None and pub.wanted()
 
 
-def hri_outputs(node: Any, subject: SubjectOutputs, shared: dict[str, Any]) -> HriPublishers | None:
+def hri_outputs(node: Any, subject: SubjectOutputs | None, shared: dict[str, Any], core: Any = None) -> HriPublishers | None:
     """The node's HriPublishers when its `hri` parameter asks for them and hri_msgs imports;
     without hri_msgs a WARN naming the build command (none when `hri` is false)."""
     if not node.p["hri"]:
@@ -77,7 +78,7 @@ def hri_outputs(node: Any, subject: SubjectOutputs, shared: dict[str, Any]) -> H
         node.problems["hri"] = (f"no ROS4HRI outputs (/humans/bodies/...): hri_msgs is not installed; build it with "
                                 f"`{BUILD_MSGS}`, or set hri: false")
         return None
-    return HriPublishers(node, subject, shared)
+    return HriPublishers(node, subject, shared, core)
 
 
 def skeleton_outputs(node: Any) -> tuple[SubjectOutputs, dict[str, Any]]:

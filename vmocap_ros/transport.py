@@ -68,19 +68,23 @@ class LocalBus:
 class Output:
     """One output topic of a node; calling it publishes a message dict. In-process nodes
     (LocalBus) get the dict itself; over DDS it goes as CDR bytes, encoded only when a DDS
-    reader matched, except on a transient-local (latched) topic of a node without local bus:
-    kept for readers that match later. Volatile samples without a reader go nowhere, so their
+    reader matched, except on a transient-local (latched) topic of a node without local bus, and
+    on a latched description (depth 1: robot_description, /tf_static, a body's urdf) of any
+    node: kept for readers that match later (RViz, a ROS4HRI listener opening a new body). Volatile samples without a reader go nowhere, so their
     encoding is skipped (the MarkerArray alone costs ~0.4 ms). `prepare` + `send` split the
     work: a recorded camera frame is encoded while it waits for its due time."""
 
-    __slots__ = ("type_name", "topic", "pub", "latched", "local", "bus")
+    __slots__ = ("type_name", "topic", "pub", "latched", "local", "bus", "kept")
 
-    def __init__(self, type_name: str, topic: str, pub: Any, latched: bool, bus: LocalBus) -> None:
+    def __init__(self, type_name: str, topic: str, pub: Any, latched: bool, bus: LocalBus, depth: int = 10) -> None:
         self.type_name, self.topic, self.pub, self.latched, self.bus = type_name, topic, pub, latched, bus
         self.local = bus.enabled  # our nodes in this process subscribe locally, not over DDS
+        # latched streams (feedback, markers, lockstep heatmaps) are latched for our own nodes:
+        # with them in this process, nothing else needs their samples kept
+        self.kept = latched and (not self.local or depth == 1)
 
     def dds_wanted(self) -> bool:
-        return (self.latched and not self.local) or self.pub.get_subscription_count() > 0
+        return self.kept or self.pub.get_subscription_count() > 0
 
     def wanted(self) -> bool:
         """Does anyone take this topic (a local node or a DDS reader)? Else skip building it."""

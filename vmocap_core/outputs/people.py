@@ -41,7 +41,8 @@ class PeopleOutputs:
     def _channels(self, body_id: str) -> list[Channel]:
         return body_channels(body_id) + [Channel(keypoints_topic(self.namespace, body_id), CLOUD, False)]
 
-    def step(self, frame: Any) -> HriFrame:
+    def step(self, frame: Any, wanted: Any = None) -> HriFrame:
+        """wanted(topic): False where nobody listens (messages not built; the tracked list always is)."""
         t = frame.stamp_ns
         out = HriFrame()
         ids: list[str] = []
@@ -54,7 +55,7 @@ class PeopleOutputs:
                 hri = self._bodies[p.number] = HriOutputs(None, tf=False, seed=seed, grace_s=self.grace_s,
                                                           retire_s=self.retire_s, used=self._used)
             result = p.last.skeleton
-            f = hri.step(result)
+            f = hri.step(result, wanted)
             body = hri.body_id
             if f.opened and body is not None:  # a new id: its channels, ours included
                 out.opened += self._channels(body)
@@ -64,8 +65,9 @@ class PeopleOutputs:
             out.messages += [m for m in f.messages if m[0] != TRACKED]
             if body is not None and result.status == "tracking":
                 ids.append(body)
-                out.messages.append((keypoints_topic(self.namespace, body), CLOUD,
-                                     M.keypoint_cloud(t, result.keypoints, np.nan_to_num(result.confidence, nan=0.0))))
+                if wanted is None or wanted(keypoints_topic(self.namespace, body)):
+                        out.messages.append((keypoints_topic(self.namespace, body), CLOUD,
+                                         M.keypoint_cloud(t, result.keypoints, np.nan_to_num(result.confidence, nan=0.0))))
         for n in frame.ended:  # people the tracker ended: their id ends now, the topics later
             hri = self._bodies.pop(n, None)
             if hri is not None and hri.body_id is not None:

@@ -28,9 +28,9 @@ NODES = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]
 
 
 def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: dict, rate: float,
-                 crop_prediction: str = "rigid") -> Path:
+                 crop_prediction: str = "rigid", max_people: int = 1) -> Path:
     """tracker: flat tracker settings (PipelineConfig keys, `fps` among them) for the nodes;
-    rate <= 0: lockstep."""
+    rate <= 0: lockstep; max_people > 1: vmocap_people instead of the one-subject nodes."""
     from vmocap_core.graph_config import stage_sections
 
     cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
@@ -43,7 +43,12 @@ def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: 
                                                  crop_prediction=crop_prediction)
     for section, values in stage_sections(tracker).items():
         cfg.setdefault(section, {}).setdefault("ros__parameters", {}).update(values)
-    cfg["vmocap_launch"] = {"mode": "single_process", "nodes": NODES,
+    nodes = NODES
+    if max_people > 1:
+        nodes = [NODES[0], "vmocap_people"]
+        cfg["/**"]["ros__parameters"]["max_people"] = int(max_people)
+        cfg["vmocap_people"] = {"ros__parameters": {"rotation": rotation, "crop_prediction": crop_prediction}}
+    cfg["vmocap_launch"] = {"mode": "single_process", "nodes": nodes,
                             "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
     path = work / f"graph_{rec.stem}_{rotation}.yaml"
     path.write_text(yaml.safe_dump(cfg))
@@ -51,9 +56,13 @@ def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: 
 
 
 def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, precision: str, tracker: dict,
-              rate: float, work: Path, silent_s: float = 30.0, crop_prediction: str = "rigid") -> tuple[np.ndarray, dict]:
+              rate: float, work: Path, silent_s: float = 30.0, crop_prediction: str = "rigid",
+              max_people: int = 1) -> tuple[np.ndarray, dict]:
     """Estimates (T, 25, 3) at `stamps` (NaN where none came out) and counts; tracker: flat
-    tracker settings (PipelineConfig keys, `fps` among them)."""
+    tracker settings (PipelineConfig keys, `fps` among them). max_people > 1: the counts hold
+    `bodies`, each REP-155 body's keypoints (T, 25, 3) by id, taken as a ROS4HRI listener
+    does (a body's topic opened when its id first appears in /humans/bodies/tracked; its first
+    frame sets may pass before the subscription matched)."""
     from vmocap_core.bag import cdr
     from vmocap_core.bag import messages as M
     from vmocap_core.outputs.messages import DIAG
@@ -61,7 +70,7 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     from ..common import msg_class, prepare_env, qos, stop_graph
     from ..run_node import probe_node
 
-    cfg = graph_config(work, rec, rig_path, rotation, tracker, rate, crop_prediction)
+    cfg = graph_config(work, rec, rig_path, rotation, tracker, rate, crop_prediction, max_people)
     fps = float(tracker["fps"])
     env = dict(os.environ)
     prepare_env(env)
@@ -85,12 +94,34 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
                 v = {kv["key"]: kv["value"] for kv in st["values"]}.get("others_in_view", "0")
                 others[0] = max(others[0], int(v) if v.isdigit() else 0)
 
+    bodies: dict[str, dict[int, np.ndarray]] = {}
+
+    def on_cloud(store: dict[int, np.ndarray]):
+        def take(data: bytes) -> None:
+            d = cdr.decode("sensor_msgs/msg/PointCloud2", data)
+            P, _, _ = M.cloud_keypoints(d)
+            if P is not None:
+                store[M.stamp_ns(d)] = P
+        return take
+
     last = int(stamps[-1])
     # lockstep goes at the graph's pace, which only the silence check bounds
     expected_s = len(stamps) / fps / rate if rate > 0 else len(stamps) * 1.0
     with probe_node("vmocap_bench_images_probe", env) as (node, ex), open(work / f"{cfg.stem}.log", "w") as log:
         node.create_subscription(msg_class("sensor_msgs/msg/PointCloud2"), "/vmocap/keypoints", on_keypoints, qos(200), raw=True)
         node.create_subscription(msg_class(DIAG), "/diagnostics", on_diagnostics, qos(50), raw=True)
+        if max_people > 1:
+            from vmocap_core.outputs.hri import IDS_LIST, TRACKED
+            from vmocap_core.outputs.people import keypoints_topic
+
+            def on_tracked(data: bytes) -> None:
+                for i in cdr.decode(IDS_LIST, data)["ids"]:
+                    if i not in bodies:
+                        bodies[i] = {}
+                        node.create_subscription(msg_class("sensor_msgs/msg/PointCloud2"), keypoints_topic("/vmocap", i),
+                                                 on_cloud(bodies[i]), qos(200), raw=True)
+
+            node.create_subscription(msg_class(IDS_LIST), TRACKED, on_tracked, qos(50), raw=True)
         launch = subprocess.Popen([sys.executable, "-m", "vmocap_core.cli", "launch", str(cfg)], env=env,
                                   stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 180.0 + 3.0 * expected_s
@@ -110,4 +141,13 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     for s, P in got.items():
         if s in row:
             est[row[s]] = P
-    return est, {"frame_sets_out": len(got), "frame_sets_in": len(stamps), "rate": rate, "others_in_view_max": others[0]}
+    counts: dict = {"frame_sets_out": len(got), "frame_sets_in": len(stamps), "rate": rate, "others_in_view_max": others[0]}
+    if max_people > 1:
+        counts["bodies"] = {}
+        for i, store in bodies.items():
+            b = np.full((len(stamps), len(KEYPOINTS), 3), np.nan)
+            for s, P in store.items():
+                if s in row:
+                    b[row[s]] = P
+            counts["bodies"][i] = b
+    return est, counts

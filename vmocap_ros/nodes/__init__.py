@@ -1,5 +1,6 @@
 """The vmocap nodes, one file per node, in the method's order: camera ingest -> PCM inference
--> lattice search (markers) -> IK + filter (skeleton) -> recorder. Each is a thin rclpy
+-> lattice search (markers) -> IK + filter (skeleton) -> recorder; several people: camera ->
+people (all of it per person, method/people_tracker.py) -> recorder. Each is a thin rclpy
 shell: parameters, publishers and subscriptions, one call into vmocap_core per message."""
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from .base import VmocapNode
 from .camera import CameraNode
 from .markers import MarkersNode
 from .pcm import PcmNode
+from .people import PeopleNode
 from .recorder import RecorderNode
 from .skeleton import SkeletonNode
 
@@ -21,6 +23,7 @@ NODES: dict[str, type[VmocapNode]] = {
     "vmocap_pcm": PcmNode,
     "vmocap_markers": MarkersNode,
     "vmocap_skeleton": SkeletonNode,
+    "vmocap_people": PeopleNode,
     "vmocap_recorder": RecorderNode,
 }
 

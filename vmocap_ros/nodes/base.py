@@ -99,7 +99,7 @@ class VmocapNode(Node):
         bus = self.transport.bus
         if bus.enabled:
             bus.publishers.add(topic)
-        return Output(type_name, topic, pub, latched, bus)
+        return Output(type_name, topic, pub, latched, bus, depth)
 
     def drop_publisher(self, out: "Output") -> None:
         """Destroy an output made by `publisher` (a topic of a body that is gone)."""

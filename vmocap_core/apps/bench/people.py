@@ -201,8 +201,11 @@ def run(args: argparse.Namespace, rig) -> int:
         if graph == "all" or (graph == "first" and name == args.configs[0]):
             g = importlib.import_module("vmocap_ros.bench.images_graph")  # by name: vmocap_core never imports rclpy
             est_g, counts = g.run_graph(group, args.rig_file, stamps, rotation, precision, args.tracker,
-                                        args.graph_rate, args.out)
+                                        args.graph_rate, args.out, max_people=max_people)
+            bodies = counts.pop("bodies", None)
             row["graph"] = {**subject_figures(est_g, truths, present), **counts}
+            if bodies is not None:
+                row["graph_everyone"] = people_figures(bodies, truths, seen >= 2)
         a, b = row["alone"]["mpjpe_mm"], row["group"]["mpjpe_mm"]
         row["mpjpe_ratio"] = b / a if a and b is not None else None
         result["runs"][name] = row
@@ -228,10 +231,12 @@ def verdict(result: dict[str, Any]) -> int:
             elif r["swap_frames"]:
                 print(f"vmocap bench images --people: WARNING {name} {run}: the output followed another person in "
                       f"{r['swap_frames']} frames (first at {r['first_swap_s']:.2f} s)", file=sys.stderr)
-        for k, r in enumerate(row.get("everyone", {}).get("persons", [])):
-            if r["mpjpe_mm"] is None and result["persons"][k]["present_pct"] > 0:
-                print(f"vmocap bench images --people: {name}: person {k} was present and never tracked", file=sys.stderr)
-                status = 1
+        for key in ("everyone", "graph_everyone"):
+            for k, r in enumerate(row.get(key, {}).get("persons", [])):
+                if r["mpjpe_mm"] is None and result["persons"][k]["present_pct"] > 0:
+                    print(f"vmocap bench images --people: {name} {key}: person {k} was present and never tracked",
+                          file=sys.stderr)
+                    status = 1
         ratio = row["mpjpe_ratio"]
         if ratio is not None and ratio > result["ratio_target"]:
             print(f"vmocap bench images --people: WARNING {name}: the subject's MPJPE among others is {ratio:.2f}x "
@@ -256,9 +261,12 @@ def print_people(result: dict[str, Any]) -> None:
                       f"{r.get('init_frames', '-'):>6}")
         print(f"{name}: subject MPJPE among others / alone = {f(row['mpjpe_ratio'], '.3f')} "
               f"(target <= {result['ratio_target']:.2f}, 0 swaps)")
-        every = row.get("everyone")
-        if every:
-            print(f"{name}, max_people {result['max_people']}: {every['bodies']} body ids, {every['ghost_frames']} ghost frames")
+        for key, run in (("everyone", "offline"), ("graph_everyone", "node graph")):
+            every = row.get(key)
+            if not every:
+                continue
+            print(f"{name} {run}, max_people {result['max_people']}: {every['bodies']} body ids, "
+                  f"{every['ghost_frames']} ghost frames")
             for k, r in enumerate(every["persons"]):
                 print(f"  person {k}: MPJPE {f(r['mpjpe_mm'])} mm, PCK50 {f(r['pck50'])}, missed {f(r['missed_pct'])} %, "
                       f"switches {r['identity_switches']}, first body at {f(r['first_s'], '.2f')} s")
