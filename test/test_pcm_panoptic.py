@@ -244,3 +244,16 @@ def test_pipeline_initializes_with_the_detector_then_tracks(scene) -> None:
     assert pcm.infer(black).n_views == 0
     with pytest.raises(ModelError):
         BlazePosePcm(rig, rotation="upside")
+
+
+def test_three_people_tracked_on_real_images(scene) -> None:
+    """`vmocap eval panoptic` at the instant where every person is seen by most views: the
+    multi-person tracker (issue 32, item 5) tracks all three, each skeleton within 15 px of its
+    own views' confident PCM peaks (1920x1080 images)."""
+    from vmocap_core.apps.evaluation import panoptic
+
+    res = panoptic.evaluate(DATA, 3, 120, ["00009348"])
+    row = res["instants"][0]
+    print(row)
+    assert row["tracked"] == 3, row
+    assert all(e is not None and e < 15.0 for e in row["reprojection_px"]), row

@@ -33,6 +33,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("record",), "vmocap_ros.recorder", "record ROS 2 topics into an MCAP bag"),
     (("calibrate",), "vmocap_core.calibration.cli", "calibrate a camera rig from board images/videos"),
     (("eval", "shelf"), "vmocap_core.apps.evaluation.shelf", "Shelf benchmark on real 2D detections"),
+    (("eval", "panoptic"), "vmocap_core.apps.evaluation.panoptic", "several people on real Panoptic images, the CNN"),
     (("demo",), "vmocap_core.apps.demo.cli", "end-to-end demo on the Pose2Sim videos"),
     (("report",), "vmocap_core.apps.report", "paper-style results report"),
     (("urdf",), "vmocap_core.outputs.cli", "write the tracked subject's URDF (robot_description)"),
