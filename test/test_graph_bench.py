@@ -33,3 +33,24 @@ def test_bench_graph_json(tmp_path):
         assert m["precision"] == "n/a"  # heatmaps from the bag: no CNN
     assert out["offline_ms_per_frame"] > 0
     assert not list(tmp_path.glob("vmocap_bench_graph_*")), "the benchmark left its ~180 MB work folder behind"
+
+
+def test_bench_graph_people_json(tmp_path):
+    """`--people 1`: a rendered person through vmocap_camera -> vmocap_people (max_people 2) with
+    the real CNN; the people node's figures are reported."""
+    import ctypes.util
+    import importlib.util
+
+    if ctypes.util.find_library("OSMesa") is None or importlib.util.find_spec("pyrender") is None:
+        pytest.skip("needs libosmesa6 and pyrender-maintained (scripts/setup.sh)")
+    env = {**domain_env(22), "TMPDIR": str(tmp_path)}
+    r = subprocess.run(
+        [sys.executable, "-m", "vmocap_core.cli", "bench", "graph", "--json", "--seconds", "3", "--warmup", "1",
+         "--pcm", "model", "--people", "1", "--frames", "60", "--modes", "default", "--cache", str(tmp_path / "cache")],
+        env=env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-4000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    m = out["modes"]["default"]
+    assert out["people"] == 1 and m["rate_hz"] > 1.0, m
+    assert set(m["cpu_pct"]) == {"vmocap_people"} and m["stages_ms"]["people"]["p50"] > 0.0, m
+    assert not list(tmp_path.glob("vmocap_bench_graph_*"))

@@ -217,7 +217,8 @@ class PeopleTracker:
         if detected:
             self._last_detection_ns = stamp_ns
             skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
-            found = self.pcm.detect_people(hidden(self.rig, images, skeletons))
+            # a lying newcomer is found when they get up: the turned look only for someone waiting
+            found = self.pcm.detect_people(hidden(self.rig, images, skeletons), turned=bool(waiting))
             pelvises = skeletons[:, PELVIS]
             left = explained(self.rig, found, pelvises[np.isfinite(pelvises).all(axis=1)])
             # the lost first (near where they were), then newcomers, the best seen first

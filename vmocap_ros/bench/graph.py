@@ -36,8 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .graph_setup import NODES, graph_config, graph_env, pose2sim_bag, synthetic_bag
+from .graph_setup import NODES, graph_config, graph_env, people_bag, pose2sim_bag, synthetic_bag
 from .probe import Probe, callback_cpu, in_window, latency, missing_periods, node_age
+
+STAGE_NODES = [*NODES, "vmocap_people"]  # the nodes whose diagnostics are read (several people: vmocap_people)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,6 +55,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="synthetic: random texture (no person; use with --pcm bag/synthetic); pose2sim: the "
                              "Pose2Sim demo videos (a real person, 4 calibrated cameras) resized to --size (with --pcm model)")
     parser.add_argument("--model", default="", help="PCM model for --pcm model")
+    parser.add_argument("--people", type=int, default=0, choices=(0, 1, 2, 3),
+                        help="1-3: that many rendered people (benchmark rig, 1024x768; use --frames 240 or more: "
+                             "the scene loops) through vmocap_camera -> vmocap_people (max_people at least 2); "
+                             "needs --pcm model")
+    parser.add_argument("--cache", default=None, help="--people: where rendered scenes are kept (default out/render_cache)")
     parser.add_argument("--feed", default="camera", choices=("camera", "player"),
                         help="camera: the graph's own vmocap_camera node plays the bag (looped, restamped: capture "
                              "stamp = the moment the frame set is due), in the graph's process in single_process mode; "
@@ -173,10 +180,11 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         # age after each stage: the nodes' own figures; joint_states as a controller receives it
         "stages_ms": {"transport": transport, "pcm": node_age(status.get("vmocap_pcm")),
                       "markers": node_age(status.get("vmocap_markers")), "skeleton": node_age(status.get("vmocap_skeleton")),
+                      "people": node_age(status.get("vmocap_people")),
                       "joint_states": latency(s["joint_states"])},
-        "cpu_pct": {n: callback_cpu(probe.diag.get(n, []), t0, t1) for n in NODES if n in diag},  # callbacks only
+        "cpu_pct": {n: callback_cpu(probe.diag.get(n, []), t0, t1) for n in STAGE_NODES if n in diag},  # callbacks only
         "process_cpu_pct": process_cpu,  # whole processes (rclpy executor and DDS threads included)
-        "proc_ms_p50": {n: float(status[n].get("proc_ms_p50", "nan")) for n in NODES if n in status},
+        "proc_ms_p50": {n: float(status[n].get("proc_ms_p50", "nan")) for n in STAGE_NODES if n in status},
         "pcm": pcm_name,
         "feed": args.feed,
         "tracking_frames": int(len(s["joint_states"])),
@@ -185,7 +193,7 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         "precision": status.get("vmocap_pcm", {}).get("precision", "n/a"),
         "node_status": {n: {k: v for k, v in status[n].items() if k in ("frames", "sync", "queue_dropped", "feedback_timeouts", "queued", "tracking",
                                                                        "flow", "published")}
-                        for n in ["vmocap_camera", *NODES] if n in status},
+                        for n in ["vmocap_camera", *STAGE_NODES] if n in status},
     }
 
 
@@ -202,7 +210,12 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace, work: Path) -> int:
     if not args.json:
         print(f"bench graph: preparing the bag in {work} ...", file=sys.stderr)
-    if args.images == "pose2sim":
+    if args.people:
+        if args.pcm != "model":
+            print("bench graph: --people needs --pcm model", file=sys.stderr)
+            return 2
+        rig, bag, rig_path, kps, motion = people_bag(work, args)
+    elif args.images == "pose2sim":
         if args.pcm != "model":
             print("bench graph: --images pose2sim needs --pcm model", file=sys.stderr)
             return 2
@@ -227,7 +240,7 @@ def _run(args: argparse.Namespace, work: Path) -> int:
             rclpy.shutdown()
     # the same frames offline (no DDS): what the graph adds on top of the computation
     offline_ms = offline_steady = None
-    if args.images == "synthetic":
+    if args.images == "synthetic" and not args.people:
         from vmocap_core.apps.bench.speed import time_pipeline
         from vmocap_core.apps.process import process_bag
         from vmocap_core.method.config import PipelineConfig
@@ -245,7 +258,7 @@ def _run(args: argparse.Namespace, work: Path) -> int:
     for r in results.values():
         r["graph_overhead_ms_p50"] = (round(r["latency_ms"]["p50"] - offline_steady["p50"], 2)
                                       if offline_ms is not None and args.pcm != "model" else None)
-    out = {"modes": results, "scaling": scaling, "cpu": cpu_flags(), "offline_ms_per_frame": offline_ms,
+    out = {"modes": results, "scaling": scaling, "cpu": cpu_flags(), "people": args.people, "offline_ms_per_frame": offline_ms,
            "offline_ms_steady": offline_steady if offline_ms is not None else None, "cameras": len(rig), "size": args.size, "fps": args.fps, "seconds": args.seconds,
            "shm_profile": env.get("FASTRTPS_DEFAULT_PROFILES_FILE", "")}
     if args.json:

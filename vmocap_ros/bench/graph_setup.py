@@ -3,6 +3,7 @@ config per launch mode, and the environment the graph and the probe share.
 
 - `synthetic_bag`: benchmark rig, walk clip, random-texture images and the heatmaps recorded in
   the bag (`--pcm bag`); `pose2sim_bag`: the Pose2Sim demo videos (a real person), resized;
+  `people_bag`: several rendered people (`--people`, vmocap_people);
 - `graph_config`: the shipped config/graph.yaml for one launch mode, PCM source and feed;
 - `graph_env`: localhost discovery and a DDS domain of the benchmark's own.
 """
@@ -96,6 +97,45 @@ def pose2sim_bag(work: Path, args: argparse.Namespace):
     return rig, bag, rig_path, [], None
 
 
+def people_bag(work: Path, args: argparse.Namespace):
+    """--people people rendered with exact bodies (bench images --people's scene: the walk
+    clip, the others crossing and standing beside it) in the benchmark rig's first --cameras
+    cameras at 1024x768, --frames frame sets re-stamped at --fps (the looped scene jumps back
+    at its end: people may be found anew there)."""
+    from vmocap_core.apps.bench import people as scene
+    from vmocap_core.apps.bench.images import DEFAULT_CACHE
+    from vmocap_core.apps.render.group import GroupSpec, Walker, render_group
+    from vmocap_core.apps.render.recording import ClipSpec
+    from vmocap_core.bag import BagReader, BagWriter
+    from vmocap_core.cameras.rig_file import load_rig, save_rig
+    from vmocap_core.graph_config import Topics
+
+    full = load_rig(REPO / "config" / "benchmark_rig.yaml")
+    rig = full.subset(full.names[: args.cameras]) if args.cameras < len(full) else full
+    clips = scene.person_clips(None, args.people)
+    seconds = args.frames / 60.0  # rendered at 60 Hz, whatever --fps plays it at
+    subject = ClipSpec(clips[0], args.frames, 60.0, 0)
+    walkers = tuple(Walker(ClipSpec(c, args.frames, 60.0, 0, variant=k), path, scene.SIZES[k])
+                    for k, (c, path) in enumerate(zip(clips[1:], scene.walker_paths(args.people, seconds)), start=1))
+    rec = render_group(GroupSpec(subject, walkers), full, Path(args.cache or DEFAULT_CACHE), progress=not args.json)
+    bag = work / f"people{args.people}_{len(rig)}cams_{args.frames}_{args.fps:g}.mcap"
+    if not bag.exists():
+        topics = Topics()
+        wanted = [t for c in rig.names for t in (topics.image(c), topics.camera_info(c))]
+        with BagReader(rec) as r, BagWriter(bag, overwrite=True) as wr:  # its own scratch bag
+            first = None
+            for m in r.messages(wanted):
+                first = m.log_time_ns if first is None else first
+                k = round((m.log_time_ns - first) * 60.0 / 1e9)  # the frame set's index at 60 Hz
+                t = 1_000_000_000_000 + int(round(k * 1e9 / args.fps))
+                msg = m.decode()
+                msg["header"]["stamp"] = {"sec": t // 1_000_000_000, "nanosec": t % 1_000_000_000}
+                wr.write(m.topic, m.type, msg, t)
+    rig_path = work / f"rig_people{len(rig)}.yaml"
+    save_rig(rig, rig_path)
+    return rig, bag, rig_path, [], None
+
+
 def graph_config(work: Path, mode: str, rig_path: Path, kps: list[str], args: argparse.Namespace, bag: Path, motion: Path) -> Path:
     """config/graph.yaml for launch `mode` (`default`: the shipped process groups), the PCM source
     (--pcm) and the feed (--feed), written to work/graph_<mode>.yaml."""
@@ -112,6 +152,11 @@ def graph_config(work: Path, mode: str, rig_path: Path, kps: list[str], args: ar
         common["pcm_keypoints"] = [""]  # the CNN's channels are all 25 KEYPOINTS
     common["fps"] = float(args.fps)
     nodes = list(NODES)
+    people = getattr(args, "people", 0)
+    if people:  # vmocap_people (everyone) instead of the one-subject nodes
+        nodes = ["vmocap_people"]
+        common["max_people"] = max(people, 2)
+        cfg["vmocap_people"] = {"ros__parameters": {"model": args.model or "blazepose"}}
     if args.feed == "camera":
         nodes.insert(0, "vmocap_camera")
         cfg["vmocap_camera"]["ros__parameters"].update(source="bag", uri=str(bag), rate=1.0, loop=True, restamp=True)
