@@ -82,10 +82,10 @@ class BlazePosePcm:
             self._detector = PoseDetector(self._detector_path, self._threads, parallel=self._parallel)
         return self._detector
 
-    def detect_people(self, images: Sequence[np.ndarray], turned: bool = True) -> list[list[Detection]]:
+    def detect_people(self, images: Sequence[np.ndarray], turned: bool = True, closer: bool = True) -> list[list[Detection]]:
         """Per image (None: none), the people the detector finds, best first: the whole image,
-        then a closer look where it found nobody or a small person, then (`turned`) the image
-        turned where still nobody is found."""
+        then (`closer`) a closer look where it found nobody or a small person, then (`turned`)
+        the image turned where still nobody is found."""
         have = [c for c, im in enumerate(images) if im is not None]
         found: list[list] = [[] for _ in images]
         for c, dets in zip(have, self.detector.detect([images[c] for c in have])):
@@ -95,7 +95,7 @@ class BlazePosePcm:
         # at twice the resolution: in tiles over the image where a view found nobody, in one
         # region around the person where it found only one smaller than that region (one extra
         # run, not six: initialization stays cheap), and keep the best of both passes.
-        again = [c for c in have if not found[c] or found[c][0].crop()[1] < ZOOM_BELOW * min(images[c].shape[:2])]
+        again = [c for c in have if closer and (not found[c] or found[c][0].crop()[1] < ZOOM_BELOW * min(images[c].shape[:2]))]
         near = [found[c][0].keypoints[0] if found[c] else None for c in again]
         for c, dets in zip(again, self.detector.detect_zoomed([images[c] for c in again], near)):
             both = found[c] + dets
