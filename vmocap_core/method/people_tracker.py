@@ -51,6 +51,7 @@ class PeopleConfig:
     same_body_m: float = 0.15  # two skeletons whose keypoints lie this close (median): one body
     hold_s: float = 0.25  # before their skeleton: a camera that lost a person's detection keeps its last crop this long
     wait_search_s: float = 0.1  # while someone waits for crops (found, lost): the detector runs this often
+    closer_every: int = 4  # every this many searches for newcomers look closer in every camera (_search)
 
     def __post_init__(self) -> None:
         if int(self.max_people) < 1:
@@ -66,7 +67,7 @@ class Person:
     pipeline: Pipeline
     seed: np.ndarray  # (3,) their hip centre when last seen: where to look for them when lost
     seen_ns: int  # stamp of their last frame set with a skeleton (or of their detection)
-    born_ns: int = 0  # stamp of the frame set they were found in
+    born_ns: int = 0  # stamp of the frame set they were found in (seen_ns stays it until their first skeleton)
     last: FrameResult | None = None
     views: int = 0  # views the CNN ran for them in the last frame set
     held: dict[int, tuple[int, Any]] = field(default_factory=dict)  # camera -> (stamp, detector crop) before a skeleton
@@ -171,6 +172,7 @@ class PeopleTracker:
         self.people: list[Person] = []
         self._next = 0
         self._last_detection_ns: int | None = None
+        self._searches = 0  # searches for newcomers so far
 
     def _new_person(self, seed: np.ndarray, stamp_ns: int) -> Person:
         pipe = Pipeline(self.rig, self.config)
@@ -181,16 +183,16 @@ class PeopleTracker:
         return p
 
     def _detection_due(self, stamp_ns: int, waiting: list[Person]) -> bool:
-        """Every wait_search_s while someone waits for crops (their last detector crops are
-        held in between: a full search costs several frame periods), every detect_every_s
-        while fewer than max_people are tracked."""
+        """Every frame set while someone found is not initialized yet; every wait_search_s while
+        someone lost waits (their last detector crops are held in between: a full search costs
+        several frame periods); every detect_every_s while fewer than max_people are tracked."""
         cfg = self.people_config
         if not waiting and len(self.people) >= cfg.max_people:
             return False
         last = self._last_detection_ns
-        # a person just found gets fresh detections for their first wait_search_s: the
-        # initialization triangulates consecutive frame sets of them
-        fresh = any(0 <= stamp_ns - p.born_ns < cfg.wait_search_s * 1e9 for p in waiting)
+        # a person found and not yet initialized gets fresh detections every frame set: the
+        # initialization triangulates consecutive frame sets of a body that may walk fast
+        fresh = any(p.seen_ns == p.born_ns for p in waiting)
         every = 0.0 if fresh else cfg.wait_search_s if waiting else cfg.detect_every_s
         return last is None or not 0 <= stamp_ns - last < every * 1e9
 
@@ -237,6 +239,8 @@ class PeopleTracker:
                                               stamp_ns)
                 if near and point is not None:
                     left = explained(self.rig, left, point[None])
+                    if p.seen_ns == p.born_ns:  # not initialized yet: follow their detections
+                        p.seed = point
             while len(self.people) < cfg.max_people:
                 choice = choose_subject(self.rig, left, None)
                 if choice.point is None:
@@ -267,14 +271,17 @@ class PeopleTracker:
         For someone waiting (`everywhere`): every look of detect_people. For newcomers only: the
         whole images, and the closer look only in the cameras that found nobody while another
         one found someone (a newcomer in the room is seen whole by some camera; the closer look
-        in every camera of an empty room cost 110 ms of 4 x 4 ms), no turned look (a lying
-        newcomer is found when they get up)."""
+        in every camera of an empty room costs 110 ms against 4 x 4 ms), and in every camera on
+        every closer_every-th search (a person small in every view: far, or a low-resolution
+        rig); no turned look (a lying newcomer is found when they get up)."""
         shown = hidden(self.rig, images, skeletons)
         if everywhere:
             return explained(self.rig, self.pcm.detect_people(shown), pelvises)
-        left = explained(self.rig, self.pcm.detect_people(shown, turned=False, closer=False), pelvises)
+        thorough = self._searches % self.people_config.closer_every == 0  # the first search too
+        self._searches += 1
+        left = explained(self.rig, self.pcm.detect_people(shown, turned=thorough, closer=thorough), pelvises)
         empty = [c for c, d in enumerate(left) if not d and shown[c] is not None]
-        if empty and len(empty) < sum(im is not None for im in shown):
+        if not thorough and empty and len(empty) < sum(im is not None for im in shown):
             again = self.pcm.detect_people([shown[c] if c in empty else None for c in range(len(shown))], turned=False)
             closer = explained(self.rig, again, pelvises)
             left = [closer[c] if c in empty else d for c, d in enumerate(left)]
