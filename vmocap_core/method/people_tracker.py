@@ -2,13 +2,15 @@
 person, one CNN call per frame set.
 
 Each tracked person's crops follow their own skeleton (the paper's feedback, III-B), so each
-lattice search reads maps of its own person. The detector runs only when someone is not
-tracked (a person just found, or lost: their crops come from it until their skeleton is fed
-back) and every `detect_every_s` while fewer than `max_people` are tracked, to find people who
-walked in. A detection that a tracked person's pelvis projects onto is theirs; the others are
-grouped across cameras (pcm/choice.py: hip centres triangulated from two cameras that project
-onto a detection in both) into new people, the one seen by the most cameras first. The crops of
-everyone go through the landmark model together (one batched call per frame set).
+lattice search reads maps of its own person. The detector runs on images with the tracked
+bodies greyed out (`hidden`): every frame set while someone found is not initialized yet (their
+crops come from it), every wait_search_s while someone lost waits (their last crops held in
+between), and every `detect_every_s` while fewer than `max_people` are tracked, to find people
+who walked in (`_search`: cheap whole-image looks, a closer look where needed). A detection
+that a tracked person's pelvis projects onto is theirs; the others are grouped across cameras
+(pcm/choice.py: hip centres triangulated from two cameras that project onto a detection in
+both) into new people, the one seen by the most cameras first. The crops of everyone go
+through the landmark model together (one batched call per frame set).
 
 People end when they have had no skeleton for `end_after_s` (left the room, or lost and not
 found again near where they were), or when their skeleton lies on another person's (two tracks
