@@ -78,6 +78,13 @@ class HriListener:
         self.node.create_subscription(msg_class("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", on_diag, 10,
                                       raw=True)
 
+    def close(self, executor, rclpy) -> None:
+        """Off the executor, the node gone, rclpy shut down (the end of a test's graph run)."""
+        executor.remove_node(self.node)
+        executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown()
+
     def _on_tracked(self, msg) -> None:
         from sensor_msgs.msg import JointState
         from std_msgs.msg import String
@@ -157,10 +164,7 @@ def run(tmp_path_factory) -> HriListener:
         wait_for(lambda: (spin(0.1), False)[1], 1.5, 0.0)  # the last diagnostics
     finally:
         log = stop(launch)
-        executor.remove_node(hri.node)
-        executor.shutdown()
-        hri.node.destroy_node()
-        rclpy.shutdown()
+        hri.close(executor, rclpy)
     assert launch.returncode == 0, log
     return hri
 

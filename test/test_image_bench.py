@@ -3,27 +3,18 @@
 from __future__ import annotations
 
 import argparse
-import ctypes.util
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
+from render_helpers import CLIP, REPO, half_size_rig, needs_rendering
 
-REPO = Path(__file__).resolve().parents[1]
-CLIP = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
-pytestmark = pytest.mark.skipif(
-    ctypes.util.find_library("OSMesa") is None or importlib.util.find_spec("anny") is None
-    or importlib.util.find_spec("pyrender") is None,
-    reason="needs libosmesa6, pyrender-maintained and anny==0.6.2 (scripts/setup.sh)")
+pytestmark = needs_rendering
 
 
 @pytest.fixture(scope="module")
 def rig():
-    from vmocap_core.apps.render.recording import scale_rig
-    from vmocap_core.cameras.rig_file import load_rig
-
-    return scale_rig(load_rig(REPO / "config" / "benchmark_rig.yaml"), 0.5)
+    return half_size_rig()
 
 
 def test_truth_reprojects_onto_the_rendered_body(rig):

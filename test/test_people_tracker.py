@@ -3,31 +3,21 @@ outputs, and the scoring of everyone against exact truth."""
 
 from __future__ import annotations
 
-import ctypes.util
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from render_helpers import CLIP, half_size_rig, needs_rendering
 
 from vmocap_core.keypoints import INDEX
 from vmocap_core.pcm.detector import Detection
 
-REPO = Path(__file__).resolve().parents[1]
-CLIP = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
-rendering = pytest.mark.skipif(
-    ctypes.util.find_library("OSMesa") is None or importlib.util.find_spec("anny") is None
-    or importlib.util.find_spec("pyrender") is None,
-    reason="needs libosmesa6, pyrender-maintained and anny==0.6.2 (scripts/setup.sh)")
+rendering = needs_rendering
 
 
 @pytest.fixture(scope="module")
 def rig():
-    from vmocap_core.apps.render.recording import scale_rig
-    from vmocap_core.cameras.rig_file import load_rig
-
-    return scale_rig(load_rig(REPO / "config" / "benchmark_rig.yaml"), 0.5)
+    return half_size_rig()
 
 
 def _detection(rig, camera: int, pelvis: np.ndarray) -> Detection:
@@ -212,10 +202,7 @@ def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, tmp_path):
                         == int(stamps[-1]), 600.0, 0.0), f"the last frame set never came out ({len(hri.tracked)} did)"
     finally:
         log = stop(launch)
-        executor.remove_node(hri.node)
-        executor.shutdown()
-        hri.node.destroy_node()
-        rclpy.shutdown()
+        hri.close(executor, rclpy)
     assert launch.returncode == 0, log
     both = [ids for _, ids in hri.tracked if len(ids) == 2]
     assert both and all(a != b for a, b in both), hri.tracked[-3:]
