@@ -20,6 +20,30 @@ def rig():
     return half_size_rig()
 
 
+FRAMES = 180  # 3 s at 60 Hz: the walker crosses the room in front of the subject
+
+
+@pytest.fixture(scope="module")
+def scene(rig, tmp_path_factory):
+    """The two-person recording (the subject walking on the spot, a smaller body in other
+    clothes crossing in front of it), its stamps and both truths (2, T, 25, 3)."""
+    from vmocap_core.apps.bench import people
+    from vmocap_core.apps.render.group import GroupSpec, Walker, render_group, truth_topic
+    from vmocap_core.apps.render.recording import ClipSpec, read_truth
+
+    walker = Walker(ClipSpec(CLIP, FRAMES, 60.0, 0, 1), people.walker_paths(2, FRAMES / 60.0)[0], 0.93)
+    rec = render_group(GroupSpec(ClipSpec(CLIP, FRAMES, 60.0, 0), (walker,)), rig,
+                       tmp_path_factory.mktemp("people") / "cache", progress=False)
+    stamps, _ = read_truth(rec)
+    return rec, stamps, np.stack([read_truth(rec, truth_topic(k))[1] for k in range(2)])
+
+
+def _precision() -> str:
+    from vmocap_core.pcm import selfcheck
+
+    return "int8" if selfcheck.verdict("full").int8_correct else "float"
+
+
 def _detection(rig, camera: int, pelvis: np.ndarray) -> Detection:
     uv, _ = rig.project(np.stack([pelvis, pelvis + [0.0, 0.0, 0.9]]))
     hip, head = uv[camera]
@@ -97,23 +121,15 @@ def test_people_outputs_give_each_body_its_own_id():
 
 
 @rendering
-def test_two_people_each_tracked_with_their_own_id(rig, tmp_path):
-    """Two people rendered with exact truth (the subject walking on the spot, another body
-    crossing the room in front of it), `vmocap process --max-people 2` with the real CNN:
+def test_two_people_each_tracked_with_their_own_id(rig, scene, tmp_path):
+    """Two people rendered with exact truth, `vmocap process --max-people 2` with the real CNN:
     each person gets a body of their own, matched to them with no identity switch and no
     ghost, within 40 mm of their truth; the subject topics follow the first one."""
     from vmocap_core.apps.bench import images, people
     from vmocap_core.apps.process import process_bag
-    from vmocap_core.apps.render.group import GroupSpec, Walker, render_group, truth_topic
-    from vmocap_core.apps.render.recording import ClipSpec, read_truth
-    from vmocap_core.pcm import selfcheck
 
-    precision = "int8" if selfcheck.verdict("full").int8_correct else "float"
-    frames = 180
-    walker = Walker(ClipSpec(CLIP, frames, 60.0, 0, 1), people.walker_paths(2, frames / 60.0)[0], 0.93)
-    rec = render_group(GroupSpec(ClipSpec(CLIP, frames, 60.0, 0), (walker,)), rig, tmp_path / "cache", progress=False)
-    stamps, _ = read_truth(rec)
-    truths = np.stack([read_truth(rec, truth_topic(k))[1] for k in range(2)])
+    rec, stamps, truths = scene
+    precision = _precision()
     out = tmp_path / "out.mcap"
     stats = process_bag(rec, out, rig, config={"fps": 60.0}, progress=False, overwrite=True, max_people=2,
                         provider=images._Provider(rig, "all", precision))
@@ -137,7 +153,7 @@ def test_two_people_each_tracked_with_their_own_id(rig, tmp_path):
 
 @rendering
 @pytest.mark.graph_replay
-def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, tmp_path):
+def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, scene, tmp_path):
     """vmocap_camera plays the two-person recording in lockstep into vmocap_people (max_people 2).
     A client that behaves like libhri's HRIListener (default QoS on /humans/bodies/tracked, a
     body's urdf, joint_states and keypoints opened when its id appears) sees two bodies at once
@@ -152,8 +168,6 @@ def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, tmp_path):
     from test_graph_hri import HriListener, _stamp
 
     from vmocap_core.apps.bench import images, people
-    from vmocap_core.apps.render.group import GroupSpec, Walker, render_group, truth_topic
-    from vmocap_core.apps.render.recording import ClipSpec, read_truth
     from vmocap_core.bag.messages import CLOUD_DTYPE
     from vmocap_core.cameras.rig_file import save_rig
     from vmocap_core.outputs.people import keypoints_topic
@@ -164,11 +178,7 @@ def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, tmp_path):
     from vmocap_ros.common import init_rclpy, qos
     from vmocap_ros.run_node import make_executor
 
-    frames = 180
-    walker = Walker(ClipSpec(CLIP, frames, 60.0, 0, 1), people.walker_paths(2, frames / 60.0)[0], 0.93)
-    rec = render_group(GroupSpec(ClipSpec(CLIP, frames, 60.0, 0), (walker,)), rig, tmp_path / "cache", progress=False)
-    stamps, _ = read_truth(rec)
-    truths = np.stack([read_truth(rec, truth_topic(k))[1] for k in range(2)])
+    rec, stamps, truths = scene
     save_rig(rig, tmp_path / "rig.yaml")
     cfg = graph_config(tmp_path, rec, tmp_path / "rig.yaml", "all", {"fps": 60.0}, 0.0, max_people=2)
     env = domain_env(23)
@@ -224,3 +234,54 @@ def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, tmp_path):
         assert r["mpjpe_mm"] is not None and r["mpjpe_mm"] < 40.0 and r["identity_switches"] == 0, f
     assert set(f["persons"][0]["ids"]).isdisjoint(f["persons"][1]["ids"])
     assert images.frame_mpjpe(bodies[f["persons"][0]["ids"][0]], truths[0]).size == len(stamps)
+
+
+@rendering
+def test_a_camera_stops_while_two_are_tracked(rig, scene):
+    """Bad input: cam2 gives no more images from frame set 140 on, while both people are
+    tracked. The subject stays tracked on the other three cameras. The walker, near the room's
+    edge by then, is in view of cam1 and cam2 only: with cam2 gone one camera sees it, so it has
+    no body (not a ghost, not a guess), and nobody else appears."""
+    from vmocap_core.apps.bench import images
+    from vmocap_core.bag import BagReader
+    from vmocap_core.bag import messages as M
+    from vmocap_core.method.config import PipelineConfig
+    from vmocap_core.method.people_tracker import PeopleConfig, PeopleTracker
+
+    rec, stamps, truths = scene
+    stop_at = 140
+    pts = truths[1][:, [INDEX["pelvis"], INDEX["neck"]]]
+    uv, front = rig.project(pts)
+    size = np.array([[c.width, c.height] for c in rig])[:, None, None]
+    seen = (front & (uv >= 0).all(-1) & (uv < size).all(-1)).all(-1)  # (C, T) the walker in view
+    assert seen[[1, 2], stop_at:].all() and not seen[[0, 3], stop_at:].any()  # the premise
+    tracker = PeopleTracker(rig, images._Provider(rig, "all", _precision()).pcm, PipelineConfig.from_dict({"fps": 60.0}),
+                            PeopleConfig(max_people=2))
+    est = np.full((2, len(stamps), 25, 3), np.nan)  # per person number 0, 1 (no one else may appear)
+    with BagReader(rec) as r:
+        frame: list = []
+        for k, m in enumerate(r.messages([f"/vmocap/{c.name}/image_raw" for c in rig])):
+            frame.append(M.image_array(m.decode()))
+            if len(frame) < len(rig):
+                continue
+            f = k // len(rig)
+            if f >= stop_at:
+                frame[2] = None
+            for p in tracker.step(frame, int(stamps[f])).people:
+                assert p.number < 2, "a third person appeared"
+                if p.status == "tracking":
+                    est[p.number, f] = p.last.skeleton.keypoints
+            frame = []
+    both = np.isfinite(est[:, :stop_at, 0, 0]).all(axis=0)
+    assert both.any(), "both people were never tracked before the camera stopped"
+    t0 = np.flatnonzero(both)[0]
+    d = np.nanmean(np.linalg.norm(est[:, t0, None] - truths[None, :, t0], axis=-1), axis=-1)  # (number, person)
+    subject, walker = int(np.argmin(d[:, 0])), int(np.argmin(d[:, 1]))
+    assert subject != walker, d
+    after = np.arange(stop_at + 5, len(stamps))
+    e = images.frame_mpjpe(est[subject, after], truths[0, after])
+    print(f"subject tracked {np.isfinite(e).mean():.0%} after the stop, MPJPE {np.nanmean(e):.1f} mm")
+    assert np.isfinite(e).mean() > 0.8 and np.nanmean(e) < 50.0
+    w = images.frame_mpjpe(est[walker, stop_at:], truths[1, stop_at:])
+    print(f"walker: {np.isfinite(w).sum()} frame sets with a body after the stop")
+    assert np.isfinite(w).sum() <= 3 and not (w > 100.0).any(), w
