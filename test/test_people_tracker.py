@@ -158,7 +158,8 @@ def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, scene, tmp_pat
     A client that behaves like libhri's HRIListener (default QoS on /humans/bodies/tracked, a
     body's urdf, joint_states and keypoints opened when its id appears) sees two bodies at once
     with different ids, each URDF's movable joints equal to its JointState names suffixed with
-    its id, and each body's keypoints on a different person's truth."""
+    its id, each body's TF frame at its hips' mid-point (the last /tf_static holding both bodies'
+    fixed frames), and each body's keypoints on a different person's truth."""
     pytest.importorskip("hri_msgs.msg", reason="hri_msgs not built (bash scripts/build_ros_msgs.sh)")
     pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (bash scripts/build_ros_msgs.sh)")
     import os
@@ -220,6 +221,13 @@ def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, scene, tmp_pat
         urdf = UrdfKinematics(hri.urdf[body])
         js = hri.joint_states.get(body, [])
         assert js and urdf.joint_names == list(js[-1].name) == [f"{n}_{body}" for n in JOINT_NAMES]
+    # TF: each body's frame at its hips' mid-point; the last /tf_static holds both bodies' fixed frames
+    for body, got in clouds.items():
+        at = [(st, t) for st, tr in hri.tf for child, t in zip(tr.children, tr.t) if child == f"body_{body}"]
+        assert at, f"no TF body_{body}"
+        kp = [(got[st], t) for st, t in at if st in got]
+        assert kp and all(np.allclose(t, (k[INDEX["left_hip"]] + k[INDEX["right_hip"]]) / 2, atol=1e-6) for k, t in kp)
+        assert any(c.endswith(f"_{body}") for c in hri.tf_static[-1].children), f"{body} not in the last /tf_static"
     row = {int(s): i for i, s in enumerate(stamps)}
     bodies = {}
     for body, got in clouds.items():

@@ -194,6 +194,11 @@ class HriOutputs:
     def body_id(self) -> str | None:
         return self.ids.current
 
+    @property
+    def fixed_frames(self) -> Transforms | None:
+        """The described body's fixed frames (its suffixed keypoint frames; None before)."""
+        return None if self._kinematics is None else self._kinematics.static_transforms()
+
     def step(self, result: Any, wanted: Callable[[str], bool] | None = None) -> HriFrame:
         """The frame set of a TrackResult (stamp_ns, status, q, keypoints, dims). A body's
         joint_states and /tf are not built where `wanted(topic)` is False (nobody listens)."""

@@ -64,7 +64,7 @@ class PeopleNode(VmocapNode):
             self.pubs[topic] = self.publisher(ty, topic, depth=STREAM_DEPTH)
         self.subject, extra = skeleton_outputs(self)
         self.pubs.update(extra)
-        self.hri = hri_outputs(self, None, self.pubs, PeopleOutputs(t.ns))
+        self.hri = hri_outputs(self, None, self.pubs, PeopleOutputs(t.ns, subject=self.subject, tf=t.tf in self.pubs))
         self._done = self.publisher(HEADER, t.pcm_done)  # vmocap_camera's flow control
         self.sets: list = []
         self.busy = False
