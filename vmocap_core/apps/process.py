@@ -39,6 +39,7 @@ from ..paths import REPO
 from ..pcm.assembly import PcmAssembler, channel_keypoints, pcm_topics
 from ..pcm.peaks import camera_keypoints
 from ..pcm.views import PcmViews
+from .process_people import PeopleSteps
 
 # Camera time offsets (method/time_offsets.py) from the cameras' 2D keypoints of the first
 # frame sets: ~10 s at 60 Hz is plenty for whole frame sets and keeps it to a few seconds.
@@ -122,7 +123,7 @@ def process_bag(
             stats["bad_images"] = {c: 0 for c in cams}
             frames, total, sync_stats = _image_frame_sets(reader, rig, topics, cams, max(tolerance_ns, 8_000_000),
                                                           min_views, binning, recorded, stats["bad_images"])
-        people = _people(pipe, rig, live_cfg, max_people, topics.ns) if max_people > 1 else None
+        people = PeopleSteps.over(pipe, rig, live_cfg, max_people, topics.ns) if max_people > 1 else None
         warm_up = getattr(pipe.pcm, "warm_up", None)
         if warm_up is not None:  # the CNN's first run allocates and picks kernels: start-up, as in vmocap_pcm
             warm_up()
@@ -155,7 +156,7 @@ def process_bag(
             # offline, frame sets the live pass was still identifying on are enough
             followed = tracked_any or (offline and any(r.status in FEEDBACK_STATUSES for r in kept))
             if stamps and pipe.last is not None and not followed:
-                stats["not_tracked_because"] = _why_not_tracked(pipe, rig)
+                stats["not_tracked_because"] = why_not_tracked(pipe, rig)
                 if offline:
                     from ..method.offline import OfflineError
 
@@ -193,46 +194,7 @@ def process_bag(
     return stats
 
 
-class _People:
-    """process_bag with several people: the tracker, its REP-155 outputs into the bag."""
-
-    def __init__(self, tracker: Any, outputs: Any) -> None:
-        self.tracker, self.outputs = tracker, outputs
-
-    def step(self, frame: ImageSet, writer: BagWriter, stats: dict[str, Any]) -> FrameResult | None:
-        images: list[np.ndarray | None] = [None] * len(self.tracker.rig)
-        for c, image in zip(frame.cameras, frame.images):
-            images[int(c)] = image
-        people = self.tracker.step(images, frame.stamp_ns)
-        hri = self.outputs.step(people)
-        for ch in hri.opened:
-            writer.add_topic(ch.topic, ch.type, latched=ch.latched)
-        for topic, ty, msg in hri.messages:
-            writer.write(topic, ty, msg, frame.stamp_ns)
-        tracked = sum(p.status == "tracking" for p in people.people)
-        stats["people_max"] = max(stats.get("people_max", 0), tracked)
-        stats["people_ended"] = stats.get("people_ended", 0) + len(people.ended)
-        with_body = [p for p in people.people if p.last is not None]
-        return min(with_body, key=lambda p: p.number).last if with_body else None
-
-
-def _people(pipe: Pipeline, rig: Rig, config: PipelineConfig, max_people: int, namespace: str) -> _People:
-    """The multi-person tracker over the pipeline's CNN (BlazePose's detector and landmark model)."""
-    from ..method.people_tracker import PeopleConfig, PeopleTracker
-    from ..outputs.people import PeopleOutputs
-
-    source: Any = pipe.pcm
-    if source is None or not hasattr(getattr(source, "pcm", None), "detect_people"):
-        raise BagError("several people (max_people > 1) need the BlazePose CNN on camera images")
-    if getattr(source, "binning", 1) != 1:
-        raise BagError("several people (max_people > 1) with --binning: not supported yet")
-    tracker = PeopleTracker(rig, source.pcm, config, PeopleConfig(max_people=max_people),
-                            landmarks=getattr(source, "landmarks", "auto"),
-                            crop_prediction=getattr(source, "crop_prediction", "rigid"))
-    return _People(tracker, PeopleOutputs(namespace))
-
-
-def _why_not_tracked(pipe: Pipeline, rig: Rig) -> str:
+def why_not_tracked(pipe: Pipeline, rig: Rig) -> str:
     """Why no frame set was tracked, as the graph's WARN says it (init_report.py), or that the
     recording ended before the tracker's first output."""
     from ..method.init_report import not_initialized_reason

@@ -27,7 +27,7 @@ import numpy as np
 from ..cameras.projection import Rig
 from ..errors import VmocapError
 from ..keypoints import INDEX, KEYPOINTS
-from ..pcm.choice import AGREE_FRACTION, choose_subject
+from ..pcm.choice import AGREE_FRACTION, choose_subject, detection_arrays
 from ..pcm.crops import Crops
 from ..pcm.detector import Detection
 from ..pcm.views import PcmViews
@@ -71,7 +71,6 @@ class Person:
     seen_ns: int  # stamp of their last frame set with a skeleton (or of their detection)
     born_ns: int = 0  # stamp of the frame set they were found in (seen_ns stays it until their first skeleton)
     last: FrameResult | None = None
-    views: int = 0  # views the CNN ran for them in the last frame set
     held: dict[int, tuple[int, Any]] = field(default_factory=dict)  # camera -> (stamp, detector crop) before a skeleton
 
     @property
@@ -81,24 +80,23 @@ class Person:
 
 @dataclass
 class PeopleFrame:
-    """One frame set: every person's result (people ended in it are not among them), the
-    people the detector saw but nobody tracks (per camera), and whether it ran."""
+    """One frame set: every person's result (people ended in it are not among them) and the
+    people the detector saw but nobody tracks (per camera)."""
 
     stamp_ns: int
     people: list[Person]
     untracked: np.ndarray  # (C,) detections per camera nobody's skeleton explains (-1: not looked)
-    detected: bool
     ended: list[int] = field(default_factory=list)  # numbers of the people ended in this frame set
 
+    @property
+    def first(self) -> Person | None:
+        """The person found first among those with a result: the one on the subject topics."""
+        return min((p for p in self.people if p.last is not None), key=lambda p: p.number, default=None)
 
-def _empty_views(J: int, size: int, stamp_ns: int) -> PcmViews:
-    return PcmViews(np.zeros((0, J, size, size)), np.zeros((0, 2, 3)), np.zeros(0), np.arange(J),
-                    np.zeros((0, J), bool), np.zeros(0), stamp_ns)
-
-
-def _subset(pcm: PcmViews, keep: np.ndarray) -> PcmViews:
-    return PcmViews(pcm.maps[keep], pcm.image_to_map[keep], pcm.camera[keep], pcm.keypoints, pcm.valid[keep],
-                    pcm.presence[keep], pcm.stamp_ns)
+    @property
+    def others_in_view(self) -> int:
+        """The most detections nobody tracked explains in one camera (0: none, or not looked)."""
+        return int(max(self.untracked.max(initial=0), 0))
 
 
 def _concat(crops: Sequence[Crops]) -> Crops:
@@ -115,12 +113,10 @@ def explained(rig: Rig, found: Sequence[Sequence[Detection]], pelvises: np.ndarr
         return [list(d) for d in found]
     uv, front = rig.project(np.asarray(pelvises, dtype=np.float64))  # (C, P, 2), (C, P)
     out: list[list[Detection]] = []
-    for c, dets in enumerate(found):
+    for c, (dets, hips, reach) in enumerate(zip(found, *detection_arrays(found)[:2])):
         if not dets:
             out.append([])
             continue
-        hips = np.array([d.keypoints[0] for d in dets])
-        reach = np.array([np.linalg.norm(d.keypoints[1] - d.keypoints[0]) for d in dets])
         dist = np.linalg.norm(hips[:, None] - uv[c][None], axis=-1)  # (n, P)
         taken = (front[c][None] & (dist < AGREE_FRACTION * np.maximum(reach[:, None], 1e-6))).any(axis=1)
         out.append([d for d, t in zip(dets, taken) if not t])
@@ -209,8 +205,7 @@ class PeopleTracker:
                 p.held[c] = (stamp_ns, found[c][index[c]].crop())
         hold = self.people_config.hold_s * 1e9
         cams = [c for c, (t, _) in sorted(p.held.items()) if have[c] and 0 <= stamp_ns - t <= hold]
-        rects = [p.held[c][1] for c in cams]
-        return Crops(cams, [r[0] for r in rects] or np.zeros((0, 2)), [r[1] for r in rects], [r[2] for r in rects])
+        return Crops.from_rectangles(cams, [p.held[c][1] for c in cams])
 
     def step(self, images: Sequence[np.ndarray | None], stamp_ns: int) -> PeopleFrame:
         cfg = self.people_config
@@ -224,9 +219,8 @@ class PeopleTracker:
                 c = self.pcm.crops_from_skeleton(kp)
                 crops[p.number] = c.select(have[c.camera])
         waiting = [p for p in self.people if p.number not in tracked]
-        detected = self._detection_due(stamp_ns, waiting)
         untracked = np.full(len(self.rig), -1)
-        if detected:
+        if self._detection_due(stamp_ns, waiting):
             self._last_detection_ns = stamp_ns
             skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
             pelvises = skeletons[:, PELVIS]
@@ -257,15 +251,14 @@ class PeopleTracker:
         pcm = self._infer(images, crops, stamp_ns)
         for p in self.people:
             own = pcm.get(p.number)
-            p.views = 0 if own is None else own.n_views
-            J = len(KEYPOINTS)
-            p.last = p.pipeline.step(own if own is not None else _empty_views(J, self.pcm.landmark.map_size, stamp_ns))
+            p.last = p.pipeline.step(own if own is not None else PcmViews.empty(len(KEYPOINTS), self.pcm.landmark.map_size,
+                                                                               stamp_ns))
             fb = p.pipeline.feedback
             if fb is not None and np.isfinite(fb[PELVIS]).all():
                 p.seed, p.seen_ns = fb[PELVIS].copy(), stamp_ns
                 p.held.clear()
         ended = self._end(stamp_ns)
-        return PeopleFrame(stamp_ns, list(self.people), untracked, detected, ended)
+        return PeopleFrame(stamp_ns, list(self.people), untracked, ended)
 
     def _search(self, images: Sequence[np.ndarray | None], skeletons: np.ndarray, pelvises: np.ndarray,
                 everywhere: bool) -> list[list[Detection]]:
@@ -296,7 +289,7 @@ class PeopleTracker:
             return {}
         views = self.pcm.landmark.infer(list(images), _concat([crops[n] for n in order]), stamp_ns)
         owner = np.concatenate([np.full(len(crops[n]), n) for n in order])
-        return {n: _subset(views, owner == n) for n in order}
+        return {n: views.select(owner == n) for n in order}
 
     def _end(self, stamp_ns: int) -> list[int]:
         cfg = self.people_config

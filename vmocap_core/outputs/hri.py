@@ -171,6 +171,7 @@ class HriFrame:
     opened: list[Channel] = field(default_factory=list)
     messages: list[tuple[str, str, dict]] = field(default_factory=list)
     closed: list[str] = field(default_factory=list)
+    retired: list[str] = field(default_factory=list)  # the ids whose topics `closed` holds
 
 
 def body_channels(body_id: str) -> list[Channel]:
@@ -205,7 +206,8 @@ class HriOutputs:
         want = wanted or (lambda topic: True)
         t = result.stamp_ns
         body_id = self.ids.update(t, result.status)
-        frame = HriFrame(closed=[c.topic for i in self.ids.retired(t) for c in body_channels(i)])
+        retired = self.ids.retired(t)
+        frame = HriFrame(closed=[c.topic for i in retired for c in body_channels(i)], retired=retired)
         out = frame.messages
         if body_id is not None and result.dims is not None:
             if self._described is None or self._described[0] != body_id:

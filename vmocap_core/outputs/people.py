@@ -67,18 +67,17 @@ class PeopleOutputs:
             body = hri.body_id
             if f.opened and body is not None:  # a new id: its channels, ours included
                 out.opened += self._channels(body)
-            # ids its BodyIds retired (ended RETIRE_S ago, /humans/bodies/<id>/urdf): every channel, ours included
-            retired = [c.split("/")[3] for c in f.closed if c.endswith("/urdf")]
-            out.closed += [c.topic for i in retired for c in self._channels(i)]
+            out.closed += [c.topic for i in f.retired for c in self._channels(i)]  # ours included
             out.messages += [m for m in f.messages if m[0] not in (TRACKED, Topics.tf_static)]
             if any(m[0] == Topics.tf_static for m in f.messages) and hri.fixed_frames is not None:
                 self._fixed[p.number] = hri.fixed_frames
                 described = True
             if body is not None and result.status == "tracking":
                 ids.append(body)
-                if wanted is None or wanted(keypoints_topic(self.namespace, body)):
-                        out.messages.append((keypoints_topic(self.namespace, body), CLOUD,
-                                         M.keypoint_cloud(t, result.keypoints, np.nan_to_num(result.confidence, nan=0.0))))
+                topic = keypoints_topic(self.namespace, body)
+                if wanted is None or wanted(topic):
+                    out.messages.append((topic, CLOUD, M.keypoint_cloud(t, result.keypoints,
+                                                                        np.nan_to_num(result.confidence, nan=0.0))))
         if described:
             static = Transforms.concat(list(self._fixed.values()))
             if self.subject is not None:  # the graph's own fixed frames in the same message

@@ -36,7 +36,7 @@ class Choice:
     point: np.ndarray | None  # (3,) the subject's triangulated hip centre (None: no two views agree)
 
 
-def _arrays(found: Sequence[Sequence[Detection]]) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+def detection_arrays(found: Sequence[Sequence[Detection]]) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
     hips = [np.array([d.keypoints[0] for d in dets]).reshape(-1, 2) for dets in found]
     reach = [np.array([np.linalg.norm(d.keypoints[1] - d.keypoints[0]) for d in dets]) for dets in found]
     scores = [np.array([d.score for d in dets]) for dets in found]
@@ -75,7 +75,7 @@ def _matches(rig: Rig, X: np.ndarray, hips: Sequence[np.ndarray], reach: Sequenc
 def choose_subject(rig: Rig, found: Sequence[Sequence[Detection]], seed: np.ndarray | None = None) -> Choice:
     """The subject's detection in each camera (see the module doc). Fewer than two cameras
     agreeing on anyone: each camera's detection nearest to the seed's projection, or its best."""
-    hips, reach, scores = _arrays(found)
+    hips, reach, scores = detection_arrays(found)
     X = candidates(rig, hips)
     match = _matches(rig, X, hips, reach)
     views = (match >= 0).sum(axis=0)
@@ -127,6 +127,6 @@ def others_near(rig: Rig, camera: int, dets: Sequence[Detection], pelvis: np.nda
     in the world; everyone when it is behind the camera). The subject's hip-to-head length in
     the image is taken as that of SUBJECT_REACH_M upright."""
     uv, front = rig.project(np.stack([pelvis, pelvis + [0.0, 0.0, SUBJECT_REACH_M]]))
-    hips, reach, _ = _arrays([dets])
+    hips, reach, _ = detection_arrays([dets])
     subject = (uv[camera, 0], float(np.linalg.norm(uv[camera, 1] - uv[camera, 0]))) if front[camera].all() else None
     return _distinct_others(hips[0], reach[0], subject)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -51,6 +52,13 @@ class Crops:
 
     def __len__(self) -> int:
         return self.camera.size
+
+    @classmethod
+    def from_rectangles(cls, cameras: Sequence[int], rects: Sequence[tuple[np.ndarray, float, float]]) -> "Crops":
+        """Crops of (centre (2,), side, rotation) rectangles, one per camera in `cameras`
+        (detector.Detection.crop's, rotated already)."""
+        return cls(list(cameras), [r[0] for r in rects] or np.zeros((0, 2)), [r[1] for r in rects],
+                   [r[2] for r in rects])
 
     def select(self, keep: np.ndarray) -> "Crops":
         """The crops where `keep` (V,) is True."""

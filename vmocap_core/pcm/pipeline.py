@@ -119,8 +119,7 @@ class BlazePosePcm:
         choice = choose_subject(self.rig, found, seed)
         self.others_in_view = choice.others
         cams = [c for c in range(len(found)) if choice.index[c] >= 0]
-        rects = [found[c][choice.index[c]].crop() for c in cams]
-        return Crops(cams, [r[0] for r in rects] or np.zeros((0, 2)), [r[1] for r in rects], [r[2] for r in rects])
+        return Crops.from_rectangles(cams, [found[c][choice.index[c]].crop() for c in cams])
 
     def _census(self, images: Sequence[np.ndarray], pelvis: np.ndarray) -> None:
         """While tracking the detector does not run for the crops: every `census_every`-th frame
@@ -177,9 +176,7 @@ class BlazePosePcm:
             crops = self.crops_from_skeleton(keypoints, tilt)
             crops = crops.select(np.array([images[c] is not None for c in crops.camera], dtype=bool))
         if len(crops) == 0:
-            J = len(KEYPOINTS)
-            return PcmViews(np.zeros((0, J, self.landmark.map_size, self.landmark.map_size)), np.zeros((0, 2, 3)), np.zeros(0), np.arange(J),
-                            np.zeros((0, J), bool), np.zeros(0), stamp_ns)
+            return PcmViews.empty(len(KEYPOINTS), self.landmark.map_size, stamp_ns)
         return self.landmark.infer(images, crops, stamp_ns)
 
     __call__ = infer

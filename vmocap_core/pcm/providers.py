@@ -74,9 +74,7 @@ class SyntheticPcmProvider:
 
         rot = trunk_tilt(self.rig, feedback) if feedback is not None else None
         pcm = self.source.render(int(round(stamp_ns * self.fps / 1e9)) % len(self.source), rotation=rot)
-        keep = np.isin(pcm.camera, cameras)
-        return PcmViews(pcm.maps[keep], pcm.image_to_map[keep], pcm.camera[keep], pcm.keypoints,
-                        pcm.valid[keep], pcm.presence[keep], stamp_ns)
+        return pcm.select(np.isin(pcm.camera, cameras), stamp_ns)
 
 
 class ModelPcmProvider:

@@ -67,6 +67,19 @@ class PcmViews:
         self.valid = np.asarray(self.valid, dtype=bool).reshape(V, J)
         self.presence = np.asarray(self.presence, dtype=np.float64).reshape(V)
 
+    @classmethod
+    def empty(cls, channels: int, map_size: int, stamp_ns: int = 0) -> "PcmViews":
+        """A frame set without views (nobody to crop), `channels` keypoints of map_size maps."""
+        J = channels
+        return cls(np.zeros((0, J, map_size, map_size)), np.zeros((0, 2, 3)), np.zeros(0), np.arange(J),
+                   np.zeros((0, J), bool), np.zeros(0), stamp_ns)
+
+    def select(self, keep: np.ndarray, stamp_ns: int | None = None) -> "PcmViews":
+        """The views where `keep` (V,) is True (stamped `stamp_ns` when given)."""
+        keep = np.asarray(keep, dtype=bool).reshape(self.n_views)
+        return PcmViews(self.maps[keep], self.image_to_map[keep], self.camera[keep], self.keypoints, self.valid[keep],
+                        self.presence[keep], self.stamp_ns if stamp_ns is None else stamp_ns)
+
     @property
     def n_views(self) -> int:
         return self.maps.shape[0]

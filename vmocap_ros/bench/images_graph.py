@@ -80,11 +80,14 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     got: dict[int, np.ndarray] = {}
     last_rx = [0.0]
 
-    def on_keypoints(data: bytes) -> None:
-        d = cdr.decode("sensor_msgs/msg/PointCloud2", data)
-        P, _, _ = M.cloud_keypoints(d)
-        got[M.stamp_ns(d)] = P if P is not None else np.full((len(KEYPOINTS), 3), np.nan)
-        last_rx[0] = time.monotonic()
+    def on_cloud(store: dict[int, np.ndarray]):
+        """Keypoint clouds into `store` by capture stamp (NaN: the frame set came out without a body)."""
+        def take(data: bytes) -> None:
+            d = cdr.decode("sensor_msgs/msg/PointCloud2", data)
+            P, _, _ = M.cloud_keypoints(d)
+            store[M.stamp_ns(d)] = P if P is not None else np.full((len(KEYPOINTS), 3), np.nan)
+            last_rx[0] = time.monotonic()
+        return take
 
     others = [0]  # the most others in view vmocap_pcm's /diagnostics reported
 
@@ -96,19 +99,11 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
 
     bodies: dict[str, dict[int, np.ndarray]] = {}
 
-    def on_cloud(store: dict[int, np.ndarray]):
-        def take(data: bytes) -> None:
-            d = cdr.decode("sensor_msgs/msg/PointCloud2", data)
-            P, _, _ = M.cloud_keypoints(d)
-            if P is not None:
-                store[M.stamp_ns(d)] = P
-        return take
-
     last = int(stamps[-1])
     # lockstep goes at the graph's pace, which only the silence check bounds
     expected_s = len(stamps) / fps / rate if rate > 0 else len(stamps) * 1.0
     with probe_node("vmocap_bench_images_probe", env) as (node, ex), open(work / f"{cfg.stem}.log", "w") as log:
-        node.create_subscription(msg_class("sensor_msgs/msg/PointCloud2"), "/vmocap/keypoints", on_keypoints, qos(200), raw=True)
+        node.create_subscription(msg_class("sensor_msgs/msg/PointCloud2"), "/vmocap/keypoints", on_cloud(got), qos(200), raw=True)
         node.create_subscription(msg_class(DIAG), "/diagnostics", on_diagnostics, qos(50), raw=True)
         if max_people > 1:
             from vmocap_core.outputs.hri import IDS_LIST, TRACKED

@@ -124,7 +124,7 @@ class PeopleNode(VmocapNode):
         frame set's answer (feedback, done), then the next frame set in."""
         t0 = time.perf_counter()
         pubs = self.pubs
-        first = min((p for p in frame.people if p.last is not None), key=lambda p: p.number, default=None)
+        first = frame.first
         if first is not None:
             for topic, _ty, out in result_messages(self.topics, first.last.skeleton, subject=self.subject,
                                                    wanted=lambda tp: tp in pubs and tp != self.topics.feedback
@@ -139,10 +139,10 @@ class PeopleNode(VmocapNode):
         self.last = frame
         self.counts["frames"] += 1
         self.errors.pop("tracker", None)
-        untracked = int(max(frame.untracked.max(initial=0), 0))
+        untracked = frame.others_in_view
         if untracked and len(frame.people) >= self.p["max_people"]:
             self.warn_for("people", f"{untracked} more people in view than max_people {self.p['max_people']} tracks "
-                                    "(the best seen are tracked)")
+                                    "(those found first are tracked)")
         self.proc.add(1e3 * (seconds + time.perf_counter() - t0))
         self.record_age(stamp_ns)
         self.busy = False
@@ -159,7 +159,7 @@ class PeopleNode(VmocapNode):
         return dict(self.counts, pcm=self.pcm_name, max_people=self.p["max_people"],
                     people=len(people), tracking=sum(p.status == "tracking" for p in people),
                     statuses=", ".join(f"{i or p.number}: {p.status}" for p, i in zip(people, ids or [None] * len(people)))
-                    or "nobody", untracked_in_view=0 if frame is None else int(max(frame.untracked.max(initial=0), 0)),
+                    or "nobody", untracked_in_view=0 if frame is None else frame.others_in_view,
                     sync=st.as_dict())
 
     def close(self) -> None:

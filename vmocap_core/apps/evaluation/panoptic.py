@@ -63,13 +63,11 @@ def reprojection_px(rig: Any, person: Any) -> float | None:
 
 def why(rig: Any, person: Any) -> str:
     """A person's status and, before their first skeleton, why (the graph's words, init_report.py)."""
-    from ...method.init_report import not_initialized_reason
+    from ..process import why_not_tracked
 
-    pipe = person.pipeline
-    if person.status != "initializing" or pipe.last is None:
+    if person.status != "initializing" or person.pipeline.last is None:
         return person.status
-    return not_initialized_reason(pipe.last.markers, rig.names, pipe.markers.config.init_max_reprojection_px,
-                                  pipe.skeleton.init_problem)
+    return why_not_tracked(person.pipeline, rig)
 
 
 def evaluate(data: Path, max_people: int, frame_sets: int, only: list[str] | None = None) -> dict[str, Any]:
