@@ -311,3 +311,32 @@ def test_timing_check_says_when_its_probe_failed():
         T.camera_time_offsets = original
     assert check.late() == [] and "no keypoints" in check.failed and "no keypoints" in check.note(rig[0].name)
     check.close()
+
+
+def test_a_person_who_left_is_tracked_again_without_identification():
+    """Several people: a new track is given the skeletons identified for people who left
+    (SkeletonStage.known, from PeopleTracker). The same body is tracked with that skeleton and
+    no identification phase; a body whose link lengths are 10 % off every known skeleton (another
+    person) is identified anew."""
+    import dataclasses
+
+    from vmocap_core.method.skeleton import Skeleton
+
+    m = punch()
+    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
+    src = SyntheticPcmSource(rig, m.positions, m.present, seed=0)
+    first = Pipeline(rig, PipelineConfig.of(fps=60.0))
+    for t in range(60):
+        first.step(src.render(t))
+    known = first.skeleton.identified
+    assert known is not None and first.last.status == "tracking"
+    d = known.dims
+    other = Skeleton(dataclasses.replace(d, **{f.name: 1.1 * getattr(d, f.name) for f in dataclasses.fields(d)
+                                               if isinstance(getattr(d, f.name), float) and f.name != "waist_ratio"}))
+    for remembered, again in (([other, known], True), ([other], False)):
+        back = Pipeline(rig, PipelineConfig.of(fps=60.0))
+        back.skeleton.known = remembered
+        statuses = [back.step(src.render(t)).status for t in range(60, 120)]
+        assert statuses[-1] == "tracking", statuses
+        assert ("identifying" not in statuses) == again, statuses
+        assert (back.skeleton.identified is known) == again

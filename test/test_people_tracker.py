@@ -120,6 +120,23 @@ def test_people_outputs_give_each_body_its_own_id():
                              keypoints_topic("/vmocap", gone)}
 
 
+def test_time_from_each_entry_to_a_body():
+    """The benchmark's re-entry figure: per entry into view (the first, and each after an
+    absence of at least the gap), the seconds to the person's first body while present; a
+    flicker shorter than the gap is no new entry; a stretch with no body is None."""
+    from vmocap_core.apps.bench.people import RATE_HZ, entry_delays
+
+    present = np.zeros(300, bool)
+    present[10:100] = present[103:150] = present[200:260] = True  # out 3 frames (a flicker), then 50
+    body = np.zeros(300, bool)
+    body[40:150] = True  # a body 30 frames after the first entry, none after the re-entry
+    assert entry_delays(present, body, 15) == [30 / RATE_HZ, None]
+    body[230:260] = True
+    assert entry_delays(present, body, 15) == [30 / RATE_HZ, 30 / RATE_HZ]
+    assert entry_delays(present, body, 2) == [30 / RATE_HZ, 0.0, 30 / RATE_HZ]
+    assert entry_delays(np.zeros(5, bool), body[:5], 2) == []
+
+
 @rendering
 def test_two_people_each_tracked_with_their_own_id(rig, scene, tmp_path):
     """Two people rendered with exact truth, `vmocap process --max-people 2` with the real CNN:

@@ -160,6 +160,8 @@ NODE_PARAMS["vmocap_people"] = [p for p in NODE_PARAMS["vmocap_pcm"] if p.name i
           "(s, capture time); it runs on every frame set while someone is being found or was lost", 0.0, 60.0),
     Param("end_after_s", 1.0, "a person without a skeleton this long (s) is ended; their body id leaves "
           "/humans/bodies/tracked", 0.05, 600.0),
+    Param("remember_s", 60.0, "an ended person's identified skeleton is kept this long (s): a newcomer with its "
+          "link lengths is tracked at once, without a new identification phase (0: forget at once)", 0.0, 86400.0),
     Param("hri", True, "publish every person the ROS4HRI way (REP-155): /humans/bodies/tracked, "
           "/humans/bodies/<id>/{joint_states,urdf} and NS/bodies/<id>/keypoints (needs hri_msgs)"),
 ]

@@ -14,7 +14,10 @@ through the landmark model together (one batched call per frame set).
 
 People end when they have had no skeleton for `end_after_s` (left the room, or lost and not
 found again near where they were), or when their skeleton lies on another person's (two tracks
-converged on one body: the younger one ends). Nothing here reads ground truth.
+converged on one body: the younger one ends). The skeletons identified for people who left
+are kept for `remember_s`: a newcomer whose first fit has one's link lengths is that person
+come back and is tracked at once (skeleton_stage.py, REMEMBERED_LENGTHS), without the
+identification phase; they get a new id. Nothing here reads ground truth.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from .config import PipelineConfig
 from .landmarks import resolve
 from .pipeline import FrameResult, Pipeline
 from .prediction import BodyPredictor
+from .skeleton import Skeleton
 
 PELVIS = INDEX["pelvis"]
 HIDE_MARGIN = 0.15  # a tracked body's box grown by this share of its size before it is hidden from the detector
@@ -54,6 +58,7 @@ class PeopleConfig:
     hold_s: float = 0.25  # before their skeleton: a camera that lost a person's detection keeps its last crop this long
     wait_search_s: float = 0.1  # while someone waits for crops (found, lost): the detector runs this often
     closer_every: int = 4  # every this many searches for newcomers look closer in every camera (_search)
+    remember_s: float = 60.0  # an ended person's skeleton is kept this long: if they come back, no new identification
 
     def __post_init__(self) -> None:
         if int(self.max_people) < 1:
@@ -171,10 +176,14 @@ class PeopleTracker:
         self._next = 0
         self._last_detection_ns: int | None = None
         self._searches = 0  # searches for newcomers so far
+        self._remembered: list[tuple[int, Skeleton]] = []  # (stamp ended, identified skeleton) of people who left
 
     def _new_person(self, seed: np.ndarray, stamp_ns: int) -> Person:
         pipe = Pipeline(self.rig, self.config)
         pipe.predictor = BodyPredictor(enabled=self.crop_prediction == "rigid")
+        keep = self.people_config.remember_s * 1e9
+        self._remembered = [(t, sk) for t, sk in self._remembered if 0 <= stamp_ns - t <= keep]
+        pipe.skeleton.known = [sk for _, sk in self._remembered]
         p = Person(self._next, pipe, np.asarray(seed, dtype=np.float64), stamp_ns, stamp_ns)
         self._next += 1
         self.people.append(p)
@@ -294,6 +303,8 @@ class PeopleTracker:
     def _end(self, stamp_ns: int) -> list[int]:
         cfg = self.people_config
         gone = {p.number for p in self.people if not 0 <= stamp_ns - p.seen_ns <= cfg.end_after_s * 1e9}
+        self._remembered += [(stamp_ns, p.pipeline.skeleton.identified) for p in self.people
+                             if p.number in gone and p.pipeline.skeleton.identified is not None]
         # two skeletons on one body (a track that jumped to its neighbour): the younger ends
         fed = [(p.number, p.pipeline.feedback) for p in self.people if p.number not in gone]
         bodies = [(n, kp) for n, kp in fed if kp is not None]

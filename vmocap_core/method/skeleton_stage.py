@@ -31,6 +31,10 @@ from .skeleton import Skeleton
 from .smoothing import FixedLagSmoother
 
 REACQUIRE_LENGTHS = 0.15  # a body found again whose link lengths are the subject's within this (median ratio)
+# A new body whose link lengths are within this of a skeleton identified for someone who left
+# (`SkeletonStage.known`): that person come back. Tighter than REACQUIRE_LENGTHS: the
+# skeleton may be another person's.
+REMEMBERED_LENGTHS = 0.05
 
 
 class SkeletonStage:
@@ -65,6 +69,9 @@ class SkeletonStage:
         # The skeleton identified for the subject: kept when the subject is lost, so that finding
         # it again needs no new identification phase (II-C identifies a body once).
         self.identified: Skeleton | None = None
+        # Skeletons identified for people who left (several people: PeopleTracker): a new body
+        # that is one of them needs no identification phase either.
+        self.known: list[Skeleton] = []
         self._joint_names = Skeleton().joint_names
         self.timings: dict[str, float] = {}
         warm_up_ik()
@@ -268,24 +275,30 @@ class SkeletonStage:
         return self._start_tracking(markers, sk, fit)
 
     def _same_subject(self, markers: Markers, sk: Skeleton, fit: Any) -> tuple[Skeleton, Any] | None:
-        """The identified subject found again: its skeleton posed on the new triangulation, when
-        the newly fitted link lengths are its own (median within REACQUIRE_LENGTHS) and it fits
-        within init_max_fit_error_m; None for a body to identify anew."""
-        known = self.identified
-        if known is None:
-            return None
-        new, old = sk.dims.bone_lengths(), known.dims.bone_lengths()
-        ratios = np.array([new[k] / old[k] for k in old if old[k] > 0])
-        if not ratios.size or abs(float(np.median(ratios)) - 1.0) > REACQUIRE_LENGTHS:
-            return None
-        self.skeleton = known  # its landmark offsets turn the markers into joint centres
-        centres = self._centres(markers.positions, fit.q)
-        w = np.isfinite(centres).all(axis=1).astype(float)
-        refit = solve_ik(known, fit.q, centres, w, 30, damping=1e-2, regularization=1e-6, line_search=True)
-        if np.sqrt(refit.cost) > self.config.init_max_fit_error_m:
-            self.skeleton = None
-            return None
-        return known, refit
+        """A body identified before found again: its skeleton posed on the new triangulation,
+        when the newly fitted link lengths are its own (median ratio within REACQUIRE_LENGTHS of
+        this track's own skeleton, REMEMBERED_LENGTHS of a `known` one; the nearest first) and
+        it fits within init_max_fit_error_m; None for a body to identify anew."""
+        new = sk.dims.bone_lengths()
+        near: list[tuple[float, int, Skeleton]] = []
+        bounds = [(self.identified, REACQUIRE_LENGTHS)] + [(k, REMEMBERED_LENGTHS) for k in self.known]
+        for i, (known, bound) in enumerate(bounds):
+            if known is None:
+                continue
+            old = known.dims.bone_lengths()
+            ratios = np.array([new[k] / old[k] for k in old if old[k] > 0])
+            off = abs(float(np.median(ratios)) - 1.0) if ratios.size else np.inf
+            if off <= bound:
+                near.append((off, i, known))
+        for _, _, known in sorted(near, key=lambda n: n[:2]):
+            self.skeleton = known  # its landmark offsets turn the markers into joint centres
+            centres = self._centres(markers.positions, fit.q)
+            w = np.isfinite(centres).all(axis=1).astype(float)
+            refit = solve_ik(known, fit.q, centres, w, 30, damping=1e-2, regularization=1e-6, line_search=True)
+            if np.sqrt(refit.cost) <= self.config.init_max_fit_error_m:
+                return known, refit
+        self.skeleton = None
+        return None
 
     def _identifying(self, markers: Markers, centres: np.ndarray, raw: np.ndarray) -> TrackResult:
         """Identification phase: collect the virtual markers for identify_seconds of capture

@@ -32,6 +32,8 @@ MAX_PEOPLE = 3
 DEFAULT_SECONDS = {2: 4.0, 3: 8.0}  # the walks at 2.1 (2) and 2.4 m/s (3)
 SIZES = (1.0, 0.93, 1.06)  # body (and truth) scale per person
 RATIO_TARGET = 1.10  # issue 32: the subject's MPJPE among others within 10 % of the clip alone
+REENTRY_TARGET_S = 0.5  # issue 32: a person who comes back has a body (an id) within this
+ABSENT_S = 0.25  # seen by fewer than 2 cameras this long: their next presence is an entry
 
 
 def walker_paths(people: int, seconds: float) -> list[tuple[tuple[float, float, float], ...]]:
@@ -104,13 +106,28 @@ def body_tracks(path: Path, stamps: np.ndarray, namespace: str = "/vmocap") -> d
     return {t.split("/")[-2]: read_clouds(path, stamps, t) for t in sorted(topics)}
 
 
+def entry_delays(present: np.ndarray, matched: np.ndarray, absent_frames: int) -> list[float | None]:
+    """Per entry of one person (present (T,): seen by >= 2 cameras; the first presence, and
+    each one after an absence of at least absent_frames), the seconds from it to their first
+    body (matched (T,)) before they leave again; None: no body in that stretch."""
+    seen = np.flatnonzero(present)
+    starts = seen[np.r_[True, np.diff(seen) > absent_frames]] if seen.size else seen
+    out: list[float | None] = []
+    for i, s in enumerate(starts):
+        end = starts[i + 1] if i + 1 < len(starts) else len(present)
+        hit = np.flatnonzero(matched[s:end] & present[s:end])
+        out.append(float(hit[0] / RATE_HZ) if hit.size else None)
+    return out
+
+
 def people_figures(bodies: dict[str, np.ndarray], truths: np.ndarray, present: np.ndarray) -> dict[str, Any]:
     """Every person's truth (P, T, 25, 3) against the bodies (id -> (T, 25, 3)); present (P, T):
     the person is seen by >= 2 cameras. Per frame the bodies are matched to the people one to
     one (least summed MPJPE, pairs over FALSE_TRACKING_MM apart are no match). Per person, from
     their first match on: MPJPE and PCK@50 over their matched frames, the share of the frames
-    they are present without a body (missed), and identity switches (their matched body's id
-    changes). Frames with a body matched to nobody are ghosts."""
+    they are present without a body (missed), identity switches (their matched body's id
+    changes), and per entry into view the time to their first body (entry_delays; the first
+    entry too). Frames with a body matched to nobody are ghosts."""
     from scipy.optimize import linear_sum_assignment
 
     ids = list(bodies)
@@ -133,8 +150,12 @@ def people_figures(bodies: dict[str, np.ndarray], truths: np.ndarray, present: n
     persons: list[dict[str, Any]] = []
     for k in range(P):
         m = np.flatnonzero(match[k] >= 0)
+        entries = entry_delays(present[k], match[k] >= 0, int(round(ABSENT_S * RATE_HZ)))
+        timing = {"entry_to_body_s": entries, "reentry_s": max(entries[1:], key=lambda v: np.inf if v is None else v)
+                  if len(entries) > 1 else None}
         if m.size == 0:
-            persons.append({"mpjpe_mm": None, "pck50": None, "missed_pct": None, "identity_switches": 0, "first_s": None})
+            persons.append({"mpjpe_mm": None, "pck50": None, "missed_pct": None, "identity_switches": 0, "first_s": None,
+                            **timing})
             continue
         f = np.arange(m[0], T)
         kp = np.linalg.norm(np.stack([bodies[ids[match[k, t]]][t] for t in m]) - truths[k, m], axis=-1) * 1000
@@ -143,7 +164,7 @@ def people_figures(bodies: dict[str, np.ndarray], truths: np.ndarray, present: n
         persons.append({"mpjpe_mm": float(kp.mean()), "pck50": float(100 * (kp < 50).mean()),
                         "missed_pct": float(100 * (seen & (match[k, f] < 0)).sum() / max(seen.sum(), 1)),
                         "identity_switches": int(np.count_nonzero(np.diff(match[k, m]))),
-                        "first_s": float(m[0] / RATE_HZ), "ids": sorted({ids[b] for b in match[k, m]})})
+                        "first_s": float(m[0] / RATE_HZ), "ids": sorted({ids[b] for b in match[k, m]}), **timing})
     return {"persons": persons, "ghost_frames": ghosts, "bodies": len(ids)}
 
 
@@ -237,6 +258,11 @@ def verdict(result: dict[str, Any]) -> int:
                     print(f"vmocap bench images --people: {name} {key}: person {k} was present and never tracked",
                           file=sys.stderr)
                     status = 1
+                late = r.get("reentry_s", None) is None and len(r.get("entry_to_body_s", [])) > 1
+                if late or (r.get("reentry_s") or 0.0) > REENTRY_TARGET_S:
+                    took = "no body" if late else f"a body after {r['reentry_s']:.2f} s"
+                    print(f"vmocap bench images --people: WARNING {name} {key}: person {k} came back into view and had "
+                          f"{took} (target {REENTRY_TARGET_S:g} s)", file=sys.stderr)
         ratio = row["mpjpe_ratio"]
         if ratio is not None and ratio > result["ratio_target"]:
             print(f"vmocap bench images --people: WARNING {name}: the subject's MPJPE among others is {ratio:.2f}x "
@@ -268,5 +294,7 @@ def print_people(result: dict[str, Any]) -> None:
             print(f"{name} {run}, max_people {result['max_people']}: {every['bodies']} body ids, "
                   f"{every['ghost_frames']} ghost frames")
             for k, r in enumerate(every["persons"]):
+                entries = ", ".join("never" if v is None else f"{v:.2f} s" for v in r["entry_to_body_s"])
                 print(f"  person {k}: MPJPE {f(r['mpjpe_mm'])} mm, PCK50 {f(r['pck50'])}, missed {f(r['missed_pct'])} %, "
-                      f"switches {r['identity_switches']}, first body at {f(r['first_s'], '.2f')} s")
+                      f"switches {r['identity_switches']}, first body at {f(r['first_s'], '.2f')} s, "
+                      f"entry -> body {entries or '-'}")
