@@ -30,6 +30,7 @@ from ..errors import BagError, HeatmapError
 from ..graph_config import Topics
 from ..method.camera_check import image_problem
 from ..method.config import PipelineConfig
+from ..method.offline import OfflineError
 from ..method.pipeline import FrameResult, ImageSet, Pipeline
 from ..method.results import FEEDBACK_STATUSES
 from ..method.time_offsets import camera_time_offsets
@@ -90,8 +91,6 @@ def process_bag(
     offline = cfg.skeleton.offline
     if max_people < 1:
         raise BagError(f"max_people {max_people}: at least 1")
-    if max_people > 1 and offline:
-        raise BagError("several people (max_people > 1) are tracked live only: without --offline")
     live_cfg = cfg.replace(smoothing_lag_frames=0) if offline else cfg
     topics = Topics(namespace)
     stats: dict[str, Any] = {"frames": 0, "tracking": 0, "seconds": 0.0}
@@ -123,7 +122,7 @@ def process_bag(
             stats["bad_images"] = {c: 0 for c in cams}
             frames, total, sync_stats = _image_frame_sets(reader, rig, topics, cams, max(tolerance_ns, 8_000_000),
                                                           min_views, binning, recorded, stats["bad_images"])
-        people = PeopleSteps.over(pipe, rig, live_cfg, max_people, topics.ns) if max_people > 1 else None
+        people = PeopleSteps.over(pipe, rig, live_cfg, max_people, topics.ns, offline) if max_people > 1 else None
         warm_up = getattr(pipe.pcm, "warm_up", None)
         if warm_up is not None:  # the CNN's first run allocates and picks kernels: start-up, as in vmocap_pcm
             warm_up()
@@ -141,7 +140,8 @@ def process_bag(
                     first = people.step(frame, writer, stats)
                     stats["seconds"] += time.perf_counter() - t0
                     if first is None:  # nobody in view: the subject topics say nothing
-                        stats["frames"] += 1
+                        if not offline:  # offline: counted when written
+                            stats["frames"] += 1
                         continue
                     res = first
                     t0 = time.perf_counter()
@@ -149,20 +149,31 @@ def process_bag(
                 tracked_any = tracked_any or res.status == "tracking"
                 if len(stamps) <= OFFSET_WINDOW:  # the cameras' 2D keypoints of the first frame sets
                     first_kp.append(camera_keypoints(res.pcm, len(rig)))
-                if offline:
-                    kept.append(res)
-                else:
+                if not offline:
                     _write_frame(writer, topics, res, stats, subject)
+                elif people is None:  # several people: each one's results are kept by PeopleSteps
+                    kept.append(res)
             # offline, frame sets the live pass was still identifying on are enough
             followed = tracked_any or (offline and any(r.status in FEEDBACK_STATUSES for r in kept))
+            if people is not None and offline:
+                followed = people.followed
             if stamps and pipe.last is not None and not followed:
                 stats["not_tracked_because"] = why_not_tracked(pipe, rig)
                 if offline:
-                    from ..method.offline import OfflineError
-
                     raise OfflineError(f"{in_path}: no frame set of {len(kept)} tracked, nothing to reconstruct: "
                                        f"{stats['not_tracked_because']}")
-            if offline and kept:
+            if offline and people is not None:
+                if not followed:
+                    raise OfflineError(f"{in_path}: nobody's skeleton in {len(stamps)} frame sets, nothing to reconstruct")
+                t0 = time.perf_counter()
+                for first in people.reconstruct(cfg.replace(landmarks=pipe.config.skeleton.landmarks), writer, stats,
+                                                progress):
+                    if first is None:
+                        stats["frames"] += 1
+                    else:
+                        _write_frame(writer, topics, first, stats, subject)
+                stats["seconds"] += time.perf_counter() - t0
+            elif offline and kept:
                 # the live pass' landmark model (its PCM source resolved "auto")
                 _write_offline(writer, topics, kept, cfg.replace(landmarks=pipe.config.skeleton.landmarks), stats,
                                progress, subject)
