@@ -42,11 +42,10 @@ class PeopleSteps:
         source: Any = pipe.pcm
         if source is None or not hasattr(getattr(source, "pcm", None), "detect_people"):
             raise BagError("several people (max_people > 1) need the BlazePose CNN on camera images")
-        if getattr(source, "binning", 1) != 1:
-            raise BagError("several people (max_people > 1) with --binning: not supported yet")
         tracker = PeopleTracker(rig, source.pcm, config, PeopleConfig(max_people=max_people),
                                 landmarks=getattr(source, "landmarks", "auto"),
-                                crop_prediction=getattr(source, "crop_prediction", "rigid"))
+                                crop_prediction=getattr(source, "crop_prediction", "rigid"),
+                                binning=getattr(source, "binning", 1))
         return cls(tracker, PeopleOutputs(namespace), offline)
 
     def step(self, frame: ImageSet, writer: BagWriter, stats: dict[str, Any]) -> FrameResult | None:

@@ -29,7 +29,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..cameras.projection import Rig
+from ..cameras.projection import Rig, binning_affine
 from ..errors import VmocapError
 from ..keypoints import INDEX, KEYPOINTS
 from ..pcm.choice import AGREE_FRACTION, choose_subject, detection_arrays
@@ -169,8 +169,13 @@ class PeopleTracker:
     stamp_ns)` per frame set (module doc)."""
 
     def __init__(self, rig: Rig, pcm: Any, config: PipelineConfig | None = None, people: PeopleConfig | None = None,
-                 landmarks: str = "blazepose", crop_prediction: str = "rigid") -> None:
+                 landmarks: str = "blazepose", crop_prediction: str = "rigid", binning: int = 1) -> None:
         self.rig, self.pcm = rig, pcm
+        # binning > 1: the images come reduced that many times (REP 104) and `pcm` works on the
+        # rig as they show it; the detections are read with that rig, and the views' affines
+        # are returned for full-resolution pixels, so the pipelines keep the rig and its bounds
+        self.seen = rig.binned(binning) if binning > 1 else rig
+        self._to_binned = binning_affine(binning) if binning > 1 else None
         cfg = config or PipelineConfig()
         self.config = cfg.replace(landmarks=resolve(cfg.skeleton.landmarks, landmarks))
         self.people_config = people or PeopleConfig()
@@ -240,22 +245,22 @@ class PeopleTracker:
             left = self._search(images, skeletons, pelvises, bool(waiting))
             # the lost first (near where they were), then newcomers, the best seen first
             for p in waiting:
-                choice = choose_subject(self.rig, left, p.seed)
+                choice = choose_subject(self.seen, left, p.seed)
                 point = choice.point
                 near = point is not None and np.linalg.norm(point - p.seed) <= cfg.reacquire_m
                 crops[p.number] = self._crops(p, choice.index if near else np.full(len(self.rig), -1), left, have,
                                               stamp_ns)
                 if near and point is not None:
-                    left = explained(self.rig, left, point[None])
+                    left = explained(self.seen, left, point[None])
                     if p.seen_ns == p.born_ns:  # not initialized yet: follow their detections
                         p.seed = point
             while len(self.people) < cfg.max_people:
-                choice = choose_subject(self.rig, left, None)
+                choice = choose_subject(self.seen, left, None)
                 if choice.point is None:
                     break
                 p = self._new_person(choice.point, stamp_ns)
                 crops[p.number] = self._crops(p, choice.index, left, have, stamp_ns)
-                left = explained(self.rig, left, choice.point[None])
+                left = explained(self.seen, left, choice.point[None])
             untracked = np.array([len(d) for d in left])
         for p in waiting:  # between searches: their held detector crops
             if p.number not in crops:
@@ -286,16 +291,16 @@ class PeopleTracker:
         in every camera of an empty room costs 110 ms against 4 x 4 ms), and in every camera on
         every closer_every-th search (a person small in every view: far, or a low-resolution
         rig); no turned look (a lying newcomer is found when they get up)."""
-        shown = hidden(self.rig, images, skeletons)
+        shown = hidden(self.seen, images, skeletons)
         if everywhere:
-            return explained(self.rig, self.pcm.detect_people(shown), pelvises)
+            return explained(self.seen, self.pcm.detect_people(shown), pelvises)
         thorough = self._searches % self.people_config.closer_every == 0  # the first search too
         self._searches += 1
-        left = explained(self.rig, self.pcm.detect_people(shown, turned=thorough, closer=thorough), pelvises)
+        left = explained(self.seen, self.pcm.detect_people(shown, turned=thorough, closer=thorough), pelvises)
         empty = [c for c, d in enumerate(left) if not d and shown[c] is not None]
         if not thorough and empty and len(empty) < sum(im is not None for im in shown):
             again = self.pcm.detect_people([shown[c] if c in empty else None for c in range(len(shown))], turned=False)
-            closer = explained(self.rig, again, pelvises)
+            closer = explained(self.seen, again, pelvises)
             left = [closer[c] if c in empty else d for c, d in enumerate(left)]
         return left
 
@@ -305,6 +310,8 @@ class PeopleTracker:
         if not order:
             return {}
         views = self.pcm.landmark.infer(list(images), _concat([crops[n] for n in order]), stamp_ns)
+        if self._to_binned is not None:  # binned pixel -> map, composed with full pixel -> binned pixel
+            views.image_to_map = views.image_to_map @ self._to_binned
         owner = np.concatenate([np.full(len(crops[n]), n) for n in order])
         return {n: views.select(owner == n) for n in order}
 

@@ -13,6 +13,7 @@ import numpy as np
 
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
+from vmocap_core.cameras.bag import check_binning
 from vmocap_core.cameras.sync import ApproximateSync
 from vmocap_core.errors import VmocapError
 from vmocap_core.method.camera_check import image_problem
@@ -37,19 +38,19 @@ class PeopleNode(VmocapNode):
         if self.rig is None:
             raise VmocapError("vmocap_people needs a rig")
         p = self.p
-        if p["binning"] != 1:
-            raise VmocapError("vmocap_people: several people with binning > 1 are not supported yet")
+        check_binning(p["binning"])
+        self.seen = self.rig.binned(p["binning"])  # the cameras as their images come (REP 104 binning)
         names = self.rig.names
         self.sync: ApproximateSync[np.ndarray] = ApproximateSync(
             names, int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
-        provider = make_model_provider(p["model"], self.rig, p["rotation"], p["threads"], 1, p["crop_prediction"])
+        provider = make_model_provider(p["model"], self.rig, p["rotation"], p["threads"], p["binning"], p["crop_prediction"])
         provider.warm_up()  # before READY: the first frame set would wait for it
         self.pcm_name = provider.name
         self.tracker = PeopleTracker(
             self.rig, provider.pcm, config.pipeline_config(),
             PeopleConfig(max_people=p["max_people"], detect_every_s=p["detect_every_s"], end_after_s=p["end_after_s"],
                          remember_s=p["remember_s"]),
-            landmarks=provider.landmarks, crop_prediction=p["crop_prediction"])
+            landmarks=provider.landmarks, crop_prediction=p["crop_prediction"], binning=p["binning"])
         for cam in names:
             self.subscribe(IMAGE, self.topics.image(cam), lambda m, n=cam: self._on_image(n, m), depth=max(2, p["queue_depth"]))
         self._shm_in = ShmIn(self) if p["shm_images"] else None
@@ -91,7 +92,7 @@ class PeopleNode(VmocapNode):
         images: list[np.ndarray | None] = [None] * len(self.rig)
         for c, cam in enumerate(self.rig.names):
             im = fs.items.get(cam)
-            if im is not None and not image_problem(im, self.rig[cam].width, self.rig[cam].height):
+            if im is not None and not image_problem(im, self.seen[cam].width, self.seen[cam].height):
                 images[c] = im
             elif im is not None:
                 self.counts["bad_images"] += 1
