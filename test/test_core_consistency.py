@@ -8,10 +8,12 @@ import numpy as np
 
 from vmocap_core.apps.bench.accuracy import default_motions, prepare
 from vmocap_core.bag import messages as M
+from vmocap_core.cameras.projection import Camera, Rig
 from vmocap_core.graph_config import Topics
 from vmocap_core.keypoints import INDEX
 from vmocap_core.method.config import PipelineConfig
 from vmocap_core.method.consistency import check_views
+from vmocap_core.method.markers import MarkerStage
 from vmocap_core.method.pipeline import Pipeline
 from vmocap_core.outputs.messages import markers_from_message, markers_message, result_messages
 from vmocap_core.pcm.synthetic import NoiseModel, SyntheticPcmSource, benchmark_rig
@@ -256,3 +258,36 @@ def test_fading_maps_are_not_output_and_a_stopped_camera_is_not_fading():
             for t in range(95)][90:93] == ["tracking"] * 3
     trend = WeightTrend(30)
     assert trend.ratio(np.ones(25), None) is None  # no check: not judged
+
+
+def test_a_view_says_nothing_of_keypoints_predicted_outside_its_image():
+    """Camera 0's image is cut at the middle of the body: the keypoints right of the cut are
+    outside it, and its maps place them 15 cm aside (the landmark model's guess from the rest of
+    the body). The marker stage takes those keypoints from the other three views, and neither
+    the markers' confirming cameras nor the check of the skeleton fed back count camera 0 for
+    them; with the whole image, camera 0 disagrees there."""
+    m, rig, true = _walk_maps(seed=1)
+    aside = SyntheticPcmSource(rig, m.positions + [0.15, 0.0, 0.0], m.present, seed=1, noise=CLEAN)
+    pcm = _views_from([aside, true, true, true], 40)
+    body = m.positions[40]
+    uv, _ = rig.project(body)
+    cut = int(np.nanmedian(uv[0, m.present, 0]))
+    cam0 = rig[0]
+    narrowed = Rig([Camera(cam0.name, cam0.K, cam0.dist, cam0.R, cam0.t, cut, cam0.height), *list(rig)[1:]])
+    outside = m.present & (uv[0, :, 0] > cut - 1)
+    assert 3 <= outside.sum() < m.present.sum() - 3
+
+    def run(r: Rig):
+        stage = MarkerStage(r, PipelineConfig.of(fps=60.0).markers)
+        stage.feedback(body)
+        mk = stage.step(pcm)
+        stage.feedback(body)
+        return mk, stage.step(pcm).check
+
+    mk, check = run(narrowed)
+    assert check is not None and mk.cameras is not None
+    assert not (mk.cameras[outside] & 1).any() and not (check.disagree[outside] & 1).any()
+    assert np.all(np.linalg.norm(mk.positions[outside] - body[outside], axis=1) < 0.02)
+    assert (check.disagree[m.present & ~outside] & 1).all()  # inside its image camera 0 still counts
+    _, whole = run(rig)
+    assert whole is not None and (whole.disagree[outside] & 1).all()

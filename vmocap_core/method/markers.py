@@ -21,6 +21,7 @@ from .consistency import ViewCheck, check_views
 from .init import triangulated_markers
 from .lattice import PcmSampler, lattice_search
 from .lattice import warm_up as warm_up_lattice
+from .occlusion import outside_images, without_hidden
 from .refinement import refine_markers
 from .refinement import warm_up as warm_up_refinement
 from .results import N_KP, Markers, nan_markers
@@ -86,6 +87,9 @@ class MarkerStage:
         assert centres is not None  # set by the previous frame's skeleton (markers run only while tracking)
         if cfg.prediction == "constant_velocity":
             centres = centres + self.velocity
+        # A keypoint predicted outside a camera's image: that view's map holds the landmark
+        # model's guess from the rest of the body, not a sighting; the views that see it decide.
+        pcm = without_hidden(pcm, outside_images(self.rig, centres[None])[0])
         sampler = PcmSampler(self.rig, pcm)  # one per frame: the lattice search, the refinement, the check
         self._last = (pcm, sampler)
         res = lattice_search(

@@ -9,9 +9,10 @@ the view as disagreeing, so the person went uncertain (no output) while the othe
 them well. `hidden_keypoints` finds the covered keypoints from the skeletons alone, each body a
 set of capsules (its segments, with a radius each) at the segment's own depth, and
 `without_hidden` marks them invalid in that person's views (PcmViews.valid): the search and
-the check then use the views that see them. The same for a keypoint outside a camera's image
-(a person leaving the room): the landmark model still places it, guessed from the rest of the
-body, and a body held by such guesses drifted 100 mm off while the check agreed with it.
+the check then use the views that see them. The marker stage does the same for a keypoint
+outside a camera's image (a person leaving the room, one person or several): the landmark model
+still places it, guessed from the rest of the body, and a body held by such guesses drifted
+100 mm off while the check agreed with it.
 """
 
 from __future__ import annotations

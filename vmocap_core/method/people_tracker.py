@@ -11,8 +11,8 @@ that a tracked person's pelvis projects onto is theirs; the others are grouped a
 (pcm/choice.py: hip centres triangulated from two cameras that project onto a detection in
 both) into new people, the one seen by the most cameras first. The crops of everyone go
 through the landmark model together (one batched call per frame set). A view says nothing of
-a person's keypoints that another tracked body covers there or that lie outside its image
-(occlusion.py).
+a person's keypoints that another tracked body covers there (occlusion.py; the marker stage
+does the same for keypoints outside its image).
 
 People end when they have had no skeleton for `end_after_s` (left the room, or lost and not
 found again near where they were), or when their skeleton lies on another person's (two tracks
@@ -38,7 +38,7 @@ from ..pcm.detector import Detection
 from ..pcm.views import PcmViews
 from .config import PipelineConfig
 from .landmarks import resolve
-from .occlusion import hidden_keypoints, outside_images, without_hidden
+from .occlusion import hidden_keypoints, without_hidden
 from .pipeline import FrameResult, Pipeline
 from .prediction import BodyPredictor
 from .skeleton import Skeleton
@@ -267,10 +267,9 @@ class PeopleTracker:
                 crops[p.number] = self._crops(p, np.full(len(self.rig), -1), [[] for _ in self.rig], have, stamp_ns)
         pcm = self._infer(images, crops, stamp_ns)
         order = [n for n in tracked if n in pcm]
-        if order:  # a view says nothing of a person's keypoints another body covers or its image does not hold
-            bodies = np.stack([tracked[n] for n in order])
-            unseen = hidden_keypoints(self.rig, bodies) | outside_images(self.rig, bodies)
-            pcm.update({n: without_hidden(pcm[n], h) for n, h in zip(order, unseen)})
+        if len(order) > 1:  # a view says nothing of a person's keypoints another body covers
+            covered = hidden_keypoints(self.rig, np.stack([tracked[n] for n in order]))
+            pcm.update({n: without_hidden(pcm[n], h) for n, h in zip(order, covered)})
         for p in self.people:
             own = pcm.get(p.number)
             p.last = p.pipeline.step(own if own is not None else PcmViews.empty(len(KEYPOINTS), self.pcm.landmark.map_size,
