@@ -137,6 +137,21 @@ def test_time_from_each_entry_to_a_body():
     assert entry_delays(np.zeros(5, bool), body[:5], 2) == []
 
 
+def test_the_walkers_paths_of_each_scene():
+    """`--scene cross`: person 1 crosses the room at y = 0.9; `--scene beside`: it walks in
+    and stops beside the subject's line, BESIDE_M away, until the end; person 2 is the same in
+    both; an unknown scene is an error."""
+    from vmocap_core.apps.bench.people import BESIDE_M, walker_paths
+    from vmocap_core.errors import VmocapError
+
+    cross, beside = walker_paths(3, 8.0), walker_paths(3, 8.0, "beside")
+    assert cross[0][0][1:] == (-4.2, 0.9) and cross[0][-1][1:] == (4.2, 0.9)
+    assert beside[0][-1] == (8.0, 0.0, BESIDE_M) and beside[0][-2][1:] == (0.0, BESIDE_M)
+    assert all(abs(y - BESIDE_M) < 1e-12 for _, _, y in beside[0]) and beside[1] == cross[1]
+    with pytest.raises(VmocapError, match="scene"):
+        walker_paths(2, 4.0, "hug")
+
+
 @rendering
 def test_two_people_each_tracked_with_their_own_id(rig, scene, tmp_path):
     """Two people rendered with exact truth, `vmocap process --max-people 2` with the real CNN:

@@ -148,6 +148,8 @@ def overlay(rec: Path, rig, truth: np.ndarray, est: np.ndarray, frame: int, out:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from .people import SCENES  # people.py builds on this module
+
     parser.add_argument("--clips", nargs="+", type=Path,
                         help="motion .npz files, or `all`: the shared clips and the development set "
                              "(default: the shared clips)")
@@ -182,6 +184,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--people", type=int, default=1,
                         help="people in the scene (2 or 3, people.py): the subject (first of --clips) among others "
                              "walking around it (the next clips), scored alone and among them: swaps, ghosts, missed")
+    parser.add_argument("--scene", choices=SCENES, default="cross",
+                        help="with --people: person 1 crosses the room in front of the subject (cross), or walks in "
+                             "and stands beside the subject's path, 0.4 m away (beside)")
     parser.add_argument("--max-people", type=int, default=1,
                         help="with --people: track up to this many (vmocap process --max-people) and score every "
                              "person: MPJPE, identity switches, missed frames, ghost bodies")

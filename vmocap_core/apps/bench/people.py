@@ -36,16 +36,26 @@ REENTRY_TARGET_S = 0.5  # issue 32: a person who comes back has a body (an id) w
 ABSENT_S = 0.25  # seen by fewer than 2 cameras this long: their next presence is an entry
 
 
-def walker_paths(people: int, seconds: float) -> list[tuple[tuple[float, float, float], ...]]:
+SCENES = ("cross", "beside")
+BESIDE_M = 0.4  # "beside": person 1 stops this far from the line the subject walks along (shoulders all but touch)
+
+
+def walker_paths(people: int, seconds: float, scene: str = "cross") -> list[tuple[tuple[float, float, float], ...]]:
     """Waypoints (t_s, x, y) of persons 1.. (the benchmark rig's cameras stand at (+-2.47, +-2.47)).
     1: from beyond the left edge of the room to beyond the right one at y = 0.9, between the
-    subject and cam0/cam1 (it enters, crosses in front of the subject, leaves).
+    subject and cam0/cam1 (it enters, crosses in front of the subject, leaves); with scene
+    "beside", it walks in at y = BESIDE_M and stops at x = 0 beside the subject (who walks
+    along y = 0, x -0.6 ... 0.6), who then passes it again and again shoulder to shoulder.
     2: from behind cam2 (at (-3.9, -3.9) one camera sees it: not present) to stand beside the
     subject at (-1.2, -1.2), out again and back (the subject is alone at the start: the benchmark
     scores the person the tracker starts on)."""
     d = seconds
     out, beside = (-3.9, -3.9), (-1.2, -1.2)
-    paths: list[tuple[tuple[float, float, float], ...]] = [((0.0, -4.2, 0.9), (d, 4.2, 0.9))]
+    if scene not in SCENES:
+        raise VmocapError(f"scene {scene!r}: one of {', '.join(SCENES)}")
+    first = ((0.0, -3.0, BESIDE_M), (0.3 * d, 0.0, BESIDE_M), (d, 0.0, BESIDE_M)) if scene == "beside" else \
+        ((0.0, -4.2, 0.9), (d, 4.2, 0.9))
+    paths: list[tuple[tuple[float, float, float], ...]] = [first]
     paths.append(tuple((f * d, *xy) for f, xy in ((0.0, out), (0.05, out), (0.25, beside), (0.4, beside),
                                                   (0.6, out), (0.7, out), (0.9, beside), (1.0, beside))))
     return paths[: people - 1]
@@ -184,6 +194,7 @@ def run(args: argparse.Namespace, rig) -> int:
     if getattr(args, "leave_one_out", False):
         raise VmocapError("--people scores the shipped landmark model: without --leave-one-out")
     max_people = getattr(args, "max_people", 1)
+    scene = getattr(args, "scene", "cross")
     if max_people < 1:
         raise VmocapError(f"--max-people {max_people}: at least 1")
     files = person_clips(args.clips, args.people)
@@ -191,7 +202,7 @@ def run(args: argparse.Namespace, rig) -> int:
     frames = int(round(seconds * RATE_HZ))
     subject = ClipSpec(files[0], frames, RATE_HZ, args.seed)
     walkers = tuple(Walker(ClipSpec(p, frames, RATE_HZ, args.seed, variant=k), path, SIZES[k])
-                    for k, (p, path) in enumerate(zip(files[1:], walker_paths(args.people, seconds)), start=1))
+                    for k, (p, path) in enumerate(zip(files[1:], walker_paths(args.people, seconds, scene)), start=1))
     spec = GroupSpec(subject, walkers)
     group = render_group(spec, rig, args.cache, progress=not args.json)
     alone = render_recording(subject, rig, args.cache, progress=not args.json)
@@ -201,7 +212,7 @@ def run(args: argparse.Namespace, rig) -> int:
     present = seen[0] >= 2
     persons = [{"clip": s.label(), "shape": s.shape(), "size": SIZES[k], "present_pct": float(100 * (seen[k] >= 2).mean())}
                for k, s in enumerate([subject] + [w.clip for w in walkers])]
-    result: dict[str, Any] = {"people": args.people, "max_people": max_people, "frames": frames, "persons": persons, "recording": str(group),
+    result: dict[str, Any] = {"people": args.people, "scene": scene, "max_people": max_people, "frames": frames, "persons": persons, "recording": str(group),
                               "ratio_target": RATIO_TARGET, "tracker": args.tracker, "runs": {}}
     for name in args.configs:
         rotation, precision = CONFIGS[name]
