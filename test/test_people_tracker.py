@@ -44,6 +44,20 @@ def _precision() -> str:
     return "int8" if selfcheck.verdict("full").int8_correct else "float"
 
 
+def _frame_sets(rec, rig):
+    """(frame index, [image per rig camera]) of a rendered recording's raw images."""
+    from vmocap_core.bag import BagReader
+    from vmocap_core.bag import messages as M
+
+    with BagReader(rec) as r:
+        frame: list = []
+        for k, m in enumerate(r.messages([f"/vmocap/{c.name}/image_raw" for c in rig])):
+            frame.append(M.image_array(m.decode()))
+            if len(frame) == len(rig):
+                yield k // len(rig), frame
+                frame = []
+
+
 def _detection(rig, camera: int, pelvis: np.ndarray) -> Detection:
     uv, _ = rig.project(np.stack([pelvis, pelvis + [0.0, 0.0, 0.9]]))
     hip, head = uv[camera]
@@ -313,8 +327,6 @@ def test_a_camera_stops_while_two_are_tracked(rig, scene):
     edge by then, is in view of cam1 and cam2 only: with cam2 gone one camera sees it, so it has
     no body (not a ghost, not a guess), and nobody else appears."""
     from vmocap_core.apps.bench import images
-    from vmocap_core.bag import BagReader
-    from vmocap_core.bag import messages as M
     from vmocap_core.method.config import PipelineConfig
     from vmocap_core.method.people_tracker import PeopleConfig, PeopleTracker
 
@@ -328,20 +340,13 @@ def test_a_camera_stops_while_two_are_tracked(rig, scene):
     tracker = PeopleTracker(rig, images._Provider(rig, "all", _precision()).pcm, PipelineConfig.from_dict({"fps": 60.0}),
                             PeopleConfig(max_people=2))
     est = np.full((2, len(stamps), 25, 3), np.nan)  # per person number 0, 1 (no one else may appear)
-    with BagReader(rec) as r:
-        frame: list = []
-        for k, m in enumerate(r.messages([f"/vmocap/{c.name}/image_raw" for c in rig])):
-            frame.append(M.image_array(m.decode()))
-            if len(frame) < len(rig):
-                continue
-            f = k // len(rig)
-            if f >= stop_at:
-                frame[2] = None
-            for p in tracker.step(frame, int(stamps[f])).people:
-                assert p.number < 2, "a third person appeared"
-                if p.status == "tracking":
-                    est[p.number, f] = p.last.skeleton.keypoints
-            frame = []
+    for f, frame in _frame_sets(rec, rig):
+        if f >= stop_at:
+            frame[2] = None
+        for p in tracker.step(frame, int(stamps[f])).people:
+            assert p.number < 2, "a third person appeared"
+            if p.status == "tracking":
+                est[p.number, f] = p.last.skeleton.keypoints
     both = np.isfinite(est[:, :stop_at, 0, 0]).all(axis=0)
     assert both.any(), "both people were never tracked before the camera stopped"
     t0 = np.flatnonzero(both)[0]
@@ -364,8 +369,6 @@ def test_two_people_from_binned_images(rig, scene):
     detections, the greyed bodies and the crops are read in binned pixels, the pipelines keep
     the full rig, and both people are tracked as from images of that size (within 40 mm)."""
     from vmocap_core.apps.bench import images
-    from vmocap_core.bag import BagReader
-    from vmocap_core.bag import messages as M
     from vmocap_core.cameras.projection import Camera, Rig, binning_affine
     from vmocap_core.method.config import PipelineConfig
     from vmocap_core.method.people_tracker import PeopleConfig, PeopleTracker
@@ -380,19 +383,12 @@ def test_two_people_from_binned_images(rig, scene):
                             PeopleConfig(max_people=2), binning=2)
     assert tracker.people == [] and tracker.seen[0].width == rig[0].width
     est = np.full((2, len(stamps), 25, 3), np.nan)
-    with BagReader(rec) as r:
-        frame: list = []
-        for k, m in enumerate(r.messages([f"/vmocap/{c.name}/image_raw" for c in rig])):
-            frame.append(M.image_array(m.decode()))
-            if len(frame) < len(rig):
-                continue
-            f = k // len(rig)
-            for p in tracker.step(frame, int(stamps[f])).people:
-                assert p.number < 2, "a third person appeared"
-                if p.status == "tracking":
-                    est[p.number, f] = p.last.skeleton.keypoints
-                    assert p.pipeline.rig is full
-            frame = []
+    for f, frame in _frame_sets(rec, rig):
+        for p in tracker.step(frame, int(stamps[f])).people:
+            assert p.number < 2, "a third person appeared"
+            if p.status == "tracking":
+                est[p.number, f] = p.last.skeleton.keypoints
+                assert p.pipeline.rig is full
     e = np.array([[np.nanmean(images.frame_mpjpe(est[n], truths[k])) for k in range(2)] for n in range(2)])
     print(f"MPJPE (number x person): {e.round(1).tolist()}")
     assert np.isfinite(e).all()
