@@ -147,9 +147,10 @@ def overlay(rec: Path, rig, truth: np.ndarray, est: np.ndarray, frame: int, out:
     cv2.imwrite(str(out), grid)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from .people import SCENES  # people.py builds on this module
+SCENES = ("cross", "beside")  # --people: where person 1 walks (people.walker_paths)
 
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--clips", nargs="+", type=Path,
                         help="motion .npz files, or `all`: the shared clips and the development set "
                              "(default: the shared clips)")

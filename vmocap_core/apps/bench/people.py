@@ -26,7 +26,7 @@ from ...errors import VmocapError
 from ...keypoints import INDEX
 from .accuracy import RATE_HZ
 from .clouds import read_clouds
-from .images import CONFIGS, FALSE_TRACKING_MM, _Provider, default_motions, frame_mpjpe, read_estimates, score
+from .images import CONFIGS, FALSE_TRACKING_MM, SCENES, _Provider, default_motions, frame_mpjpe, read_estimates, score
 
 MAX_PEOPLE = 3
 DEFAULT_SECONDS = {2: 4.0, 3: 8.0}  # the walks at 2.1 (2) and 2.4 m/s (3)
@@ -36,7 +36,6 @@ REENTRY_TARGET_S = 0.5  # issue 32: a person who comes back has a body (an id) w
 ABSENT_S = 0.25  # seen by fewer than 2 cameras this long: their next presence is an entry
 
 
-SCENES = ("cross", "beside")
 BESIDE_M = 0.4  # "beside": person 1 stops this far from the line the subject walks along (shoulders all but touch)
 
 
