@@ -154,9 +154,10 @@ def process_bag(
                 elif people is None:  # several people: each one's results are kept by PeopleSteps
                     kept.append(res)
             # offline, frame sets the live pass was still identifying on are enough
-            followed = tracked_any or (offline and any(r.status in FEEDBACK_STATUSES for r in kept))
-            if people is not None and offline:
+            if offline and people is not None:
                 followed = people.followed
+            else:
+                followed = tracked_any or (offline and any(r.status in FEEDBACK_STATUSES for r in kept))
             if stamps and pipe.last is not None and not followed:
                 stats["not_tracked_because"] = why_not_tracked(pipe, rig)
                 if offline:

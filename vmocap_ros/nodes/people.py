@@ -39,7 +39,6 @@ class PeopleNode(VmocapNode):
             raise VmocapError("vmocap_people needs a rig")
         p = self.p
         check_binning(p["binning"])
-        self.seen = self.rig.binned(p["binning"])  # the cameras as their images come (REP 104 binning)
         names = self.rig.names
         self.sync: ApproximateSync[np.ndarray] = ApproximateSync(
             names, int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
@@ -92,7 +91,7 @@ class PeopleNode(VmocapNode):
         images: list[np.ndarray | None] = [None] * len(self.rig)
         for c, cam in enumerate(self.rig.names):
             im = fs.items.get(cam)
-            if im is not None and not image_problem(im, self.seen[cam].width, self.seen[cam].height):
+            if im is not None and not image_problem(im, self.tracker.seen[cam].width, self.tracker.seen[cam].height):
                 images[c] = im
             elif im is not None:
                 self.counts["bad_images"] += 1
