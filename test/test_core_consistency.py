@@ -12,9 +12,11 @@ from vmocap_core.cameras.projection import Camera, Rig
 from vmocap_core.graph_config import Topics
 from vmocap_core.keypoints import INDEX
 from vmocap_core.method.config import PipelineConfig
-from vmocap_core.method.consistency import check_views
+from vmocap_core.method.consistency import ViewCheck, check_views
 from vmocap_core.method.markers import MarkerStage
 from vmocap_core.method.pipeline import Pipeline
+from vmocap_core.method.prediction import BodyPredictor
+from vmocap_core.method.results import Markers, feedback_of, seed_of, skeleton_of
 from vmocap_core.outputs.messages import markers_from_message, markers_message, result_messages
 from vmocap_core.pcm.synthetic import NoiseModel, SyntheticPcmSource, benchmark_rig
 from vmocap_core.pcm.views import PcmViews
@@ -291,3 +293,54 @@ def test_a_view_says_nothing_of_keypoints_predicted_outside_its_image():
     assert (check.disagree[m.present & ~outside] & 1).all()  # inside its image camera 0 still counts
     _, whole = run(rig)
     assert whole is not None and (whole.disagree[outside] & 1).all()
+
+
+def _slid(run: Pipeline, t: int, positions: np.ndarray, agree: bool) -> Markers:
+    """Lattice markers at `positions` with a check of the fed-back skeleton that every view
+    agrees with (or none)."""
+    seen = np.isfinite(positions).all(axis=1)
+    conf = np.where(seen, 1.0 if agree else 0.0, np.nan)
+    everyone = np.uint32((1 << len(run.rig)) - 1)
+    check = ViewCheck(conf, np.where(agree, 0, everyone).astype(np.uint32) * np.ones(len(conf), np.uint32),
+                      (everyone if agree else np.uint32(0)) * np.ones(len(conf), np.uint32))
+    return Markers(int(t * 1e9 / 60), positions.copy(), seen.astype(float), "lattice", 1.0, check=check)
+
+
+def test_a_track_back_from_doubt_on_another_body_is_lost_and_looks_where_the_subject_went():
+    """The walk tracked from synthetic maps; then the markers slide over 12 frame sets onto a
+    body 0.45 m aside (the subject walking past someone standing: the crops and the lattice
+    search follow the other body's peaks) while the views disagree (uncertain), and the views
+    agree with that body again. Without the path gate the track would resume "tracking" on it;
+    with it the status is "lost", the diagnostics say why, and the feedback is a seed where the
+    subject was heading (within 0.1 m of the walk), which crosses the feedback topic as it is:
+    the detector looks there (not where the track went), and the lattice search starts over.
+    The same slide onto a body where the subject was heading resumes tracking."""
+    m, rig, source = _walk_maps(seed=4)
+    aside = np.array([0.0, 0.45, 0.0])
+    for offset, gate in ((aside, True), (aside, False), (np.zeros(3), True)):
+        run = Pipeline(rig, PipelineConfig.of(fps=60.0, check_resume_max_m=0.3 if gate else 0.0))
+        statuses = [run.step(source.render(t)).status for t in range(100)]
+        assert statuses[-20:] == ["tracking"] * 20
+        for t in range(100, 130):
+            slide = offset * min((t - 99) / 12, 1.0)
+            res = run.skeleton.step(_slid(run, t, m.positions[t] + slide, agree=t >= 112))
+            statuses.append(res.status)
+            if res.status != "tracking" and res.status != "uncertain":
+                break
+        if offset.any() and gate:
+            assert statuses[100:112] == ["uncertain"] * 12 and statuses[-1] == "lost", statuses[100:]
+            assert "m from where the subject was heading" in run.skeleton.warning("lost", rig.names)
+            fb = feedback_of(res)
+            seed = seed_of(fb)
+            assert skeleton_of(fb) is None and seed is not None
+            assert np.linalg.norm(seed - m.positions[len(statuses) - 1, INDEX["pelvis"]]) < 0.1, seed
+            P, _, _ = M.cloud_keypoints(M.keypoint_cloud(res.stamp_ns, fb))
+            assert np.array_equal(seed_of(P), seed)
+            predictor = BodyPredictor()
+            predictor.update(res.stamp_ns, P)
+            assert np.array_equal(seed_of(predictor.predict(res.stamp_ns + 16_000_000)), seed)
+            run.markers.feedback(P)
+            assert run.markers.centres is None  # the lattice search starts over
+        else:  # tracking again on the body the markers slid to
+            assert statuses[100:112] == ["uncertain"] * 12 and statuses[-1] == "tracking", statuses[100:]
+            assert "lost" not in statuses

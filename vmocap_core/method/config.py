@@ -176,6 +176,12 @@ class SkeletonConfig(_Stage):
     # turns over while the tracker still follows what is left (0: off).
     check_min_weight_ratio: float = 0.55
     check_weight_window: int = 30
+    # A track back from "uncertain" whose hip centre lies farther than `check_resume_max_m`
+    # from where the confirmed track was heading (its velocity carried for at most
+    # `check_resume_horizon_s`) has slid onto another body: lost, and the detector looks for
+    # the subject at the expected place (path_gate.py; 0: off).
+    check_resume_max_m: float = 0.3
+    check_resume_horizon_s: float = 0.25
 
     def validate(self) -> None:
         from .filter import make_filter, smoother_model
@@ -190,6 +196,8 @@ class SkeletonConfig(_Stage):
             raise ConfigError("check_confirm_frames must be >= 0")
         if not 0 <= self.check_min_weight_ratio < 1 or self.check_weight_window < 2:
             raise ConfigError("check_min_weight_ratio must lie in [0, 1) and check_weight_window be >= 2")
+        if self.check_resume_max_m < 0 or self.check_resume_horizon_s < 0:
+            raise ConfigError("check_resume_max_m and check_resume_horizon_s must be >= 0")
 
         if self.fps <= 0 or self.identify_seconds < 0:
             raise ConfigError("fps must be positive and identify_seconds >= 0")

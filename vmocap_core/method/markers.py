@@ -24,7 +24,7 @@ from .lattice import warm_up as warm_up_lattice
 from .occlusion import outside_images, without_hidden
 from .refinement import refine_markers
 from .refinement import warm_up as warm_up_refinement
-from .results import N_KP, Markers, nan_markers
+from .results import N_KP, Markers, nan_markers, skeleton_of
 from .triangulation import triangulate_robust
 
 
@@ -51,7 +51,8 @@ class MarkerStage:
         return self.centres is not None
 
     def feedback(self, keypoints: np.ndarray | None) -> None:
-        """The first-IK keypoints of the frame just processed, or None when not tracking."""
+        """The first-IK keypoints of the frame just processed, or None (or a seed) when not tracking."""
+        keypoints = skeleton_of(keypoints)
         if keypoints is None:
             self.centres = None
             self.velocity[:] = 0.0

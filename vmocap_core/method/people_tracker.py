@@ -41,6 +41,7 @@ from .landmarks import resolve
 from .occlusion import hidden_keypoints, without_hidden
 from .pipeline import FrameResult, Pipeline
 from .prediction import BodyPredictor
+from .results import seed_of, skeleton_of
 from .skeleton import Skeleton
 
 PELVIS = INDEX["pelvis"]
@@ -230,7 +231,7 @@ class PeopleTracker:
         crops: dict[int, Crops] = {}
         tracked: dict[int, np.ndarray] = {}
         for p in self.people:
-            kp = p.pipeline.predictor.predict(stamp_ns)
+            kp = skeleton_of(p.pipeline.predictor.predict(stamp_ns))
             if kp is not None:
                 tracked[p.number] = kp
                 c = self.pcm.crops_from_skeleton(kp)
@@ -274,10 +275,12 @@ class PeopleTracker:
             own = pcm.get(p.number)
             p.last = p.pipeline.step(own if own is not None else PcmViews.empty(len(KEYPOINTS), self.pcm.landmark.map_size,
                                                                                stamp_ns))
-            fb = p.pipeline.feedback
-            if fb is not None and np.isfinite(fb[PELVIS]).all():
-                p.seed, p.seen_ns = fb[PELVIS].copy(), stamp_ns
+            body, seed = skeleton_of(p.pipeline.feedback), seed_of(p.pipeline.feedback)
+            if body is not None:
+                p.seed, p.seen_ns = body[PELVIS].copy(), stamp_ns
                 p.held.clear()
+            elif seed is not None:  # their track slid onto another body: look where they were heading
+                p.seed = seed
         ended = self._end(stamp_ns)
         return PeopleFrame(stamp_ns, list(self.people), untracked, ended)
 
@@ -320,7 +323,7 @@ class PeopleTracker:
         self._remembered += [(stamp_ns, p.pipeline.skeleton.identified) for p in self.people
                              if p.number in gone and p.pipeline.skeleton.identified is not None]
         # two skeletons on one body (a track that jumped to its neighbour): the younger ends
-        fed = [(p.number, p.pipeline.feedback) for p in self.people if p.number not in gone]
+        fed = [(p.number, skeleton_of(p.pipeline.feedback)) for p in self.people if p.number not in gone]
         bodies = [(n, kp) for n, kp in fed if kp is not None]
         for i, (na, a) in enumerate(bodies):
             for nb, b in bodies[i + 1:]:

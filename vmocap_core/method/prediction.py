@@ -15,16 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration.geometry import rigid_align, rodrigues
+from .results import seed_of, skeleton_of
 
 # Extrapolate at most this many feedback intervals ahead, from feedbacks at most MAX_GAP_S apart:
 # beyond that the velocity is stale and the last skeleton is the better guess.
 MAX_AHEAD = 3.0
 MAX_GAP_S = 0.2
 MAX_TURN_RAD = np.radians(60.0)  # a larger predicted turn is a tracking glitch, not a motion
-
-
-def _usable(keypoints: np.ndarray | None) -> bool:
-    return keypoints is not None and bool(np.isfinite(keypoints[[0, 1]]).all())
 
 
 def rigid_motion(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -58,6 +55,7 @@ class BodyPredictor:
         self.enabled = enabled
         self._last: tuple[int, np.ndarray] | None = None
         self._before: tuple[int, np.ndarray] | None = None
+        self._seed: np.ndarray | None = None  # the last feedback when it was a seed (results.seed_of)
 
     @classmethod
     def for_provider(cls, provider: object) -> "BodyPredictor":
@@ -66,7 +64,8 @@ class BodyPredictor:
         return cls(enabled=getattr(provider, "crop_prediction", "previous") == "rigid")
 
     def update(self, stamp_ns: int, keypoints: np.ndarray | None) -> None:
-        if not _usable(keypoints):
+        self._seed = keypoints if seed_of(keypoints) is not None else None
+        if skeleton_of(keypoints) is None:
             self._last = self._before = None
             return
         kp = np.array(keypoints, dtype=np.float64)
@@ -77,9 +76,10 @@ class BodyPredictor:
         self._before, self._last = self._last, (int(stamp_ns), kp)
 
     def predict(self, stamp_ns: int) -> np.ndarray | None:
-        """The skeleton expected at stamp_ns; the last one as it was when there is no velocity."""
+        """The skeleton expected at stamp_ns; the last one as it was when there is no velocity;
+        a seed fed back is passed on as it is (where the detector looks for the subject)."""
         if self._last is None:
-            return None
+            return self._seed
         t1, kp1 = self._last
         if not self.enabled or self._before is None:
             return kp1

@@ -8,13 +8,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..keypoints import KEYPOINTS
+from ..keypoints import INDEX, KEYPOINTS
 from .skeleton import BodyDimensions
 
 if TYPE_CHECKING:
     from .consistency import ViewCheck
 
 N_KP = len(KEYPOINTS)
+PELVIS, NECK = INDEX["pelvis"], INDEX["neck"]
 
 
 @dataclass
@@ -74,6 +75,9 @@ class TrackResult:
     # (25,) per keypoint, the fraction of the views seeing it whose PCMs agree with the skeleton
     # (consistency.py; NaN: no view sees it or nothing was checked)
     confidence: np.ndarray = field(default_factory=lambda: np.full(N_KP, np.nan))
+    # "lost" results: where the subject is expected (3,), for the detector to look there
+    # (path_gate.py); None: where it was last tracked
+    seed: np.ndarray | None = None
 
     @property
     def feedback_stamp(self) -> int:
@@ -85,5 +89,29 @@ class TrackResult:
 
 def feedback_of(result: TrackResult) -> np.ndarray | None:
     """What the skeleton stage feeds back to the next frame's lattice search and crops: the
-    first IK's keypoints (None: re-initialize)."""
-    return result.raw_keypoints if result.status in FEEDBACK_STATUSES else None
+    first IK's keypoints; None: re-initialize; only the pelvis (the rest NaN): re-initialize,
+    looking for the subject there (`seed_of`; one message type on the feedback topic)."""
+    if result.status in FEEDBACK_STATUSES:
+        return result.raw_keypoints
+    if result.seed is None:
+        return None
+    seed = np.full((N_KP, 3), np.nan)
+    seed[PELVIS] = result.seed
+    return seed
+
+
+def skeleton_of(feedback: np.ndarray | None) -> np.ndarray | None:
+    """The fed-back skeleton (25, 3) to search and crop around; None for no feedback, a seed
+    (`seed_of`) or a skeleton without its pelvis and neck."""
+    if feedback is None or not np.isfinite(feedback[[PELVIS, NECK]]).all():
+        return None
+    return feedback
+
+
+def seed_of(feedback: np.ndarray | None) -> np.ndarray | None:
+    """The pelvis of a feedback that holds nothing else (feedback_of: where to look for the
+    subject when re-initializing), else None."""
+    if feedback is None or not np.isfinite(feedback[PELVIS]).all():
+        return None
+    rest = np.delete(feedback, PELVIS, axis=0)
+    return None if np.isfinite(rest).any() else np.asarray(feedback[PELVIS], dtype=np.float64).copy()

@@ -26,6 +26,7 @@ from .init import fit_skeleton, with_midpoints
 from .init_report import CORE
 from .landmarks import load_landmarks
 from .one_euro import OneEuroFilter
+from .path_gate import PathGate
 from .results import N_KP, Markers, TrackResult
 from .skeleton import Skeleton
 from .smoothing import FixedLagSmoother
@@ -64,6 +65,9 @@ class SkeletonStage:
         self.disagreement: ViewCheck | None = None  # the check behind an "uncertain" or check-"lost" step
         self.unsupported: float | None = None  # the markers' support behind an "uncertain" step (below check_min_support)
         self.weights = WeightTrend(cfg.check_weight_window)
+        self.path = PathGate(cfg.check_resume_max_m, cfg.check_resume_horizon_s)
+        self.strayed: float | None = None  # metres from the subject's path behind a "lost" step (path_gate.py)
+        self._pelvis = np.full(3, np.nan)  # the track's hip centre (the last first IK's)
         self.faded: float | None = None  # the markers' weight ratio behind an "uncertain" step (below check_min_weight_ratio)
         self._last_stamp: int | None = None
         # The skeleton identified for the subject: kept when the subject is lost, so that finding
@@ -91,12 +95,16 @@ class SkeletonStage:
         self._delayed.clear()
         self.verdict.reset()
         self.weights.reset()
+        self.path.reset()
         self.status = "initializing"
 
     def warning(self, status: str, names: list[str]) -> str | None:
         """Why the last step's status is `status` (uncertain or lost) when the images said so,
         for the diagnostics (None when they did not)."""
         cfg = self.config
+        if self.strayed is not None:
+            return (f"{status}: the track came back {self.strayed:.2f} m from where the subject was heading "
+                    f"(check_resume_max_m {cfg.check_resume_max_m:g}): another body, the subject is looked for again")
         if self.disagreement is not None:
             return self.disagreement.warning(status, cfg.check_min_agreement, cfg.check_min_support, names)
         if self.unsupported is not None:
@@ -109,7 +117,7 @@ class SkeletonStage:
         return None
 
     def step(self, markers: Markers) -> TrackResult:
-        self.disagreement = self.unsupported = self.faded = None
+        self.disagreement = self.unsupported = self.faded = self.strayed = None
         if markers.kind == "lattice" and self.skeleton is not None:
             # markers again after frame sets without any (every view covered, or none came for
             # RESUME_GAP_S): the skeleton is the one from before, so the output waits for the
@@ -133,13 +141,18 @@ class SkeletonStage:
                     and ratio < self.config.check_min_weight_ratio:
                 verdict, self.faded = "uncertain", ratio
             if verdict == "lost":  # the images disagreed for check_lost_frames: start over
+                seed = self._seed(markers.stamp_ns)
                 self.reset()
                 self.status = "lost"
                 result = self._empty(markers, "lost")
+                result.seed = seed
             else:
+                was = self.status
                 result = self._track(markers)
                 if verdict == "uncertain" and result.status == "tracking":
                     result.status = self.status = "uncertain"
+                elif result.status == "tracking":
+                    result = self._confirmed(markers, result, resumed=was == "uncertain")
             if markers.check is not None:
                 result.confidence = markers.check.confidence.copy()
             return result
@@ -150,6 +163,27 @@ class SkeletonStage:
             return self._initialize(markers)
         self.status = "lost"
         return self._empty(markers, "lost")
+
+    def _seed(self, stamp_ns: int) -> np.ndarray | None:
+        """Where to look for the subject when a track is lost: where it was heading when the
+        track strayed from its path (path_gate.py), else where the track is (None)."""
+        return self.path.expected(stamp_ns) if self.path.strays(stamp_ns, self._pelvis) else None
+
+    def _confirmed(self, markers: Markers, result: TrackResult, resumed: bool) -> TrackResult:
+        """A frame set the images agree with: on the subject's path, or, back from doubt far
+        from it, another body (path_gate.py): lost, with where to look for the subject."""
+        pelvis = result.raw_keypoints[INDEX["pelvis"]]
+        if resumed and self.path.strays(markers.stamp_ns, pelvis):
+            seed = self.path.expected(markers.stamp_ns)
+            assert seed is not None  # strays needs a path
+            self.strayed = float(np.linalg.norm(pelvis - seed))
+            self.reset()
+            self.status = "lost"
+            lost = self._empty(markers, "lost")
+            lost.seed = seed
+            return lost
+        self.path.add(markers.stamp_ns, pelvis)
+        return result
 
     def _track(self, markers: Markers) -> TrackResult:
         cfg = self.config
@@ -164,6 +198,7 @@ class SkeletonStage:
                          prior=self._q_raw, prior_weight=cfg.ik_prior_weight * (rate / 60.0) ** 2)
         self._q_raw = first.q
         sites = self._sites(first.keypoints, first.q)
+        self._pelvis = sites[INDEX["pelvis"]]
         if self._identify is not None:
             return self._identifying(markers, centres, sites)
         t1 = time.perf_counter()

@@ -161,13 +161,16 @@ class BlazePosePcm:
     ) -> PcmViews:
         """PCMs of one frame set: images in rig camera order (uint8 BGR or mono; None for a
         camera without a frame in this set: it gets no view).
-        keypoints None: detector crops (seed picks the person, see crops_from_detector; without
-        one, the pelvis of the last skeleton given: re-initialization looks for the subject where
-        it was last tracked, not for whoever else is in view)."""
+        keypoints None: detector crops (seed picks the person, see crops_from_detector; it
+        stays where to look until a skeleton comes; without one, the pelvis of the last skeleton
+        given: re-initialization looks for the subject where it was last tracked, not for
+        whoever else is in view)."""
         if len(images) != len(self.rig):
             raise ModelError(f"{len(images)} images for a rig of {len(self.rig)} cameras")
         if keypoints is None:
-            crops = self.crops_from_detector(images, self.last_subject if seed is None else seed)
+            if seed is not None:
+                self.last_subject = np.asarray(seed, dtype=np.float64)
+            crops = self.crops_from_detector(images, self.last_subject)
         else:
             pelvis = np.asarray(keypoints, dtype=np.float64)[PELVIS]
             if np.isfinite(pelvis).all():

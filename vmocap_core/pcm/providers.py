@@ -12,6 +12,7 @@ from ..bag import BagReader
 from ..cameras.projection import Rig
 from ..errors import BagError
 from ..graph_config import Topics
+from ..method.results import seed_of, skeleton_of
 from .assembly import PcmAssembler, pcm_topics
 from .views import PcmViews
 
@@ -115,8 +116,9 @@ class ModelPcmProvider:
         full: list[np.ndarray | None] = [None] * len(self.rig)
         for c, img in zip(cameras, images):
             full[int(c)] = img
-        usable = feedback is not None and np.isfinite(feedback[[0, 1]]).all()
-        views = self.pcm.infer(full, keypoints=feedback if usable else None, stamp_ns=stamp_ns)
+        # no skeleton fed back: the detector looks for the subject (at the seed, when one came)
+        views = self.pcm.infer(full, keypoints=skeleton_of(feedback), stamp_ns=stamp_ns,
+                             seed=seed_of(feedback))
         if self.binning > 1:  # binned pixel -> map, composed with full pixel -> binned pixel
             views.image_to_map = views.image_to_map @ self._to_binned
         return views

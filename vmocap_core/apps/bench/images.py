@@ -28,6 +28,7 @@ from ...bag import messages as M
 from ...errors import VmocapError
 from ...graph_config import Topics
 from ...keypoints import INDEX, KEYPOINTS
+from ...method.results import seed_of, skeleton_of
 from ...method.skeleton import BONES
 from ..metrics import acceleration_error, table_one
 from . import add_tracker_arguments, tracker_settings
@@ -62,8 +63,9 @@ class _Provider:
         full: list = [None] * len(self.rig)
         for c, img in zip(cameras, images):
             full[int(c)] = img
-        usable = feedback is not None and np.isfinite(feedback[[0, 1]]).all()
-        return self.pcm.infer(full, keypoints=feedback if usable else None, stamp_ns=stamp_ns)
+        # no skeleton fed back: the detector looks for the subject (at the seed, when one came)
+        return self.pcm.infer(full, keypoints=skeleton_of(feedback), stamp_ns=stamp_ns,
+                             seed=seed_of(feedback))
 
 
 def read_estimates(path: Path, stamps: np.ndarray) -> np.ndarray:

@@ -50,9 +50,10 @@ def instants(data: Path) -> list[str]:
 def reprojection_px(rig: Any, person: Any) -> float | None:
     """Median px between the person's keypoints (the first IK's, at the CNN's landmarks)
     projected into their views and those views' confident PCM peaks."""
+    from ...method.results import skeleton_of
     from ...pcm.peaks import camera_keypoints
 
-    fb, pcm = person.pipeline.feedback, None if person.last is None else person.last.pcm
+    fb, pcm = skeleton_of(person.pipeline.feedback), None if person.last is None else person.last.pcm
     if fb is None or pcm is None or pcm.n_views == 0:
         return None
     uv, w = camera_keypoints(pcm, len(rig))
