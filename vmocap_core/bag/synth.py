@@ -48,7 +48,7 @@ def write_synthetic_bag(
     with BagWriter(path, compression=compression, overwrite=True) as w:  # scratch data: rewritten freely
         for k in range(n_frames):
             t = t0_ns + int(round(k * 1e9 / fps))
-            views = src.render(k % len(src)) if pcm else None
+            views = src.render(src.looped(k)) if pcm else None
             for i, cam in enumerate(rig):
                 w.write(topics.camera_info(cam.name), "sensor_msgs/msg/CameraInfo", M.camera_info_msg(cam, t), t)
                 if images:

@@ -49,7 +49,7 @@ class BagPcmProvider:
 
 class SyntheticPcmProvider:
     """Heatmaps rendered from a motion clip's ground truth (vmocap_core.pcm.synthetic): the clip's
-    frame at the frame set's stamp (stamp x fps, modulo the clip's length), so that PCM workers
+    frame at the frame set's stamp (stamp x fps, the clip played forth and back), so that PCM workers
     of different cameras render the same instant whatever frames each of them skipped; the input
     rotation follows the fed-back skeleton."""
 
@@ -74,7 +74,7 @@ class SyntheticPcmProvider:
         from ..method.rotation import trunk_tilt
 
         rot = trunk_tilt(self.rig, feedback) if feedback is not None else None
-        pcm = self.source.render(int(round(stamp_ns * self.fps / 1e9)) % len(self.source), rotation=rot)
+        pcm = self.source.render(self.source.looped(int(round(stamp_ns * self.fps / 1e9))), rotation=rot)
         return pcm.select(np.isin(pcm.camera, cameras), stamp_ns)
 
 

@@ -94,6 +94,16 @@ class SyntheticPcmSource:
     def __len__(self) -> int:
         return self.gt.shape[0]
 
+    def looped(self, k: int) -> int:
+        """The trajectory's frame at frame k of a longer session: forward, then backward, and
+        so on, so the body never jumps (a body that jumps back to where the clip started is
+        another body to the tracker: method/path_gate.py)."""
+        n = len(self)
+        if n < 2:
+            return 0
+        i = k % (2 * n - 2)
+        return i if i < n else 2 * n - 2 - i
+
     def render(self, t: int, rotation: np.ndarray | None = None) -> PcmViews:
         """PCMs of frame t; `rotation` (C,) is the input rotation each camera was asked for
         (radians, as from tracker.trunk_tilt), None for none."""
