@@ -20,7 +20,7 @@ import numpy as np
 
 class PathGate:
     """The confirmed hip-centre path of one track: `add` on every frame set output as
-    "tracking", `strays` when a track comes back from "uncertain"."""
+    "tracking", `strayed` when a track comes back from "uncertain"."""
 
     def __init__(self, max_m: float, horizon_s: float, window: int = 10) -> None:
         self.max_m = float(max_m)  # 0: never stray (the gate is off)
@@ -52,9 +52,10 @@ class PathGate:
         ahead = t[-1] - t + min(max((stamp_ns - t1) * 1e-9, 0.0), self.horizon_s)
         return np.median(p + ahead[:, None] * velocity, axis=0)
 
-    def strays(self, stamp_ns: int, pelvis: np.ndarray) -> bool:
-        """True when the hip centre lies farther than max_m from where the subject was heading."""
+    def strayed(self, stamp_ns: int, pelvis: np.ndarray) -> np.ndarray | None:
+        """Where the subject was heading, when the hip centre lies farther than max_m from it
+        (the track has left the subject); None otherwise."""
+        if self.max_m <= 0 or not np.isfinite(pelvis).all():
+            return None
         exp = self.expected(stamp_ns)
-        if self.max_m <= 0 or exp is None or not np.isfinite(pelvis).all():
-            return False
-        return bool(np.linalg.norm(np.asarray(pelvis) - exp) > self.max_m)
+        return exp if exp is not None and np.linalg.norm(np.asarray(pelvis) - exp) > self.max_m else None

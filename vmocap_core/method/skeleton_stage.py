@@ -141,7 +141,8 @@ class SkeletonStage:
                     and ratio < self.config.check_min_weight_ratio:
                 verdict, self.faded = "uncertain", ratio
             if verdict == "lost":  # the images disagreed for check_lost_frames: start over
-                seed = self._seed(markers.stamp_ns)
+                # off the subject's path: look where it was heading (None: where the track is)
+                seed = self.path.strayed(markers.stamp_ns, self._pelvis)
                 self.reset()
                 self.status = "lost"
                 result = self._empty(markers, "lost")
@@ -164,18 +165,12 @@ class SkeletonStage:
         self.status = "lost"
         return self._empty(markers, "lost")
 
-    def _seed(self, stamp_ns: int) -> np.ndarray | None:
-        """Where to look for the subject when a track is lost: where it was heading when the
-        track strayed from its path (path_gate.py), else where the track is (None)."""
-        return self.path.expected(stamp_ns) if self.path.strays(stamp_ns, self._pelvis) else None
-
     def _confirmed(self, markers: Markers, result: TrackResult, resumed: bool) -> TrackResult:
         """A frame set the images agree with: on the subject's path, or, back from doubt far
         from it, another body (path_gate.py): lost, with where to look for the subject."""
         pelvis = result.raw_keypoints[INDEX["pelvis"]]
-        if resumed and self.path.strays(markers.stamp_ns, pelvis):
-            seed = self.path.expected(markers.stamp_ns)
-            assert seed is not None  # strays needs a path
+        seed = self.path.strayed(markers.stamp_ns, pelvis) if resumed else None
+        if seed is not None:
             self.strayed = float(np.linalg.norm(pelvis - seed))
             self.reset()
             self.status = "lost"
