@@ -176,12 +176,12 @@ class SkeletonConfig(_Stage):
     # turns over while the tracker still follows what is left (0: off).
     check_min_weight_ratio: float = 0.55
     check_weight_window: int = 30
-    # A track back from "uncertain" whose hip centre lies farther than `check_resume_max_m`
-    # from where the confirmed track was heading (its velocity carried for at most
-    # `check_resume_horizon_s`) has slid onto another body: lost, and the detector looks for
-    # the subject at the expected place (path_gate.py; 0: off).
+    # A track back from "uncertain" whose hip centre lies horizontally farther than
+    # `check_resume_max_m` from where the confirmed track was heading (its velocity carried for
+    # at most `check_resume_horizon_s`) has slid onto another body: lost, and the detector
+    # looks for the subject at the expected place (path_gate.py; 0: off).
     check_resume_max_m: float = 0.3
-    check_resume_horizon_s: float = 0.25
+    check_resume_horizon_s: float = 0.4
 
     def validate(self) -> None:
         from .filter import make_filter, smoother_model

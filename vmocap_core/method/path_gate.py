@@ -9,6 +9,10 @@ can be when the images agree again follows from where its hip centre was heading
 last frame sets the images confirmed. A track that comes back farther than `max_m` from that
 has left the subject: the skeleton stage starts over, and the detector looks for the subject
 at the expected place (`expected`), not where the track went.
+
+Only the horizontal place counts (world Z is up): another body stands beside the subject, and
+the subject's own hip centre moves fast vertically (a jump, a fall, a backflip, getting up),
+where a velocity carried on would miss by 0.5 g t^2.
 """
 
 from __future__ import annotations
@@ -17,15 +21,25 @@ from collections import deque
 
 import numpy as np
 
+# The confirmed points the expectation is drawn from: this long before the last one.
+WINDOW_S = 0.25
+# Before the views disagreed, a slide onto another body pulled the confirmed hip centre 50 mm
+# towards it over up to 8 frame sets (0.13 s at 60 Hz, the beside scene): the last 0.1 s are
+# dropped, the medians bear the rest.
+SUSPECT_S = 0.1
+
 
 class PathGate:
     """The confirmed hip-centre path of one track: `add` on every frame set output as
-    "tracking", `strayed` when a track comes back from "uncertain"."""
+    "tracking", `doubt` when the images stop agreeing, `strayed` when a track comes back
+    from "uncertain"."""
 
-    def __init__(self, max_m: float, horizon_s: float, window: int = 10) -> None:
+    def __init__(self, max_m: float, horizon_s: float, window_s: float = WINDOW_S, suspect_s: float = SUSPECT_S) -> None:
         self.max_m = float(max_m)  # 0: never stray (the gate is off)
         self.horizon_s = float(horizon_s)  # the confirmed velocity is carried this long at most
-        self._path: deque[tuple[int, np.ndarray]] = deque(maxlen=max(int(window), 2))
+        self.window_s = float(window_s)
+        self.suspect_s = float(suspect_s)
+        self._path: deque[tuple[int, np.ndarray]] = deque()
 
     def reset(self) -> None:
         self._path.clear()
@@ -33,11 +47,23 @@ class PathGate:
     def add(self, stamp_ns: int, pelvis: np.ndarray) -> None:
         if np.isfinite(pelvis).all():
             self._path.append((int(stamp_ns), np.asarray(pelvis, dtype=np.float64).copy()))
+            while len(self._path) > 2 and (stamp_ns - self._path[0][0]) * 1e-9 > self.window_s:
+                self._path.popleft()
+
+    def doubt(self, stamp_ns: int) -> None:
+        """The images disagree from this frame set on: the confirmed points of the last
+        suspect_s before it are no longer trusted (at least two points stay). The check reads
+        the skeleton fed back, one frame set late, and a track sliding onto another body is
+        pulled towards it over a few frame sets before the views disagree: kept, those points
+        bend the expected path towards the other body."""
+        while len(self._path) > 2 and (stamp_ns - self._path[-1][0]) * 1e-9 < self.suspect_s:
+            self._path.pop()
 
     def expected(self, stamp_ns: int) -> np.ndarray | None:
-        """Where the hip centre is heading at stamp_ns: the last confirmed one moved on with
-        the velocity over the confirmed window, for horizon_s at most (a walker keeps going,
-        nobody keeps a velocity for long); None before any confirmed frame set."""
+        """Where the hip centre is heading at stamp_ns: the last confirmed one moved on
+        horizontally with the velocity over the confirmed window, for horizon_s at most (a
+        walker keeps going, nobody keeps a velocity for long); None before any confirmed
+        frame set."""
         if not self._path:
             return None
         t1, p1 = self._path[-1]
@@ -49,13 +75,16 @@ class PathGate:
         # another body are often still confirmed (the check reads the previous skeleton), and
         # the last point or step alone would carry the expectation towards that body.
         velocity = np.median(np.diff(p, axis=0) / np.maximum(np.diff(t), 1e-3)[:, None], axis=0)
+        velocity[2] = 0.0
         ahead = t[-1] - t + min(max((stamp_ns - t1) * 1e-9, 0.0), self.horizon_s)
         return np.median(p + ahead[:, None] * velocity, axis=0)
 
     def strayed(self, stamp_ns: int, pelvis: np.ndarray) -> np.ndarray | None:
-        """Where the subject was heading, when the hip centre lies farther than max_m from it
-        (the track has left the subject); None otherwise."""
+        """Where the subject was heading, when the hip centre lies horizontally farther than
+        max_m from it (the track has left the subject); None otherwise."""
         if self.max_m <= 0 or not np.isfinite(pelvis).all():
             return None
         exp = self.expected(stamp_ns)
-        return exp if exp is not None and np.linalg.norm(np.asarray(pelvis) - exp) > self.max_m else None
+        if exp is None or np.linalg.norm(np.asarray(pelvis, dtype=np.float64)[:2] - exp[:2]) <= self.max_m:
+            return None
+        return exp

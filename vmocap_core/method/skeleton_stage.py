@@ -151,6 +151,8 @@ class SkeletonStage:
                 was = self.status
                 result = self._track(markers)
                 if verdict == "uncertain" and result.status == "tracking":
+                    if was == "tracking":  # the path's last points may already lean on another body
+                        self.path.doubt(markers.stamp_ns)
                     result.status = self.status = "uncertain"
                 elif result.status == "tracking":
                     result = self._confirmed(markers, result, resumed=was == "uncertain")
