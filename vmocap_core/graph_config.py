@@ -158,6 +158,8 @@ NODE_PARAMS["vmocap_people"] = [p for p in NODE_PARAMS["vmocap_pcm"] if p.name i
           choices=("blazepose", "blazepose-lite")),
     Param("detect_every_s", 0.5, "while fewer than max_people are tracked, the detector looks for newcomers this often "
           "(s, capture time); it runs on every frame set while someone is being found or was lost", 0.0, 60.0),
+    Param("count_every_s", 2.0, "while max_people are tracked, the detector counts the people left out this often "
+          "(s, capture time; /diagnostics says how many; 0: never)", 0.0, 600.0),
     Param("end_after_s", 1.0, "a person without a skeleton this long (s) is ended; their body id leaves "
           "/humans/bodies/tracked", 0.05, 600.0),
     Param("remember_s", 60.0, "an ended person's identified skeleton is kept this long (s): a newcomer with its "

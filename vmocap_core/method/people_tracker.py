@@ -56,6 +56,7 @@ class PeopleError(VmocapError):
 class PeopleConfig:
     max_people: int = 2  # people tracked at once; more in view are counted, not tracked
     detect_every_s: float = 0.5  # while fewer are tracked: the detector looks for newcomers this often
+    count_every_s: float = 2.0  # while max_people are tracked: it counts the people left out this often (0: never)
     end_after_s: float = 1.0  # a person without a skeleton for this long is ended
     reacquire_m: float = 1.0  # a lost person is found again within this of their last hip centre
     same_body_m: float = 0.15  # two skeletons whose keypoints lie this close (median): one body
@@ -67,6 +68,8 @@ class PeopleConfig:
     def __post_init__(self) -> None:
         if int(self.max_people) < 1:
             raise PeopleError(f"max_people must be at least 1, got {self.max_people}")
+        if min(self.detect_every_s, self.count_every_s) < 0:
+            raise PeopleError("detect_every_s and count_every_s must be >= 0")
 
 
 @dataclass
@@ -94,7 +97,7 @@ class PeopleFrame:
 
     stamp_ns: int
     people: list[Person]
-    untracked: np.ndarray  # (C,) detections per camera nobody's skeleton explains (-1: not looked)
+    untracked: np.ndarray  # (C,) detections per camera nobody's skeleton explains, at the last look (-1: none yet)
     ended: list[int] = field(default_factory=list)  # numbers of the people ended in this frame set
 
     @property
@@ -104,7 +107,8 @@ class PeopleFrame:
 
     @property
     def others_in_view(self) -> int:
-        """The most detections nobody tracked explains in one camera (0: none, or not looked)."""
+        """The most detections nobody tracked explains in one camera at the detector's last
+        look (0: none, or not looked yet)."""
         return int(max(self.untracked.max(initial=0), 0))
 
 
@@ -185,6 +189,7 @@ class PeopleTracker:
         self._next = 0
         self._last_detection_ns: int | None = None
         self._searches = 0  # searches for newcomers so far
+        self._untracked = np.full(len(rig), -1)  # per camera, the people nobody tracks at the last look
         self._remembered: list[tuple[int, Skeleton]] = []  # (stamp ended, identified skeleton) of people who left
 
     def _new_person(self, seed: np.ndarray, stamp_ns: int) -> Person:
@@ -201,15 +206,20 @@ class PeopleTracker:
     def _detection_due(self, stamp_ns: int, waiting: list[Person]) -> bool:
         """Every frame set while someone found is not initialized yet; every wait_search_s while
         someone lost waits (their last detector crops are held in between: a full search costs
-        several frame periods); every detect_every_s while fewer than max_people are tracked."""
+        several frame periods); every detect_every_s while fewer than max_people are tracked;
+        every count_every_s while max_people are (to count who is left out)."""
         cfg = self.people_config
-        if not waiting and len(self.people) >= cfg.max_people:
+        if waiting:
+            # a person found and not yet initialized gets fresh detections every frame set: the
+            # initialization triangulates consecutive frame sets of a body that may walk fast
+            every = 0.0 if any(p.seen_ns == p.born_ns for p in waiting) else cfg.wait_search_s
+        elif len(self.people) < cfg.max_people:
+            every = cfg.detect_every_s
+        elif cfg.count_every_s > 0:
+            every = cfg.count_every_s
+        else:
             return False
         last = self._last_detection_ns
-        # a person found and not yet initialized gets fresh detections every frame set: the
-        # initialization triangulates consecutive frame sets of a body that may walk fast
-        fresh = any(p.seen_ns == p.born_ns for p in waiting)
-        every = 0.0 if fresh else cfg.wait_search_s if waiting else cfg.detect_every_s
         return last is None or not 0 <= stamp_ns - last < every * 1e9
 
     def _crops(self, p: Person, index: np.ndarray, found: Sequence[Sequence[Detection]], have: np.ndarray,
@@ -237,13 +247,13 @@ class PeopleTracker:
                 c = self.pcm.crops_from_skeleton(kp)
                 crops[p.number] = c.select(have[c.camera])
         waiting = [p for p in self.people if p.number not in tracked]
-        untracked = np.full(len(self.rig), -1)
         if self._detection_due(stamp_ns, waiting):
             self._last_detection_ns = stamp_ns
             skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
             pelvises = skeletons[:, PELVIS]
             pelvises = pelvises[np.isfinite(pelvises).all(axis=1)]
-            left = self._search(images, skeletons, pelvises, bool(waiting))
+            full = not waiting and len(self.people) >= cfg.max_people
+            left = self._search(images, skeletons, pelvises, bool(waiting), counting=full)
             # the lost first (near where they were), then newcomers, the best seen first
             for p in waiting:
                 choice = choose_subject(self.seen, left, p.seed)
@@ -262,7 +272,7 @@ class PeopleTracker:
                 p = self._new_person(choice.point, stamp_ns)
                 crops[p.number] = self._crops(p, choice.index, left, have, stamp_ns)
                 left = explained(self.seen, left, choice.point[None])
-            untracked = np.array([len(d) for d in left])
+            self._untracked = np.array([len(d) for d in left])
         for p in waiting:  # between searches: their held detector crops
             if p.number not in crops:
                 crops[p.number] = self._crops(p, np.full(len(self.rig), -1), [[] for _ in self.rig], have, stamp_ns)
@@ -282,22 +292,24 @@ class PeopleTracker:
             elif seed is not None:  # their track slid onto another body: look where they were heading
                 p.seed = seed
         ended = self._end(stamp_ns)
-        return PeopleFrame(stamp_ns, list(self.people), untracked, ended)
+        return PeopleFrame(stamp_ns, list(self.people), self._untracked.copy(), ended)
 
     def _search(self, images: Sequence[np.ndarray | None], skeletons: np.ndarray, pelvises: np.ndarray,
-                everywhere: bool) -> list[list[Detection]]:
+                everywhere: bool, counting: bool = False) -> list[list[Detection]]:
         """Per camera, the detections no tracked person explains, with the tracked bodies hidden.
         For someone waiting (`everywhere`): every look of detect_people. For newcomers only: the
         whole images, and the closer look only in the cameras that found nobody while another
         one found someone (a newcomer in the room is seen whole by some camera; the closer look
         in every camera of an empty room costs 110 ms against 4 x 4 ms), and in every camera on
         every closer_every-th search (a person small in every view: far, or a low-resolution
-        rig); no turned look (a lying newcomer is found when they get up)."""
+        rig); no turned look (a lying newcomer is found when they get up). Only `counting` the
+        people left out (every slot taken): never every camera's closer look, which costs more
+        than a frame period."""
         shown = hidden(self.seen, images, skeletons)
         if everywhere:
             return explained(self.seen, self.pcm.detect_people(shown), pelvises)
-        thorough = self._searches % self.people_config.closer_every == 0  # the first search too
-        self._searches += 1
+        thorough = not counting and self._searches % self.people_config.closer_every == 0  # the first search too
+        self._searches += 0 if counting else 1
         left = explained(self.seen, self.pcm.detect_people(shown, turned=thorough, closer=thorough), pelvises)
         empty = [c for c, d in enumerate(left) if not d and shown[c] is not None]
         if not thorough and empty and len(empty) < sum(im is not None for im in shown):
