@@ -381,9 +381,9 @@ def _clear_of(rig, person: np.ndarray, other: np.ndarray) -> np.ndarray:
 def test_more_people_than_max_people_are_counted_not_tracked(rig, scene):
     """Bad input: two people in view with max_people 1. The subject (found first) is tracked;
     the walker gets no body, and the detector's looks while the one slot is taken count them
-    (what /diagnostics reports) in most looks while three cameras see them clear of the
-    subject (whose body is greyed out for the detector; near the room's edge, small in two
-    views, the detector misses them)."""
+    as a person left out (what /diagnostics reports: seen by two cameras, as a newcomer is) in
+    most looks while three cameras see them clear of the subject (whose body is greyed out for
+    the detector; near the room's edge, small in two views, the detector misses them)."""
     from vmocap_core.apps.bench import images
     from vmocap_core.method.config import PipelineConfig
     from vmocap_core.method.people_tracker import PeopleConfig, PeopleTracker
@@ -401,7 +401,7 @@ def test_more_people_than_max_people_are_counted_not_tracked(rig, scene):
             est[f] = out.people[0].last.skeleton.keypoints
             if tracker._last_detection_ns == int(stamps[f]):  # a look while the slot is taken
                 looks += 1
-                counted.append((int(seen[f]), f, out.others_in_view))
+                counted.append((int(seen[f]), f, out.left_out))
     e = images.frame_mpjpe(est, truths[0])
     print(f"subject tracked {np.isfinite(e).mean():.0%}, MPJPE {np.nanmean(e):.1f} mm; looks (cameras clear, frame, counted) "
           f"{counted}")

@@ -99,6 +99,7 @@ class PeopleFrame:
     people: list[Person]
     untracked: np.ndarray  # (C,) detections per camera nobody's skeleton explains, at the last look (-1: none yet)
     ended: list[int] = field(default_factory=list)  # numbers of the people ended in this frame set
+    left_out: int = 0  # people two cameras see whom nobody tracks for want of a slot, at the last look
 
     @property
     def first(self) -> Person | None:
@@ -189,7 +190,8 @@ class PeopleTracker:
         self._next = 0
         self._last_detection_ns: int | None = None
         self._searches = 0  # searches for newcomers so far
-        self._untracked = np.full(len(rig), -1)  # per camera, the people nobody tracks at the last look
+        self._untracked = np.full(len(rig), -1)  # per camera, the detections nobody tracks at the last look
+        self._left_out = 0  # people (seen by two cameras) not tracked for want of a slot, at the last look
         self._remembered: list[tuple[int, Skeleton]] = []  # (stamp ended, identified skeleton) of people who left
 
     def _new_person(self, seed: np.ndarray, stamp_ns: int) -> Person:
@@ -265,13 +267,18 @@ class PeopleTracker:
                     left = explained(self.seen, left, point[None])
                     if p.seen_ns == p.born_ns:  # not initialized yet: follow their detections
                         p.seed = point
-            while len(self.people) < cfg.max_people:
-                choice = choose_subject(self.seen, left, None)
+            self._left_out, rest = 0, left
+            for _ in range(sum(len(d) for d in rest)):  # newcomers while a slot is free, then the people left out
+                choice = choose_subject(self.seen, rest, None)
                 if choice.point is None:
                     break
-                p = self._new_person(choice.point, stamp_ns)
-                crops[p.number] = self._crops(p, choice.index, left, have, stamp_ns)
-                left = explained(self.seen, left, choice.point[None])
+                if len(self.people) < cfg.max_people:
+                    p = self._new_person(choice.point, stamp_ns)
+                    crops[p.number] = self._crops(p, choice.index, rest, have, stamp_ns)
+                    left = explained(self.seen, left, choice.point[None])
+                else:
+                    self._left_out += 1
+                rest = explained(self.seen, rest, choice.point[None])
             self._untracked = np.array([len(d) for d in left])
         for p in waiting:  # between searches: their held detector crops
             if p.number not in crops:
@@ -292,7 +299,7 @@ class PeopleTracker:
             elif seed is not None:  # their track slid onto another body: look where they were heading
                 p.seed = seed
         ended = self._end(stamp_ns)
-        return PeopleFrame(stamp_ns, list(self.people), self._untracked.copy(), ended)
+        return PeopleFrame(stamp_ns, list(self.people), self._untracked.copy(), ended, self._left_out)
 
     def _search(self, images: Sequence[np.ndarray | None], skeletons: np.ndarray, pelvises: np.ndarray,
                 everywhere: bool, counting: bool = False) -> list[list[Detection]]:

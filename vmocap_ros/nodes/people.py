@@ -140,9 +140,8 @@ class PeopleNode(VmocapNode):
         self.last = frame
         self.counts["frames"] += 1
         self.errors.pop("tracker", None)
-        untracked = frame.others_in_view
-        if untracked and len(frame.people) >= self.p["max_people"]:
-            self.warn_for("people", f"{untracked} more people in view than max_people {self.p['max_people']} tracks "
+        if frame.left_out:
+            self.warn_for("people", f"{frame.left_out} more people in view than max_people {self.p['max_people']} tracks "
                                     "(those found first are tracked)")
         self.proc.add(1e3 * (seconds + time.perf_counter() - t0))
         self.record_age(stamp_ns)
@@ -161,6 +160,7 @@ class PeopleNode(VmocapNode):
                     people=len(people), tracking=sum(p.status == "tracking" for p in people),
                     statuses=", ".join(f"{i or p.number}: {p.status}" for p, i in zip(people, ids or [None] * len(people)))
                     or "nobody", untracked_in_view=0 if frame is None else frame.others_in_view,
+                    left_out=0 if frame is None else frame.left_out,
                     sync=st.as_dict())
 
     def close(self) -> None:
