@@ -29,10 +29,11 @@ def _confirmed_walk(gate: PathGate, frames: int, pulled: int) -> None:
 
 
 def test_a_track_back_on_the_person_beside_is_strayed_and_the_seed_is_on_the_walk():
-    """The walker is tracked for 0.5 s, the last 9 confirmed frame sets (0.15 s) slide towards a person
-    standing beside, the views disagree; 0.4 s later the track comes back on that person. The
-    points confirmed just before the doubt are dropped, so the expectation stays on the walk:
-    the gate says "strayed" with a seed near the walker, and a track back on the walker passes."""
+    """The walker is tracked for 0.5 s, the last 9 confirmed frame sets (0.15 s) slide towards
+    a person standing beside, the views disagree; 0.3 s later the track comes back on that
+    person. The points confirmed just before the doubt are dropped, so the expectation stays on
+    the walk: the gate says "strayed" with a seed near the walker, and a track back on the
+    walker passes."""
     frames, pulled, back = 30, 9, 18
     k = frames + back
     expected = {}
