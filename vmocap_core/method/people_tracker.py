@@ -267,19 +267,15 @@ class PeopleTracker:
                     left = explained(self.seen, left, point[None])
                     if p.seen_ns == p.born_ns:  # not initialized yet: follow their detections
                         p.seed = point
-            self._left_out, rest = 0, left
-            for _ in range(sum(len(d) for d in rest)):  # newcomers while a slot is free, then the people left out
-                choice = choose_subject(self.seen, rest, None)
+            while len(self.people) < cfg.max_people:
+                choice = choose_subject(self.seen, left, None)
                 if choice.point is None:
                     break
-                if len(self.people) < cfg.max_people:
-                    p = self._new_person(choice.point, stamp_ns)
-                    crops[p.number] = self._crops(p, choice.index, rest, have, stamp_ns)
-                    left = explained(self.seen, left, choice.point[None])
-                else:
-                    self._left_out += 1
-                rest = explained(self.seen, rest, choice.point[None])
+                p = self._new_person(choice.point, stamp_ns)
+                crops[p.number] = self._crops(p, choice.index, left, have, stamp_ns)
+                left = explained(self.seen, left, choice.point[None])
             self._untracked = np.array([len(d) for d in left])
+            self._left_out = self._people_in(left)
         for p in waiting:  # between searches: their held detector crops
             if p.number not in crops:
                 crops[p.number] = self._crops(p, np.full(len(self.rig), -1), [[] for _ in self.rig], have, stamp_ns)
@@ -301,6 +297,17 @@ class PeopleTracker:
         ended = self._end(stamp_ns)
         return PeopleFrame(stamp_ns, list(self.people), self._untracked.copy(), ended, self._left_out)
 
+    def _people_in(self, found: list[list[Detection]]) -> int:
+        """How many people the detections make, grouped across cameras as newcomers are."""
+        n = 0
+        for _ in range(sum(len(d) for d in found)):  # each person takes at least one detection
+            point = choose_subject(self.seen, found, None).point
+            if point is None:
+                break
+            n += 1
+            found = explained(self.seen, found, point[None])
+        return n
+
     def _search(self, images: Sequence[np.ndarray | None], skeletons: np.ndarray, pelvises: np.ndarray,
                 everywhere: bool, counting: bool = False) -> list[list[Detection]]:
         """Per camera, the detections no tracked person explains, with the tracked bodies hidden.
@@ -316,7 +323,8 @@ class PeopleTracker:
         if everywhere:
             return explained(self.seen, self.pcm.detect_people(shown), pelvises)
         thorough = not counting and self._searches % self.people_config.closer_every == 0  # the first search too
-        self._searches += 0 if counting else 1
+        if not counting:
+            self._searches += 1
         left = explained(self.seen, self.pcm.detect_people(shown, turned=thorough, closer=thorough), pelvises)
         empty = [c for c, d in enumerate(left) if not d and shown[c] is not None]
         if not thorough and empty and len(empty) < sum(im is not None for im in shown):
