@@ -80,3 +80,21 @@ def test_the_expectation_keeps_a_short_window_and_two_points():
     start.doubt(_ns(3))
     assert len(start._path) == 2
     assert np.linalg.norm(start.expected(_ns(3)) - _walker(3)) < 0.02
+
+
+def test_the_place_the_subject_can_be_grows_once_the_path_is_old():
+    """An overloaded graph keeps few frame sets: a track back 1.4 s after the last confirmed
+    one may find a walker that turned round 0.6 m from where it was heading. Within the
+    horizon the same 0.6 m is another body; past it, the bound grows at a brisk walk."""
+    gate = PathGate(max_m=0.3, horizon_s=0.4)
+    _confirmed_walk(gate, 30, 0)
+    gate.doubt(_ns(30))
+    for back_s, strays in ((0.3, True), (1.4, False)):
+        k = 29 + int(round(back_s * RATE))
+        exp = gate.expected(_ns(k))
+        assert exp is not None
+        turned = exp + [0.6, 0.0, 0.0]  # walked back the other way
+        assert (gate.strayed(_ns(k), turned) is not None) is strays, back_s
+    one = PathGate(max_m=0.3, horizon_s=0.4)
+    one.add(_ns(0), _walker(0))
+    assert one.bound(_ns(24)) == 0.3 and abs(one.bound(_ns(84)) - (0.3 + 1.5 * 1.0)) < 1e-6

@@ -27,6 +27,10 @@ WINDOW_S = 0.25
 # towards it over up to 8 frame sets (0.13 s at 60 Hz, the beside scene): the last 0.1 s are
 # dropped, the medians bear the rest.
 SUSPECT_S = 0.1
+# Past the horizon the subject may have turned or stopped: the place it can be grows at a brisk
+# walk's speed. A track dropped for over a second (an overloaded graph keeps few frame sets)
+# comes back anywhere a walker reaches, so there the gate holds little back.
+WANDER_MPS = 1.5
 
 
 class PathGate:
@@ -79,12 +83,20 @@ class PathGate:
         ahead = t[-1] - t + min(max((stamp_ns - t1) * 1e-9, 0.0), self.horizon_s)
         return np.median(p + ahead[:, None] * velocity, axis=0)
 
+    def bound(self, stamp_ns: int) -> float:
+        """How far from the expected place the subject can be at stamp_ns: max_m, growing at
+        WANDER_MPS once the last confirmed point is more than horizon_s old."""
+        if not self._path:
+            return self.max_m
+        late = (stamp_ns - self._path[-1][0]) * 1e-9 - self.horizon_s
+        return self.max_m + WANDER_MPS * max(late, 0.0)
+
     def strayed(self, stamp_ns: int, pelvis: np.ndarray) -> np.ndarray | None:
         """Where the subject was heading, when the hip centre lies horizontally farther than
-        max_m from it (the track has left the subject); None otherwise."""
+        `bound` from it (the track has left the subject); None otherwise."""
         if self.max_m <= 0 or not np.isfinite(pelvis).all():
             return None
         exp = self.expected(stamp_ns)
-        if exp is None or np.linalg.norm(np.asarray(pelvis, dtype=np.float64)[:2] - exp[:2]) <= self.max_m:
+        if exp is None or np.linalg.norm(np.asarray(pelvis, dtype=np.float64)[:2] - exp[:2]) <= self.bound(stamp_ns):
             return None
         return exp
