@@ -113,6 +113,36 @@ def test_short_clip_offline_and_through_the_node_graph(rig, tmp_path):
     assert off[config]["accel_error_m_s2"] < row[config]["accel_error_m_s2"], (off[config], row[config])
 
 
+def test_a_body_lying_face_down_is_found_again_after_every_view_lost_it(rig, tmp_path):
+    """Issue 30, item 3 and its bad input "a person leaving all views and coming back lying
+    down": the getup_facedown clip, tracked while the body lies face down, then every camera
+    shows noise for 0.15 s (`--blackout`); the body comes back still lying, and the tracker
+    outputs it as tracked again within 0.5 s, never more than 100 mm off."""
+    from vmocap_core.apps.bench import images
+    from vmocap_core.apps.render.recording import read_truth
+    from vmocap_core.cameras.rig_file import save_rig
+    from vmocap_core.keypoints import INDEX
+    from vmocap_core.pcm import selfcheck
+
+    precision = "int8" if selfcheck.verdict("full").int8_correct else "float"
+    config = f"rot-{precision}"
+    gone, back = 0.65, 0.8
+    args = argparse.Namespace(frames=90, seed=0, cache=tmp_path / "cache", out=tmp_path / "out", json=True,
+                              configs=[config], no_synthetic=True, graph="none", graph_rate=0.0, crop_prediction="rigid",
+                              rig_file=tmp_path / "rig.yaml", tracker={"fps": 60.0}, blackout=(gone, back))
+    save_rig(rig, args.rig_file)
+    args.out.mkdir()
+    row = images.run_clip(REPO / "vmocap_core" / "data" / "motions" / "development" / "getup_facedown.npz", rig, args)
+    r = row[config]
+    print({k: r.get(k) for k in ("mpjpe_mm", "tracked_pct", "false_tracking_pct", "reacquire_s", "init_frames")})
+    stamps, truth = read_truth(row["recording"])
+    t = (stamps - stamps[0]) * 1e-9
+    assert truth[np.searchsorted(t, back), INDEX["pelvis"], 2] < 0.2  # still lying when seen again
+    assert r["init_frames"] < gone * 60, r  # tracked before every view lost it
+    assert r["reacquire_s"] is not None and r["reacquire_s"] <= 0.5, r
+    assert r["false_tracking_pct"] == 0.0, r
+
+
 def test_detector_finds_a_small_person_in_every_view(tmp_path):
     """punch at 1024x768: the person is ~45 px tall in the detector's 224 px letterbox, and the
     whole-image pass misses views (punch and run never initialized before the zoomed tiles).
