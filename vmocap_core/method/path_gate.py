@@ -7,8 +7,9 @@ the other body's: the track slides onto it, the images agree again, and without 
 would resume as "tracking" on the wrong person. A person does not jump: where the subject
 can be when the images agree again follows from where its hip centre was heading on the
 last frame sets the images confirmed. A track that comes back farther than `max_m` from that
-has left the subject: the skeleton stage starts over, and the detector looks for the subject
-at the expected place (`expected`), not where the track went.
+(more when those frame sets are old: `bound`) has left the subject: the skeleton stage starts
+over, and the detector looks for the subject at the expected place (`expected`), not where the
+track went.
 
 Only the horizontal place counts (world Z is up): another body stands beside the subject, and
 the subject's own hip centre moves fast vertically (a jump, a fall, a backflip, getting up),

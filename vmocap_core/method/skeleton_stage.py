@@ -66,7 +66,8 @@ class SkeletonStage:
         self.unsupported: float | None = None  # the markers' support behind an "uncertain" step (below check_min_support)
         self.weights = WeightTrend(cfg.check_weight_window)
         self.path = PathGate(cfg.check_resume_max_m, cfg.check_resume_horizon_s)
-        self.strayed: float | None = None  # metres from the subject's path behind a "lost" step (path_gate.py)
+        # metres (horizontal) from the subject's path behind a "lost" step, and the bound (path_gate.py)
+        self.strayed: tuple[float, float] | None = None
         self._pelvis = np.full(3, np.nan)  # the track's hip centre (the last first IK's)
         self.faded: float | None = None  # the markers' weight ratio behind an "uncertain" step (below check_min_weight_ratio)
         self._last_stamp: int | None = None
@@ -103,8 +104,10 @@ class SkeletonStage:
         for the diagnostics (None when they did not)."""
         cfg = self.config
         if self.strayed is not None:
-            return (f"{status}: the track came back {self.strayed:.2f} m from where the subject was heading "
-                    f"(check_resume_max_m {cfg.check_resume_max_m:g}): another body, the subject is looked for again")
+            off, bound = self.strayed
+            return (f"{status}: the track came back {off:.2f} m from where the subject was heading (over {bound:.2f} m: "
+                    f"check_resume_max_m {cfg.check_resume_max_m:g}, more after a gap): another body, the subject is "
+                    "looked for again")
         if self.disagreement is not None:
             return self.disagreement.warning(status, cfg.check_min_agreement, cfg.check_min_support, names)
         if self.unsupported is not None:
@@ -173,7 +176,7 @@ class SkeletonStage:
         pelvis = result.raw_keypoints[INDEX["pelvis"]]
         seed = self.path.strayed(markers.stamp_ns, pelvis) if resumed else None
         if seed is not None:
-            self.strayed = float(np.linalg.norm(pelvis - seed))
+            self.strayed = (float(np.linalg.norm((pelvis - seed)[:2])), self.path.bound(markers.stamp_ns))
             self.reset()
             self.status = "lost"
             lost = self._empty(markers, "lost")
