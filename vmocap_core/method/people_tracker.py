@@ -25,7 +25,7 @@ identification phase; they get a new id. Nothing here reads ground truth.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Literal, Sequence
 
 import numpy as np
 
@@ -45,6 +45,7 @@ from .results import seed_of, skeleton_of
 from .skeleton import Skeleton
 
 PELVIS = INDEX["pelvis"]
+SearchKind = Literal["waiting", "newcomers", "counting"]  # what a detector search is for (_search)
 HIDE_MARGIN = 0.15  # a tracked body's box grown by this share of its size before it is hidden from the detector
 
 
@@ -205,24 +206,26 @@ class PeopleTracker:
         self.people.append(p)
         return p
 
-    def _detection_due(self, stamp_ns: int, waiting: list[Person]) -> bool:
-        """Every frame set while someone found is not initialized yet; every wait_search_s while
-        someone lost waits (their last detector crops are held in between: a full search costs
-        several frame periods); every detect_every_s while fewer than max_people are tracked;
-        every count_every_s while max_people are (to count who is left out)."""
+    def _search_due(self, stamp_ns: int, waiting: list[Person]) -> SearchKind | None:
+        """Which search this frame set runs (_search), if any: "waiting" every frame set while
+        someone found is not initialized yet, every wait_search_s while someone lost waits (their
+        last detector crops are held in between: a full search costs several frame periods);
+        "newcomers" every detect_every_s while fewer than max_people are tracked; "counting"
+        every count_every_s while max_people are (who is left out)."""
         cfg = self.people_config
+        kind: SearchKind
         if waiting:
             # a person found and not yet initialized gets fresh detections every frame set: the
             # initialization triangulates consecutive frame sets of a body that may walk fast
-            every = 0.0 if any(p.seen_ns == p.born_ns for p in waiting) else cfg.wait_search_s
+            kind, every = "waiting", 0.0 if any(p.seen_ns == p.born_ns for p in waiting) else cfg.wait_search_s
         elif len(self.people) < cfg.max_people:
-            every = cfg.detect_every_s
+            kind, every = "newcomers", cfg.detect_every_s
         elif cfg.count_every_s > 0:
-            every = cfg.count_every_s
+            kind, every = "counting", cfg.count_every_s
         else:
-            return False
+            return None
         last = self._last_detection_ns
-        return last is None or not 0 <= stamp_ns - last < every * 1e9
+        return kind if last is None or not 0 <= stamp_ns - last < every * 1e9 else None
 
     def _crops(self, p: Person, index: np.ndarray, found: Sequence[Sequence[Detection]], have: np.ndarray,
                stamp_ns: int) -> Crops:
@@ -249,13 +252,13 @@ class PeopleTracker:
                 c = self.pcm.crops_from_skeleton(kp)
                 crops[p.number] = c.select(have[c.camera])
         waiting = [p for p in self.people if p.number not in tracked]
-        if self._detection_due(stamp_ns, waiting):
+        search = self._search_due(stamp_ns, waiting)
+        if search is not None:
             self._last_detection_ns = stamp_ns
             skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
             pelvises = skeletons[:, PELVIS]
             pelvises = pelvises[np.isfinite(pelvises).all(axis=1)]
-            full = not waiting and len(self.people) >= cfg.max_people
-            left = self._search(images, skeletons, pelvises, bool(waiting), counting=full)
+            left = self._search(images, skeletons, pelvises, search)
             # the lost first (near where they were), then newcomers, the best seen first
             for p in waiting:
                 choice = choose_subject(self.seen, left, p.seed)
@@ -309,21 +312,21 @@ class PeopleTracker:
         return n
 
     def _search(self, images: Sequence[np.ndarray | None], skeletons: np.ndarray, pelvises: np.ndarray,
-                everywhere: bool, counting: bool = False) -> list[list[Detection]]:
+                kind: SearchKind) -> list[list[Detection]]:
         """Per camera, the detections no tracked person explains, with the tracked bodies hidden.
-        For someone waiting (`everywhere`): every look of detect_people. For newcomers only: the
+        For someone "waiting": every look of detect_people. For "newcomers": the
         whole images, and the closer look only in the cameras that found nobody while another
         one found someone (a newcomer in the room is seen whole by some camera; the closer look
         in every camera of an empty room costs 110 ms against 4 x 4 ms), and in every camera on
         every closer_every-th search (a person small in every view: far, or a low-resolution
-        rig); no turned look (a lying newcomer is found when they get up). Only `counting` the
-        people left out (every slot taken): never every camera's closer look, which costs more
-        than a frame period."""
+        rig); no turned look (a lying newcomer is found when they get up). "counting" the people
+        left out (every slot taken): as for newcomers, but never every camera's closer look,
+        which costs more than a frame period."""
         shown = hidden(self.seen, images, skeletons)
-        if everywhere:
+        if kind == "waiting":
             return explained(self.seen, self.pcm.detect_people(shown), pelvises)
-        thorough = not counting and self._searches % self.people_config.closer_every == 0  # the first search too
-        if not counting:
+        thorough = kind == "newcomers" and self._searches % self.people_config.closer_every == 0  # the first search too
+        if kind == "newcomers":
             self._searches += 1
         left = explained(self.seen, self.pcm.detect_people(shown, turned=thorough, closer=thorough), pelvises)
         empty = [c for c, d in enumerate(left) if not d and shown[c] is not None]
