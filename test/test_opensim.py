@@ -113,3 +113,15 @@ def test_opensim_not_installed(trip, tmp_path: Path) -> None:
     e = _cli(str(trip["bag"]), "-o", str(tmp_path / "x"), pre="sys.modules['opensim'] = None")
     assert e.returncode != 0 and "pip install 'vmocap[opensim]'" in e.stderr
     assert len(e.stderr.strip().splitlines()) == 1 and not (tmp_path / "x").exists()
+
+
+def test_the_pelvis_does_not_turn_against_the_trunk(trip) -> None:
+    """Markers on the hip and shoulder centres hold the lumbar joint's rotations loosely: IK pulls
+    all three towards neutral (export/opensim.py, LUMBAR), so the pelvis and the hips carry the
+    walk, not a lumbar twist (without the pull: 20 degrees of bending, 40 of axial turn)."""
+    osim = _opensim()
+    s = trip["session"]
+    mot = osim.TimeSeriesTable(str(trip["out"] / "s_ik.mot"))
+    for name in ("L5_S1_Flex_Ext", "L5_S1_Lat_Bending", "L5_S1_axial_rotation"):
+        q = mot.getDependentColumn(name).to_numpy()[s.tracked]
+        assert np.abs(q).max() < 5.0, name  # degrees

@@ -36,6 +36,8 @@ SETUP = "Pose2Sim/OpenSim_Setup"
 MODEL, MARKER_SET = "Model_Pose2Sim_simple.osim", "Markers_BlazePose.xml"
 CLAMPED = ("arm_rot_r", "arm_rot_l")  # coordinates whose range IK must keep (adapted_model)
 SCALE_SETUP, IK_SETUP = "Scaling_Setup_Pose2Sim_Blazepose.xml", "IK_Setup_Pose2Sim_Blazepose.xml"
+LUMBAR = ("L5_S1_Flex_Ext", "L5_S1_Lat_Bending", "L5_S1_axial_rotation")  # IK pulls all three towards neutral (opensim_setup)
+LUMBAR_PULL = 0.1  # IK weight of a lumbar rotation the setup leaves free (per rad^2; the markers' are per m^2, 1-2)
 INSTALL = "pip install 'vmocap[opensim]' (opensim==4.6; scripts/setup.sh installs it)"
 
 # Marker -> (our keypoint, the model joint whose centre it is). Left side; right mirrors.
@@ -114,6 +116,11 @@ def opensim_setup(fetch: bool = True) -> OpenSimSetup:
     for e in tasks:
         if e.tag in ("IKMarkerTask", "IKCoordinateTask") and (e.findtext("apply") or "").strip() == "true":
             (markers if e.tag == "IKMarkerTask" else coords)[e.attrib["name"]] = float(e.findtext("weight") or 1.0)
+    # The setup pulls only the lumbar flexion towards neutral. Markers on the hip and shoulder
+    # centres barely tell the lumbar's bending and axial turn from the pelvis's, and IK turned
+    # the pelvis against the trunk (a kick's hip flexion 10 degrees off): those two get the
+    # flexion's pull (a tenth of it let a spinning kick turn the pelvis again).
+    coords.update({c: coords.get(LUMBAR[0], LUMBAR_PULL) for c in LUMBAR[1:] if c not in coords})
     return OpenSimSetup(folder, {m: w for m, w in markers.items() if m in MARKERS}, coords)
 
 
