@@ -117,9 +117,9 @@ def opensim_setup(fetch: bool = True) -> OpenSimSetup:
         if e.tag in ("IKMarkerTask", "IKCoordinateTask") and (e.findtext("apply") or "").strip() == "true":
             (markers if e.tag == "IKMarkerTask" else coords)[e.attrib["name"]] = float(e.findtext("weight") or 1.0)
     # The setup pulls only the lumbar flexion towards neutral. Markers on the hip and shoulder
-    # centres barely tell the lumbar's bending and axial turn from the pelvis's, and IK turned
-    # the pelvis against the trunk (a kick's hip flexion 10 degrees off): those two get the
-    # flexion's pull (a tenth of it let a spinning kick turn the pelvis again).
+    # centres barely tell the lumbar's bending and axial turn from turning the pelvis, so IK
+    # turned the pelvis against the trunk, and the hip angles with it: those two get the
+    # flexion's pull too (docs/opensim.md).
     coords.update({c: coords.get(LUMBAR[0], LUMBAR_PULL) for c in LUMBAR[1:] if c not in coords})
     return OpenSimSetup(folder, {m: w for m, w in markers.items() if m in MARKERS}, coords)
 
