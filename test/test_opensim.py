@@ -14,7 +14,7 @@ import pytest
 from graph_helpers import synthetic_bag, without_frames, write_config
 
 from vmocap_core.export.markers import Z_TO_Y_UP
-from vmocap_core.export.opensim import MARKERS, OpenSimError, import_opensim, round_trip, session_markers
+from vmocap_core.export.opensim import LUMBAR, MARKERS, OpenSimError, import_opensim, round_trip, session_markers
 from vmocap_core.export.session import load_session
 from vmocap_core.keypoints import INDEX
 
@@ -122,6 +122,6 @@ def test_the_pelvis_does_not_turn_against_the_trunk(trip) -> None:
     osim = _opensim()
     s = trip["session"]
     mot = osim.TimeSeriesTable(str(trip["out"] / "s_ik.mot"))
-    for name in ("L5_S1_Flex_Ext", "L5_S1_Lat_Bending", "L5_S1_axial_rotation"):
+    for name in LUMBAR:
         q = mot.getDependentColumn(name).to_numpy()[s.tracked]
         assert np.abs(q).max() < 5.0, name  # degrees
