@@ -371,10 +371,34 @@ def test_the_subject_passing_shoulder_to_shoulder_stays_the_subject(rig, tmp_pat
     args.out.mkdir()
     save_rig(rig, args.rig_file)
     people.run(args, rig)
-    g = json.loads((args.out / "people.json").read_text())["runs"][config]["group"]
+    result = json.loads((args.out / "people.json").read_text())
+    g = result["runs"][config]["group"]
     print(json.dumps(g)[:800])
     assert g["swap_frames"] == 0 and g["identity_switches"] == 0, g
     assert g["false_tracking_pct"] < 5.0 and g["tracked_pct"] > 70, g
+    # vmocap_pcm's census of others in view, in its low-priority thread as in the graph: the person
+    # standing there (from 1.2 s on) is counted while the subject walks past them (it was 0 with
+    # one look every 120 frame sets in the frame set's own thread)
+    from vmocap_core.apps.render.recording import read_truth
+    from vmocap_core.keypoints import INDEX
+    from vmocap_core.pcm.pipeline import BlazePosePcm
+
+    rec = Path(result["recording"])
+    subject = read_truth(rec, "/vmocap/truth/keypoints")[1][:, INDEX["pelvis"]]
+    pcm = BlazePosePcm(rig, rotation="all", precision=precision, census_every=1, census_background=True)
+    counted = []
+    try:
+        for frame in range(90, 240, 20):
+            images = _frame_images(rec, rig, frame)
+            for _ in range(len(rig)):
+                pcm.census.offer(images, subject[frame])
+                assert pcm.census.wait(60), "the census look did not finish"
+                counted.append(int(pcm.others_in_view.max()))  # as the diagnostics say it
+    finally:
+        pcm.close()
+    print(f"others in view after each look: {counted}")
+    assert pcm.census.error == "" and pcm.census.looks == len(counted), (pcm.census.error, pcm.census.looks)
+    assert max(counted) >= 1 and np.mean(np.array(counted) > 0) > 0.3, counted
 
 
 def test_a_person_standing_beside_from_the_start(rig, tmp_path):

@@ -17,6 +17,7 @@ from vmocap_core.keypoints import INDEX, KEYPOINTS, LOWER_BODY, MIRROR
 from vmocap_core.method.triangulation import triangulate
 from vmocap_core.pcm import fetch
 from vmocap_core.pcm.blazepose import BlazePoseLandmark, rotated_crops
+from vmocap_core.pcm.choice import others_near
 from vmocap_core.pcm.crops import Crops, crops_from_skeleton
 from vmocap_core.pcm.detector import PoseDetector
 from vmocap_core.pcm.peaks import camera_keypoints
@@ -244,6 +245,36 @@ def test_pipeline_initializes_with_the_detector_then_tracks(scene) -> None:
     assert pcm.infer(black).n_views == 0
     with pytest.raises(ModelError):
         BlazePosePcm(rig, rotation="upside")
+
+
+def test_the_census_of_others_runs_beside_the_frame_sets(scene) -> None:
+    """pcm/census.py, as vmocap_pcm runs it: while tracking, the detector's look for people
+    besides the subject runs in a low-priority thread on a copy of one camera's image, the
+    cameras in turn; a look offered while the last one runs is skipped and the camera keeps its
+    turn. Three people on real images: the two others are counted."""
+    rig, images, _, _ = scene
+    pcm = BlazePosePcm(rig, threads=2, census_every=1, census_background=True)
+    body = _standing_body(SEED)
+    pelvis = body[INDEX["pelvis"]]
+    try:
+        pcm.census.offer(images, pelvis)  # the look at the first camera starts (its thread loads a detector)
+        pcm.census.offer(images, pelvis)  # offered while that one runs: skipped
+        assert pcm.census.wait(60)
+        assert pcm.census.looks == 1 and pcm.others_in_view[1:].tolist() == [0] * (len(rig) - 1)
+        pcm.infer(images, body)  # as tracking offers them: the cameras in turn
+        assert pcm.census.wait(60)
+        for _ in range(len(rig) - 2):
+            pcm.census.offer(images, pelvis)
+            assert pcm.census.wait(60)
+    finally:
+        pcm.close()
+    print(f"others in view per camera: {pcm.others_in_view.tolist()}")
+    assert pcm.census.error == "" and pcm.census.looks == len(rig)
+    # the same as a look inside the frame set with a detector like the thread's (the detector sees
+    # 1 or 2 of the 3 per view here)
+    detector = PoseDetector(threads=1)
+    inline = [others_near(rig, c, detector.find_people([images[c]], turned=False)[0], pelvis) for c in range(len(rig))]
+    assert pcm.others_in_view.tolist() == inline and max(inline) >= 1, (pcm.others_in_view.tolist(), inline)
 
 
 def test_three_people_tracked_on_real_images(scene) -> None:

@@ -221,3 +221,29 @@ class PoseDetector:
         owner = np.repeat(np.arange(len(checked)), [len(r) for r in regions])
         dets = self.detect([checked[k] for k in owner], np.concatenate(regions)) if checked else []
         return self._merge(dets, owner, len(checked))
+
+    def find_people(self, images: Sequence[np.ndarray], turned: bool = True, closer: bool = True) -> list[list[Detection]]:
+        """Per image (None: none), the people the detector finds, best first: the whole image,
+        then (`closer`) a closer look where it found nobody or a small person, then (`turned`)
+        the image turned where still nobody is found."""
+        have = [c for c, im in enumerate(images) if im is not None]
+        found: list[list] = [[] for _ in images]
+        for c, dets in zip(have, self.detect([images[c] for c in have])):
+            found[c] = dets
+        # A person far from the camera is a few dozen pixels tall in the detector's 224 px input:
+        # missed, or found with the hips tens of pixels off (and then a loose crop). Look again
+        # at twice the resolution: in tiles over the image where a view found nobody, in one
+        # region around the person where it found only one smaller than that region (one extra
+        # run, not six: initialization stays cheap), and keep the best of both passes.
+        again = [c for c in have if closer and (not found[c] or found[c][0].crop()[1] < TILE_FRACTION * min(images[c].shape[:2]))]
+        near = [found[c][0].keypoints[0] if found[c] else None for c in again]
+        for c, dets in zip(again, self.detect_zoomed([images[c] for c in again], near)):
+            both = found[c] + dets
+            if both:
+                keep = nms(np.array([d.box for d in both]), np.array([d.score for d in both]), self.iou_threshold)
+                found[c] = [both[i] for i in keep]
+        # A body lying or upside down: where still nobody is found, look at the image turned.
+        lying = [c for c in have if not found[c]] if turned else []
+        for c, dets in zip(lying, self.detect_turned([images[c] for c in lying])):
+            found[c] = dets
+        return found

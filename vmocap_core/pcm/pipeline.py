@@ -18,15 +18,15 @@ from ..cameras.projection import Rig
 from ..errors import ModelError
 from ..keypoints import INDEX, KEYPOINTS
 from .blazepose import DEFAULT_ROTATION, MIN_TILT, BlazePoseLandmark, rotated_crops
-from .choice import choose_subject, others_near
+from .census import Census
+from .choice import choose_subject
 from .crops import Crops, crops_from_skeleton
-from .detector import TILE_FRACTION, Detection, PoseDetector, nms
+from .detector import Detection, PoseDetector
 from .model import DEFAULT_THREADS
 from .runner import DEFAULT_PARALLEL
 from .views import PcmViews
 
 PELVIS = INDEX["pelvis"]
-ZOOM_BELOW = TILE_FRACTION  # detector crop side / shorter image side below which the tiles run too
 
 
 class BlazePosePcm:
@@ -43,6 +43,8 @@ class BlazePosePcm:
     parallel: how the threads are used, "views" (default) or "intra" (runner.py).
     census_every: while tracking, the detector looks at one camera every that many frame sets
         for other people (others_in_view; 0: never, others_in_view then comes from initializations).
+    census_background: those looks run in a low-priority thread (census.py; live graph) instead of
+        inside the frame set (deterministic; `close` ends the thread).
     """
 
     def __init__(
@@ -59,6 +61,7 @@ class BlazePosePcm:
         parallel: str = DEFAULT_PARALLEL,
         precision: str | None = None,
         census_every: int = 120,
+        census_background: bool = False,
     ) -> None:
         self.rig = rig
         self.rotation = rotation
@@ -70,11 +73,18 @@ class BlazePosePcm:
         self._threads = threads
         self._detector: PoseDetector | None = None  # loaded on first use: tracking never needs it
         self.last_subject: np.ndarray | None = None  # (3,) pelvis of the last skeleton given to infer
-        # (C,) detections that are not the subject, per camera, at the last detector run on it
-        self.others_in_view = np.zeros(len(rig), dtype=int)
-        self.census_every = int(census_every)
-        self._census_count = 0
+        # per camera, detections that are not the subject at the last detector run on it
+        self.census = Census(rig, census_every, lambda images: self.detect_people(images, turned=False),
+                             census_background, lambda: PoseDetector(detector_path, threads=1))
         rotated_crops([], np.zeros((0, 2)), [], [], rotation)  # validates the mode now
+
+    @property
+    def others_in_view(self) -> np.ndarray:
+        """(C,) people besides the subject per camera at the last detector run on it."""
+        return self.census.others
+
+    def close(self) -> None:
+        self.census.close()
 
     @property
     def detector(self) -> PoseDetector:
@@ -83,30 +93,8 @@ class BlazePosePcm:
         return self._detector
 
     def detect_people(self, images: Sequence[np.ndarray], turned: bool = True, closer: bool = True) -> list[list[Detection]]:
-        """Per image (None: none), the people the detector finds, best first: the whole image,
-        then (`closer`) a closer look where it found nobody or a small person, then (`turned`)
-        the image turned where still nobody is found."""
-        have = [c for c, im in enumerate(images) if im is not None]
-        found: list[list] = [[] for _ in images]
-        for c, dets in zip(have, self.detector.detect([images[c] for c in have])):
-            found[c] = dets
-        # A person far from the camera is a few dozen pixels tall in the detector's 224 px input:
-        # missed, or found with the hips tens of pixels off (and then a loose crop). Look again
-        # at twice the resolution: in tiles over the image where a view found nobody, in one
-        # region around the person where it found only one smaller than that region (one extra
-        # run, not six: initialization stays cheap), and keep the best of both passes.
-        again = [c for c in have if closer and (not found[c] or found[c][0].crop()[1] < ZOOM_BELOW * min(images[c].shape[:2]))]
-        near = [found[c][0].keypoints[0] if found[c] else None for c in again]
-        for c, dets in zip(again, self.detector.detect_zoomed([images[c] for c in again], near)):
-            both = found[c] + dets
-            if both:
-                keep = nms(np.array([d.box for d in both]), np.array([d.score for d in both]), self.detector.iou_threshold)
-                found[c] = [both[i] for i in keep]
-        # A body lying or upside down: where still nobody is found, look at the image turned.
-        lying = [c for c in have if not found[c]] if turned else []
-        for c, dets in zip(lying, self.detector.detect_turned([images[c] for c in lying])):
-            found[c] = dets
-        return found
+        """PoseDetector.find_people with this pipeline's detector."""
+        return self.detector.find_people(images, turned, closer)
 
     def crops_from_detector(self, images: Sequence[np.ndarray], seed: np.ndarray | None = None) -> Crops:
         """One person per image with MediaPipe's crop rule (already rotated), the same person in
@@ -117,23 +105,9 @@ class BlazePosePcm:
         # The same person in every camera (choice.py): the one nearest the seed, else the one
         # most cameras agree on; a camera where none of its detections is that person gets no crop.
         choice = choose_subject(self.rig, found, seed)
-        self.others_in_view = choice.others
+        self.census.found(choice.others)
         cams = [c for c in range(len(found)) if choice.index[c] >= 0]
         return Crops.from_rectangles(cams, [found[c][choice.index[c]].crop() for c in cams])
-
-    def _census(self, images: Sequence[np.ndarray], pelvis: np.ndarray) -> None:
-        """While tracking the detector does not run for the crops: every `census_every`-th frame
-        set it looks at one camera (the cameras in turn; detect_people, not turned) for people
-        other than the subject, so others_in_view stays current (each camera every
-        census_every x C frame sets). The crops and heatmaps do not depend on it."""
-        if self.census_every <= 0:
-            return
-        self._census_count += 1
-        have = [c for c, im in enumerate(images) if im is not None]
-        if self._census_count % self.census_every or not have:
-            return
-        c = have[(self._census_count // self.census_every) % len(have)]
-        self.others_in_view[c] = others_near(self.rig, c, self.detect_people([images[c]], turned=False)[0], pelvis)
 
     def crops_from_skeleton(self, keypoints: np.ndarray, tilt: np.ndarray | None = None) -> Crops:
         """Tracking crops from the skeleton (25, 3); tilt (C,) overrides the computed trunk tilt."""
@@ -175,7 +149,7 @@ class BlazePosePcm:
             pelvis = np.asarray(keypoints, dtype=np.float64)[PELVIS]
             if np.isfinite(pelvis).all():
                 self.last_subject = pelvis
-                self._census(images, pelvis)
+                self.census.offer(images, pelvis)
             crops = self.crops_from_skeleton(keypoints, tilt)
             crops = crops.select(np.array([images[c] is not None for c in crops.camera], dtype=bool))
         if len(crops) == 0:

@@ -87,7 +87,7 @@ class ModelPcmProvider:
     are returned for full-resolution pixels, so everything downstream keeps the rig as it is."""
 
     def __init__(self, rig: Rig, model: str = "", rotation: str = "all", threads: int = 2, binning: int = 1,
-                 crop_prediction: str = "rigid") -> None:
+                 crop_prediction: str = "rigid", census_every: int = 120, census_background: bool = False) -> None:
         from ..cameras.projection import binning_affine
         from .pipeline import BlazePosePcm
 
@@ -100,7 +100,8 @@ class ModelPcmProvider:
         self.binning = int(binning)
         self.seen = rig.binned(self.binning) if self.binning > 1 else rig  # the cameras the images come from
         self._to_binned = binning_affine(self.binning)
-        self.pcm = BlazePosePcm(self.seen, rotation=rotation, threads=threads, variant=variant)
+        self.pcm = BlazePosePcm(self.seen, rotation=rotation, threads=threads, variant=variant,
+                                census_every=census_every, census_background=census_background)
         lm = self.pcm.landmark
         self.name = f"blazepose-{variant} {lm.precision} (rotation {rotation})" + (f", binning {self.binning}" if self.binning > 1 else "")
         self.precision, self.precision_reason = lm.precision, lm.precision_reason
@@ -111,6 +112,9 @@ class ModelPcmProvider:
     def others_in_view(self) -> dict[str, int]:
         """Per camera, the people the detector last saw there who are not the subject."""
         return dict(zip(self.rig.names, (int(n) for n in self.pcm.others_in_view)))
+
+    def close(self) -> None:
+        self.pcm.close()
 
     def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
         full: list[np.ndarray | None] = [None] * len(self.rig)
@@ -125,5 +129,6 @@ class ModelPcmProvider:
 
 
 def make_model_provider(model: str, rig: Rig, rotation: str = "all", threads: int = 2, binning: int = 1,
-                        crop_prediction: str = "rigid") -> ModelPcmProvider:
-    return ModelPcmProvider(rig, model, rotation, threads, binning, crop_prediction)
+                        crop_prediction: str = "rigid", census_every: int = 120,
+                        census_background: bool = False) -> ModelPcmProvider:
+    return ModelPcmProvider(rig, model, rotation, threads, binning, crop_prediction, census_every, census_background)

@@ -89,13 +89,13 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
             last_rx[0] = time.monotonic()
         return take
 
-    others = [0]  # the most others in view vmocap_pcm's /diagnostics reported
+    others: list[tuple[bool, int]] = []  # per vmocap_pcm /diagnostics report: tracking yet, others in view
 
     def on_diagnostics(data: bytes) -> None:
         for st in cdr.decode(DIAG, data)["status"]:
             if st["name"].startswith("vmocap_pcm"):
                 v = {kv["key"]: kv["value"] for kv in st["values"]}.get("others_in_view", "0")
-                others[0] = max(others[0], int(v) if v.isdigit() else 0)
+                others.append((bool(got), int(v) if v.isdigit() else 0))
 
     bodies: dict[str, dict[int, np.ndarray]] = {}
 
@@ -136,7 +136,9 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     for s, P in got.items():
         if s in row:
             est[row[s]] = P
-    counts: dict = {"frame_sets_out": len(got), "frame_sets_in": len(stamps), "rate": rate, "others_in_view_max": others[0]}
+    counts: dict = {"frame_sets_out": len(got), "frame_sets_in": len(stamps), "rate": rate, "others_in_view_max": max((n for _, n in others), default=0)}
+    said = [n > 0 for out, n in others if out]  # once keypoints came out: did a report say someone else is there
+    counts["others_in_view_pct"] = 100.0 * float(np.mean(said)) if said else None
     if max_people > 1:
         counts["bodies"] = {}
         for i, store in bodies.items():

@@ -105,8 +105,9 @@ class PcmNode(VmocapNode):
             return BagPcmProvider(model, self.rig, channel_keypoints(self.p["pcm_keypoints"]), self.p["namespace"])
         from vmocap_core.pcm.providers import make_model_provider  # the CNN
 
+        # the census of others in view runs beside the frame sets, on CPU they leave over (pcm/census.py)
         provider = make_model_provider(model, self.rig, self.p["rotation"], self.p["threads"], self.p["binning"],
-                                       self.p["crop_prediction"])
+                                       self.p["crop_prediction"], self.p["census_every"], census_background=True)
         provider.warm_up()  # before READY: the first frame set would wait for it
         from vmocap_core.pcm import selfcheck
 
@@ -256,6 +257,8 @@ class PcmNode(VmocapNode):
             out.close()
         if self.worker is not None:
             self.worker.shutdown(wait=True, cancel_futures=True)
+        if hasattr(self.provider, "close"):
+            self.provider.close()
         super().close()
 
     def _usable(self, cam: str, image: np.ndarray) -> bool:
@@ -277,10 +280,14 @@ class PcmNode(VmocapNode):
         self.watch_dropped(self.counts["queue_dropped"])
         # people besides the subject, per camera, from the CNN's detector (vmocap_core.pcm.choice)
         others = self.provider.others_in_view() if hasattr(self.provider, "others_in_view") else {}
+        census = getattr(getattr(self.provider, "pcm", None), "census", None)
+        if census is not None and census.error:
+            self.warn_for("census", f"the look for others in view failed: {census.error}")
         return dict(self.counts, frames=self.frames, bad_images=self.bad_images, pcm=self.provider.name, sync=st.as_dict(), silent=list(st.silent),
                     queued=len(self.sets), precision=getattr(self.provider, "precision", "n/a"),
                     precision_reason=getattr(self.provider, "precision_reason", "n/a"),
                     shared_memory=self._shm_in.status() if self._shm_in is not None else "off",
                     heatmaps_shared_memory=bool(self._hm_shm) and all(o.on for o in self._hm_shm.values()),
                     others_in_view=max(others.values(), default=0),
-                    others_in_view_by_camera=", ".join(f"{n}: {k}" for n, k in others.items() if k) or "none")
+                    others_in_view_by_camera=", ".join(f"{n}: {k}" for n, k in others.items() if k) or "none",
+                    others_in_view_looks=census.looks if census is not None else 0)

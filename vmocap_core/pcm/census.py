@@ -1,0 +1,136 @@
+"""Others in view while tracking (issue 32, item 1): the detector looks at one camera at a time
+for people besides the subject, so that the diagnostics can say someone else is there.
+
+While tracking, the crops come from the skeleton and the detector does not run. One look (the
+whole image, then the closer pass around a small person) costs more than a frame period at
+60 Hz on 2 cores, so looks made inside the frame set had to be rare (one camera every 120
+frame sets: 8 s per camera at 60 Hz with 4 cameras), and a person who stood beside the subject
+for a few seconds was never counted. In the background a look runs in a thread of its own at
+the lowest CPU priority, on a copy of one camera's image and the subject's pelvis at that
+instant: frame sets never wait for it, a look offered while the last one runs is skipped, and
+on a saturated CPU the looks simply come less often. The crops and heatmaps never depend on it.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..cameras.projection import Rig
+from .choice import others_near
+from .detector import Detection, PoseDetector
+
+LOWEST_PRIORITY = 19  # nice of the background look's thread: CPU the frame sets leave over
+
+Find = Callable[[Sequence[np.ndarray | None]], list[list[Detection]]]
+
+
+class Census:
+    """others (C,): per camera, the people besides the subject at the last look at it.
+
+    every: a look is offered every that many `offer` calls (0: never), the cameras in turn.
+    background: looks run in a low-priority thread with a detector of their own (`make_detector`);
+    otherwise inside `offer` with `find` (deterministic: offline runs and tests)."""
+
+    def __init__(self, rig: Rig, every: int, find: Find, background: bool = False,
+                 make_detector: Callable[[], PoseDetector] | None = None) -> None:
+        self.rig = rig
+        self.every = int(every)
+        self.others = np.zeros(len(rig), dtype=int)
+        self._previous = np.zeros(len(rig), dtype=int)  # per camera, what the look before the last saw
+        self.looks = 0  # looks finished
+        self._find = find
+        self._background = background
+        self._make_detector = make_detector
+        self._count = 0
+        self._turn = 0
+        self._job: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._cv = threading.Condition()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        self.error = ""  # why the last background look failed ("" none)
+
+    def found(self, others: np.ndarray) -> None:
+        """(C,) counts of a detector run on every camera made elsewhere (initialization)."""
+        self.others[:] = others
+        self._previous[:] = others
+
+    def offer(self, images: Sequence[np.ndarray | None], pelvis: np.ndarray) -> None:
+        """A tracked frame set (images in rig order, None: no frame) with the subject's pelvis (3,)."""
+        if self.every <= 0:
+            return
+        self._count += 1
+        have = [c for c, im in enumerate(images) if im is not None]
+        if self._count % self.every or not have:
+            return
+        c = have[self._turn % len(have)]
+        if not self._background:
+            self._turn += 1
+            self._look(c, images[c], pelvis, self._find)
+            return
+        with self._cv:
+            if self._job is not None or self._closed:
+                return  # the last look still runs: this one is skipped, the camera keeps its turn
+            self._turn += 1
+            # the frame's buffer may be reused (shared memory) once the frame set is done
+            self._job = (c, np.array(images[c], copy=True), np.array(pelvis, dtype=np.float64))
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="vmocap-census", daemon=True)
+                self._thread.start()
+            self._cv.notify()
+
+    def _look(self, c: int, image: np.ndarray, pelvis: np.ndarray, find: Find) -> None:
+        # The detector merges two people who stand close (one box): a look at the person beside
+        # the subject missed them 4 times in 10. So a camera's count is the larger of its last two
+        # looks: someone who left is cleared one look later.
+        seen = others_near(self.rig, c, find([image])[0], pelvis)
+        self.others[c] = max(seen, self._previous[c])
+        self._previous[c] = seen
+        self.looks += 1
+
+    def _run(self) -> None:
+        try:  # this thread only (Linux: a thread id is a process id for setpriority)
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), LOWEST_PRIORITY)
+        except (AttributeError, OSError):
+            pass  # not Linux, or not allowed: it still never blocks a frame set
+        assert self._make_detector is not None
+        detector: PoseDetector | None = None
+
+        def find(images: Sequence[np.ndarray | None]) -> list[list[Detection]]:
+            nonlocal detector
+            detector = detector or self._make_detector()  # type: ignore[misc]
+            return detector.find_people(images, turned=False)
+
+        while True:
+            with self._cv:
+                while self._job is None and not self._closed:
+                    self._cv.wait()
+                if self._closed:
+                    return
+                c, image, pelvis = self._job  # type: ignore[misc]
+            try:
+                self._look(c, image, pelvis, find)
+                self.error = ""
+            except Exception as exc:  # a diagnostic, never the frame sets' failure
+                self.error = f"{type(exc).__name__}: {exc}"
+            finally:
+                with self._cv:
+                    self._job = None
+                    self._cv.notify_all()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Until no look runs (background); False when the timeout came first."""
+        with self._cv:
+            return self._cv.wait_for(lambda: self._job is None, timeout)
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Ends the background thread after the look it runs (if any; on a saturated CPU a
+        lowest-priority look can take long: a daemon thread, it is not waited for beyond timeout)."""
+        with self._cv:
+            self._closed = True
+            self._cv.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout)
