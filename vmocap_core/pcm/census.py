@@ -2,13 +2,12 @@
 for people besides the subject, so that the diagnostics can say someone else is there.
 
 While tracking, the crops come from the skeleton and the detector does not run. One look (the
-whole image, then the closer pass around a small person) costs more than a frame period at
-60 Hz on 2 cores, so looks made inside the frame set had to be rare (one camera every 120
-frame sets: 8 s per camera at 60 Hz with 4 cameras), and a person who stood beside the subject
-for a few seconds was never counted. In the background a look runs in a thread of its own at
-the lowest CPU priority, on a copy of one camera's image and the subject's pelvis at that
-instant: frame sets never wait for it, a look offered while the last one runs is skipped, and
-on a saturated CPU the looks simply come less often. The crops and heatmaps never depend on it.
+whole image, then the closer pass around a small person) can cost more than a frame period on
+2 cores, so looks made inside the frame set had to be rare, and a person standing beside the
+subject for a few seconds was often not reported. In the background a look runs in a thread of
+its own at the lowest CPU priority, on a copy of one camera's image and the subject's pelvis at
+that instant: frame sets never wait for it, a look offered while the last one runs is skipped,
+and on a saturated CPU the looks come less often. The crops and heatmaps never depend on it.
 """
 
 from __future__ import annotations
@@ -37,6 +36,8 @@ class Census:
 
     def __init__(self, rig: Rig, every: int, find: Find, background: bool = False,
                  make_detector: Callable[[], PoseDetector] | None = None) -> None:
+        if background and make_detector is None:
+            raise ValueError("a background census needs make_detector (a detector of its own)")
         self.rig = rig
         self.every = int(every)
         self.others = np.zeros(len(rig), dtype=int)
@@ -96,21 +97,23 @@ class Census:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), LOWEST_PRIORITY)
         except (AttributeError, OSError):
             pass  # not Linux, or not allowed: it still never blocks a frame set
-        assert self._make_detector is not None
+        make = self._make_detector
+        assert make is not None  # checked in __init__
         detector: PoseDetector | None = None
 
         def find(images: Sequence[np.ndarray | None]) -> list[list[Detection]]:
             nonlocal detector
-            detector = detector or self._make_detector()  # type: ignore[misc]
+            detector = detector or make()  # loaded by the first look, in this thread
             return detector.find_people(images, turned=False)
 
         while True:
             with self._cv:
                 while self._job is None and not self._closed:
                     self._cv.wait()
-                if self._closed:
+                job = self._job
+                if self._closed or job is None:
                     return
-                c, image, pelvis = self._job  # type: ignore[misc]
+                c, image, pelvis = job
             try:
                 self._look(c, image, pelvis, find)
                 self.error = ""
