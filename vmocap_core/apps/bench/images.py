@@ -149,7 +149,7 @@ def overlay(rec: Path, rig, truth: np.ndarray, est: np.ndarray, frame: int, out:
     cv2.imwrite(str(out), grid)
 
 
-SCENES = ("cross", "beside")  # --people: where person 1 walks (people.walker_paths)
+SCENES = ("cross", "beside", "facing")  # --people: where person 1 walks (people.walker_paths)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -189,7 +189,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "walking around it (the next clips), scored alone and among them: swaps, ghosts, missed")
     parser.add_argument("--scene", choices=SCENES, default="cross",
                         help="with --people: person 1 crosses the room in front of the subject (cross), or walks in "
-                             "and stands beside the subject's path, 0.4 m away (beside)")
+                             "and stands beside the subject's path, 0.4 m away (beside), or stands on that path facing "
+                             "the subject, who walks up to 0.55 m of it, hip to hip (facing)")
     parser.add_argument("--max-people", type=int, default=1,
                         help="with --people: track up to this many (vmocap process --max-people) and score every "
                              "person: MPJPE, identity switches, missed frames, ghost bodies")

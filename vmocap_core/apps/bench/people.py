@@ -37,6 +37,7 @@ ABSENT_S = 0.25  # seen by fewer than 2 cameras this long: their next presence i
 
 
 BESIDE_M = 0.4  # "beside": person 1 stops this far from the line the subject walks along (shoulders all but touch)
+FACING_X = 1.05  # "facing": person 1 stands here on the subject's line, 0.55 m from the subject's turning point
 
 
 def walker_paths(people: int, seconds: float, scene: str = "cross") -> list[tuple[tuple[float, float, float], ...]]:
@@ -44,7 +45,10 @@ def walker_paths(people: int, seconds: float, scene: str = "cross") -> list[tupl
     1: from beyond the left edge of the room to beyond the right one at y = 0.9, between the
     subject and cam0/cam1 (it enters, crosses in front of the subject, leaves); with scene
     "beside", it walks in at y = BESIDE_M and stops at x = 0 beside the subject (who walks
-    along y = 0, x -0.6 ... 0.6), who then passes it again and again shoulder to shoulder.
+    along y = 0, x -0.6 ... 0.6), who then passes it again and again shoulder to shoulder; with
+    scene "facing", it walks in along that line from beyond the room's +x edge and stops at
+    x = FACING_X facing the subject, who walks up to 0.55 m of it (hip to hip: handshake distance,
+    each in front of the other for the cameras on the +x side) and back, again and again.
     2: from behind cam2 (at (-3.9, -3.9) one camera sees it: not present) to stand beside the
     subject at (-1.2, -1.2), out again and back (the subject is alone at the start: the benchmark
     scores the person the tracker starts on)."""
@@ -52,8 +56,9 @@ def walker_paths(people: int, seconds: float, scene: str = "cross") -> list[tupl
     out, beside = (-3.9, -3.9), (-1.2, -1.2)
     if scene not in SCENES:
         raise VmocapError(f"scene {scene!r}: one of {', '.join(SCENES)}")
-    first = ((0.0, -3.0, BESIDE_M), (0.3 * d, 0.0, BESIDE_M), (d, 0.0, BESIDE_M)) if scene == "beside" else \
-        ((0.0, -4.2, 0.9), (d, 4.2, 0.9))
+    first = {"beside": ((0.0, -3.0, BESIDE_M), (0.3 * d, 0.0, BESIDE_M), (d, 0.0, BESIDE_M)),
+             "facing": ((0.0, 4.2, 0.0), (0.3 * d, FACING_X, 0.0), (d, FACING_X, 0.0)),
+             "cross": ((0.0, -4.2, 0.9), (d, 4.2, 0.9))}[scene]
     paths: list[tuple[tuple[float, float, float], ...]] = [first]
     paths.append(tuple((f * d, *xy) for f, xy in ((0.0, out), (0.05, out), (0.25, beside), (0.4, beside),
                                                   (0.6, out), (0.7, out), (0.9, beside), (1.0, beside))))
