@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from vmocap_core.keypoints import INDEX
-from vmocap_core.method.occlusion import hidden_keypoints, outside_images, without_hidden
+from vmocap_core.method.occlusion import GREY, hidden_keypoints, others_greyed, outside_images, without_hidden
 from vmocap_core.method.skeleton import Skeleton
 from vmocap_core.pcm.synthetic import benchmark_rig
 from vmocap_core.pcm.views import PcmViews
@@ -64,3 +64,31 @@ def test_keypoints_outside_an_image_are_unseen_there():
     gone = _standing(1.3 * np.array([cam0[0], cam0[1], 0.0]))  # beyond cam0, behind it
     out = outside_images(rig, np.stack([inside, gone]))
     assert out.shape == (2, len(rig), 25) and out[1, 0].all() and not out[0].any()
+
+
+def test_each_person_sees_the_others_greyed_outside_their_own_outline():
+    """Two bodies, one partly behind the other as cam0 sees them: in each body's copy of cam0's
+    image the other's keypoints clear of the body's own outline are grey and the body's own
+    keypoints are not (its own outline is kept, where the other covers it too). The input
+    images are left alone; a camera where the two do not overlap has no copy; a person without
+    a skeleton (None) gets every body greyed; one body alone needs no copy."""
+    rig = benchmark_rig()
+    cam0 = -rig[0].R.T @ rig[0].t
+    towards = np.array([cam0[0], cam0[1], 0.0]) / np.linalg.norm(cam0[:2])
+    side = np.array([-towards[1], towards[0], 0.0])
+    bodies = np.stack([_standing(np.zeros(3)), _standing(1.2 * towards + 0.1 * side)])  # 1 in front, a bit aside
+    images = [np.full((c.height, c.width, 3), 255, np.uint8) for c in rig]
+    out = others_greyed(rig, images, bodies, [0, 1, None])
+    assert all((im == 255).all() for im in images)
+    uv = np.round(rig.project(bodies)[0][0]).astype(int)  # (2, 25, 2) in cam0
+    lo, hi = uv.min(axis=1), uv.max(axis=1)
+    for me, other in ((0, 1), (1, 0)):
+        mine = out[(me, 0)][uv[me, :, 1], uv[me, :, 0], 0]
+        assert (mine == 255).all(), mine  # the body's own keypoints
+        clear = ((uv[other] < lo[me] - 15) | (uv[other] > hi[me] + 15)).any(axis=1)  # off its own box
+        assert clear.any()
+        assert (out[(me, 0)][uv[other, clear, 1], uv[other, clear, 0], 0] == GREY).all()
+        assert (out[(2, 0)][uv[other, :, 1], uv[other, :, 0], 0] == GREY).all()
+    apart = others_greyed(rig, images, np.stack([_standing(-1.2 * side), _standing(1.2 * side)]), [0, 1])
+    assert (0, 0) not in apart and (1, 0) not in apart
+    assert others_greyed(rig, images, bodies[:1], [0]) == {}

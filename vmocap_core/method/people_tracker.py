@@ -24,6 +24,7 @@ identification phase; they get a new id. Nothing here reads ground truth.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Literal, Sequence
 
@@ -38,7 +39,7 @@ from ..pcm.detector import Detection
 from ..pcm.views import PcmViews
 from .config import PipelineConfig
 from .landmarks import resolve
-from .occlusion import hidden_keypoints, without_hidden
+from .occlusion import hidden_keypoints, others_greyed, without_hidden
 from .pipeline import FrameResult, Pipeline
 from .prediction import BodyPredictor
 from .results import seed_of, skeleton_of
@@ -282,7 +283,7 @@ class PeopleTracker:
         for p in waiting:  # between searches: their held detector crops
             if p.number not in crops:
                 crops[p.number] = self._crops(p, np.full(len(self.rig), -1), [[] for _ in self.rig], have, stamp_ns)
-        pcm = self._infer(images, crops, stamp_ns)
+        pcm = self._infer(images, crops, tracked, stamp_ns)
         order = [n for n in tracked if n in pcm]
         if len(order) > 1:  # a view says nothing of a person's keypoints another body covers
             covered = hidden_keypoints(self.rig, np.stack([tracked[n] for n in order]))
@@ -336,12 +337,29 @@ class PeopleTracker:
             left = [closer[c] if c in empty else d for c, d in enumerate(left)]
         return left
 
-    def _infer(self, images: Sequence[np.ndarray | None], crops: dict[int, Crops], stamp_ns: int) -> dict[int, PcmViews]:
-        """Everyone's crops through the landmark model at once, split back per person."""
+    def _infer(self, images: Sequence[np.ndarray | None], crops: dict[int, Crops], tracked: dict[int, np.ndarray],
+               stamp_ns: int) -> dict[int, PcmViews]:
+        """Everyone's crops through the landmark model at once, split back per person. Where
+        other tracked bodies overlap a person's in a view, that person's crop is cut from a copy
+        of the image with the others greyed (occlusion.others_greyed): the landmark model reads
+        one body per crop."""
         order = [n for n, c in crops.items() if len(c)]
         if not order:
             return {}
-        views = self.pcm.landmark.infer(list(images), _concat([crops[n] for n in order]), stamp_ns)
+        shown, parts = list(images), []
+        if tracked:
+            numbers = list(tracked)
+            greyed = others_greyed(self.seen, images, np.stack([tracked[n] for n in numbers]),
+                                   [numbers.index(n) if n in tracked else None for n in order])
+            at = {key: len(shown) + k for k, key in enumerate(greyed)}
+            shown += list(greyed.values())
+            for i, n in enumerate(order):  # the greyed copies as extra images, then the rig's cameras again
+                cam = crops[n].camera
+                parts.append(dataclasses.replace(crops[n], camera=np.array([at.get((i, int(c)), int(c)) for c in cam])))
+        else:
+            parts = [crops[n] for n in order]
+        views = self.pcm.landmark.infer(shown, _concat(parts), stamp_ns)
+        views = dataclasses.replace(views, camera=np.concatenate([crops[n].camera for n in order]))
         if self._to_binned is not None:  # binned pixel -> map, composed with full pixel -> binned pixel
             views.image_to_map = views.image_to_map @ self._to_binned
         owner = np.concatenate([np.full(len(crops[n]), n) for n in order])
