@@ -165,8 +165,9 @@ class PcmViews:
 
     def centroids(self, threshold: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
         """Per view and channel, the image pixel of the PCM centroid around the peak (V, J, 2)
-        and the peak value (V, J) (II-C uses centroids of the maps for initialization); 0 where
-        the peak before the visibility weighed it (the CNN's guess) is below `threshold`.
+        and the peak value (V, J) (II-C uses centroids of the maps for initialization), taken
+        before the visibility weighed the map (the CNN's guess of a hidden keypoint counts, as
+        the triangulation's residuals check it); 0 where it is below `threshold`.
 
         The centroid is taken over cells within 3 cells of the peak whose value is at least
         half the peak, so a second person or a false peak elsewhere does not drag it.
@@ -193,7 +194,7 @@ class PcmViews:
         uv = np.einsum("vij,vkj->vki", inv[:, :, :2], xy) + inv[:, None, :, 2]
         guess = np.divide(val, self.visibility, out=np.zeros(val.shape), where=self.visibility > 0)
         ok = self.valid & (guess >= threshold)
-        return uv, np.where(ok, val, 0.0)
+        return uv, np.where(ok, np.minimum(guess, 1.0), 0.0)
 
 
 def blank_views(pcm: PcmViews, cameras: list[int]) -> PcmViews:
