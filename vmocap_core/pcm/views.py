@@ -69,7 +69,9 @@ class PcmViews:
         self.keypoints = np.asarray(self.keypoints, dtype=np.intp).reshape(J)
         self.valid = np.asarray(self.valid, dtype=bool).reshape(V, J)
         self.presence = np.asarray(self.presence, dtype=np.float64).reshape(V)
-        visibility = np.asarray(self.visibility, dtype=np.float64)
+        # float32 values, as the PCM message carries them: the graph and the offline run then
+        # read the same peaks before the visibility (centroids), bit for bit
+        visibility = np.asarray(self.visibility, dtype=np.float32).astype(np.float64)
         self.visibility = np.ones((V, J)) if visibility.size == 0 else visibility.reshape(V, J)
 
     @classmethod
