@@ -144,38 +144,18 @@ def test_tracker_stops_output_when_half_the_views_see_another_body():
 
 
 def _blank(pcm: PcmViews, views: list[int]) -> PcmViews:
-    """The PCMs with the given views' maps flat (zero): those views see nothing."""
+    """The PCMs with the given views' maps flat (zero): they cannot agree with anything."""
     maps = pcm.maps.copy()
     maps[views] = 0.0
     return PcmViews(maps, pcm.image_to_map, pcm.camera, pcm.keypoints, pcm.valid, pcm.presence, pcm.stamp_ns)
 
 
-def _mixed(pcm: PcmViews, other: PcmViews, views: list[int]) -> PcmViews:
-    """The PCMs with the given views' maps from `other` (a body elsewhere): those views disagree."""
-    maps = pcm.maps.copy()
-    maps[views] = other.maps[views]
-    return PcmViews(maps, pcm.image_to_map, pcm.camera, pcm.keypoints, pcm.valid, pcm.presence, pcm.stamp_ns)
-
-
-def test_a_view_that_shows_a_keypoint_nowhere_does_not_judge_it():
-    """A view whose map for a keypoint is flat (the CNN's visibility says hidden there) leaves
-    the keypoint to the views that show it: the skeleton on the body still agrees, and a
-    skeleton 0.4 m off still does not."""
-    m, rig, true = _walk_maps(4)
-    hidden = _blank(true.render(60), [2, 3])
-    body = m.positions[60]
-    assert check_views(rig, hidden, body).agreement == 1.0
-    off = check_views(rig, hidden, body + np.array([0.0, 0.0, 0.4]))
-    assert off.agreement < 0.2 and off.support is not None and off.support < 0.2
-
-
 def test_one_bad_frame_set_does_not_flip_the_status():
-    """Hysteresis: two frame sets where half the views' maps show a body 0.4 m off (agreement
-    0.5, between check_fail_agreement and check_min_agreement), then consistent maps again: the
-    verdict stays tracking throughout (the markers' own weight rule off). With it on, those two
-    frame sets weigh less than the track's and are not output, and the next one is. One frame
-    set that every view contradicts: uncertain at once, tracking again after
-    check_recover_frames."""
+    """Hysteresis: two frame sets where half the views' maps are flat (agreement 0.5, between
+    check_fail_agreement and check_min_agreement), then consistent maps again: the verdict
+    stays tracking throughout (the markers' own weight rule off). With it on, those two frame
+    sets weigh half the track's and are not output, and the next one is. One frame set that
+    every view contradicts: uncertain at once, tracking again after check_recover_frames."""
     m = _motion()
     rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
     true = SyntheticPcmSource(rig, m.positions, m.present, seed=3, noise=CLEAN)
@@ -186,7 +166,7 @@ def test_one_bad_frame_set_does_not_flip_the_status():
         agreement = []
         statuses = []
         for t in range(120):
-            res = tracker.step(_mixed(true.render(t), aside.render(t), [2, 3]) if t in (90, 91) else true.render(t))
+            res = tracker.step(_blank(true.render(t), [2, 3]) if t in (90, 91) else true.render(t))
             statuses.append(res.status)
             agreement.append(res.markers.check.agreement if res.markers.check is not None else None)
         held = [] if ratio == 0.0 else [90, 91]
@@ -255,13 +235,9 @@ def _faded(pcm: PcmViews, factor: float) -> PcmViews:
     return PcmViews(pcm.maps * factor, pcm.image_to_map, pcm.camera, pcm.keypoints, pcm.valid, pcm.presence, pcm.stamp_ns)
 
 
-FADE = 0.5  # the synthetic maps' peaks are 0.58-0.80 (grid samples): faded, 0.29-0.40, most still seen
-
-
 def test_fading_maps_are_not_output_and_a_stopped_camera_is_not_fading():
-    """From frame set 90 to 92 every view's maps hold half their height (a body turning over,
-    the CNN losing it everywhere at once, its peaks mostly still above MIN_PEAK: the views
-    still see it and agree): the markers weigh ~0.5 of the track's recent median,
+    """From frame set 90 to 92 every view's maps hold 0.4 of their height (a body turning over,
+    the CNN losing it everywhere at once): the markers weigh ~0.4 of the track's recent median,
     below check_min_weight_ratio (0.55), so those frame sets are not output and the WARN says
     why; the frame set after them is output again. From 100 on camera 3's maps are flat (a
     covered camera): a quarter of the weight, tracking goes on."""
@@ -272,7 +248,7 @@ def test_fading_maps_are_not_output_and_a_stopped_camera_is_not_fading():
     statuses = []
     for t in range(130):
         pcm = true.render(t)
-        pcm = _faded(pcm, FADE) if 90 <= t < 93 else _blank(pcm, [3]) if t >= 100 else pcm
+        pcm = _faded(pcm, 0.4) if 90 <= t < 93 else _blank(pcm, [3]) if t >= 100 else pcm
         statuses.append(tracker.step(pcm).status)
         if t == 90:
             text = tracker.skeleton.warning("uncertain", rig.names)
@@ -280,7 +256,7 @@ def test_fading_maps_are_not_output_and_a_stopped_camera_is_not_fading():
     assert statuses[60:90] == ["tracking"] * 30, statuses[55:]
     assert statuses[90:93] == ["uncertain"] * 3 and statuses[93:] == ["tracking"] * 37, statuses[85:]
     off = Pipeline(rig, PipelineConfig.of(fps=60.0, check_min_weight_ratio=0.0))
-    assert [off.step(_faded(true.render(t), FADE) if 90 <= t < 93 else true.render(t)).status
+    assert [off.step(_faded(true.render(t), 0.4) if 90 <= t < 93 else true.render(t)).status
             for t in range(95)][90:93] == ["tracking"] * 3
     trend = WeightTrend(30)
     assert trend.ratio(np.ones(25), None) is None  # no check: not judged

@@ -7,27 +7,23 @@ check asks the images instead: each keypoint of the skeleton (the first IK at th
 landmarks, the feedback) is projected into every view and that view's PCM is read there,
 relative to the view's own peak for the keypoint:
 
-    r[v, j] = PCM[v, j](projection of keypoint j in view v) / peak[v, j]
+    r[v, j] = PCM[v, j](projection of keypoint j in view v) / max(peak[v, j], MIN_PEAK)
 
 clipped to [0, 1]. A body where the maps are has r near 1 in most views (the PCM peaks are a
 few pixels wide, so r falls to ~0.5 two to three map cells off the peak); a body on the wrong
-peaks, or beside the person, reads low values. A view *agrees* on a keypoint when r >= AGREE.
-
-A view whose map for the keypoint is flat (below MIN_PEAK everywhere) does not see it: the
-CNN's maps are weighed by its landmark visibility (pcm/model.py), so a keypoint hidden in a
-view (behind the body, another person or the crop's edge) is flat there and is judged by the
-views that show it. A body the crops lose everywhere still fails: nothing seen agrees, and the
-markers' weight falls (WeightTrend); one held by one camera fails the support below.
+peaks, or beside the person, reads low values; a view whose map for the keypoint is flat
+(below MIN_PEAK everywhere: occluded, outside the crop, the person missed) cannot agree. A view
+*agrees* on a keypoint when r >= AGREE.
 
 Per keypoint, `confidence` = the fraction of the views that see it (in front of the camera,
-a channel for it, a peak) that agree: what a controller can weigh each keypoint by
-(NS/keypoints' score). Per frame, `agreement` = the mean confidence over the keypoints some
-view sees, and `support` = the share of those keypoints that two cameras or more agree on: a
-point in space is fixed by two rays, and a body held by one camera's maps (the others flat, or
-on another limb) can drift anywhere along that camera's rays while half the views still agree.
-Both go into the skeleton stage's verdict, with hysteresis (skeleton_stage.py). Cost: one
-bilinear sample per view and keypoint and one maximum per map (PcmViews.peaks, computed once
-per frame set).
+a channel for it) that agree: what a controller can weigh each keypoint by (NS/keypoints'
+score). Per frame, `agreement` = the mean confidence over the keypoints some view sees, and
+`support` = the share of those keypoints that two cameras or more agree on: a point in space
+is fixed by two rays, and a body held by one camera's maps (the others flat, or on another
+limb) can drift anywhere along that camera's rays while half the views still agree. Both go
+into the skeleton stage's verdict, with hysteresis (skeleton_stage.py). Cost: one bilinear
+sample per view and keypoint and one maximum per map (PcmViews.peaks, computed once per
+frame set).
 """
 
 from __future__ import annotations
@@ -43,7 +39,7 @@ from ..pcm.views import PcmViews
 from .lattice import PcmSampler
 
 N_KP = len(KEYPOINTS)
-MIN_PEAK = 0.3  # a view's peak below this: its map for the keypoint is flat, the view does not see it
+MIN_PEAK = 0.3  # a view's peak below this: its map for the keypoint is flat, it cannot agree
 AGREE = 0.5  # r at or above this: the view agrees (the projection lies on its peak)
 
 
@@ -116,8 +112,7 @@ def check_views(rig: Rig, pcm: PcmViews, keypoints: np.ndarray, sampler: PcmSamp
     cam = np.asarray(pcm.camera, dtype=np.intp)
     _, front = rig.project(pts)  # (C, J)
     sees = np.asarray(pcm.valid, bool) & np.asarray(front, bool)[cam] & known[None, :]
-    sees &= peak >= MIN_PEAK  # a flat map: the CNN shows the keypoint nowhere (hidden there)
-    agree = sees & (value >= AGREE * peak)
+    agree = sees & (value >= AGREE * np.maximum(peak, MIN_PEAK))
     n = sees.sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         out.confidence[kp] = np.where(n > 0, agree.sum(axis=0) / n, np.nan)
