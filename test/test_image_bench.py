@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from render_helpers import CLIP, REPO, half_size_rig, needs_rendering
 
-pytestmark = needs_rendering
+pytestmark = [needs_rendering, pytest.mark.cnn_figures]
 
 
 @pytest.fixture(scope="module")

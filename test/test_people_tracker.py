@@ -13,6 +13,7 @@ from vmocap_core.keypoints import INDEX
 from vmocap_core.pcm.detector import Detection
 
 rendering = needs_rendering
+pytestmark = pytest.mark.cnn_figures
 
 
 @pytest.fixture(scope="module")
