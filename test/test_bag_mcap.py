@@ -180,8 +180,9 @@ def test_pcm_message_roundtrip_exact() -> None:
     pairs = [(cdr.decode("sensor_msgs/msg/Image", cdr.encode("sensor_msgs/msg/Image", i)),
               cdr.decode("sensor_msgs/msg/CameraInfo", cdr.encode("sensor_msgs/msg/CameraInfo", c)))
              for i, c in M.pcm_msgs(views, rig)]
-    assert pairs[0][0]["encoding"] == "32FC4"
+    assert pairs[0][0]["encoding"] == "32FC4"  # no visibility: the maps as they were, presence last
     back = M.pcm_views(pairs, rig, np.array([0, 1, 7]))
+    assert np.array_equal(back.visibility, np.ones((2, 3)))
     assert np.allclose(back.image_to_map, A, atol=1e-12)
     assert np.array_equal(back.camera, [2, 0]) and np.array_equal(back.valid, views.valid)
     assert np.array_equal(back.maps[views.valid], views.maps[views.valid])
@@ -213,13 +214,14 @@ def test_pcm_messages_without_data_decode_like_the_data() -> None:
     maps[0, 0, 5, 7] = np.nan  # one NaN cell stays
     views = PcmViews(maps=maps, image_to_map=np.stack([stride_affine(16)] * 3), camera=[2, 0, 1], keypoints=[0, 1, 7, 9],
                      valid=[[True, False, True, True], [True, True, True, True], [False, True, True, True]],
-                     presence=[0.1, 1.0, 1 / 3], stamp_ns=7)
+                     presence=[0.1, 1.0, 1 / 3], stamp_ns=7, visibility=rng.random((3, 4)))
     kp = np.array([0, 1, 7, 9])
     with_data = M.pcm_views(M.pcm_msgs(views, rig), rig, kp)
     pairs = M.pcm_msgs(views, rig, data=False)
     assert all("data" not in img and M.PCM_VIEW in img for img, _ in pairs)
     without = M.pcm_views(pairs, rig, kp)
-    for field in ("maps", "image_to_map", "camera", "keypoints", "valid", "presence"):
+    assert np.allclose(with_data.visibility, views.visibility, atol=1e-7)  # float32 on the wire
+    for field in ("maps", "image_to_map", "camera", "keypoints", "valid", "presence", "visibility"):
         a, b = getattr(with_data, field), getattr(without, field)
         assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), field
     assert not without.valid[2, 3] and without.stamp_ns == 7
@@ -227,6 +229,7 @@ def test_pcm_messages_without_data_decode_like_the_data() -> None:
     full = M.pcm_msgs(views, rig)
     mixed = M.pcm_views([full[0], pairs[1], pairs[2]], rig, kp)
     assert np.array_equal(mixed.maps, with_data.maps, equal_nan=True) and np.array_equal(mixed.presence, with_data.presence)
+    assert np.array_equal(mixed.visibility, with_data.visibility)
 
 
 def test_camera_info_mismatch_is_reported() -> None:

@@ -175,8 +175,10 @@ def test_pcm_node_leaves_out_black_and_wrong_size_images(tmp_path: Path, monkeyp
         rclpy.shutdown()
     assert node.bad_images["cam02"] == 2 and sum(node.bad_images.values()) == 2, node.bad_images
     assert "cam02: image 540x960, the rig is calibrated at 1080x1920" in node.problems["image:cam02"]
+    J = 25  # BlazePose's channels: the 25 keypoints, then the presence, then the landmark visibility
+    assert got["cam02"][0].shape[-1] == J + 2
     for k in range(3):
-        presence = {c: float(np.nanmax(got[c][k][..., -1])) for c in rig.names}
-        blank = bool(np.isnan(got["cam02"][k][..., :-1]).all())
+        presence = {c: float(np.nanmax(got[c][k][..., J])) for c in rig.names}
+        blank = bool(np.isnan(got["cam02"][k][..., :J]).all())
         assert blank == (k < 2) and (presence["cam02"] == 0.0) == (k < 2), (k, presence)
         assert all(presence[c] > 0.5 for c in ("cam01", "cam03", "cam04")), (k, presence)

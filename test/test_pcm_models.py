@@ -110,6 +110,35 @@ def test_rotated_crop_makes_a_tilted_person_upright(models, messi, turn: str) ->
     assert errs["none"] > errs["all"]
 
 
+def test_a_covered_forearm_weighs_little(models, messi) -> None:
+    """A grey patch over Messi's left forearm: the heatmaps still guess his left wrist, elbow and
+    hand (peaks 0.35-0.52 without the visibility), but BlazePose's visibility says they are
+    hidden, so their maps fall below the consistency check's MIN_PEAK (that view does not see
+    them) while his right arm and left knee keep theirs. The start (II-C) still counts the
+    guesses: `centroids` thresholds the peaks before the visibility weighed them."""
+    from vmocap_core.method.consistency import MIN_PEAK
+
+    det, lm = models
+    crops = _crops_from_detector(det, [messi])
+    covered = cv2.rectangle(messi.copy(), (300, 110), (400, 200), (128, 128, 128), -1)
+    heatmaps_only = BlazePoseLandmark(threads=2, visibility=False)
+
+    def peaks(model: BlazePoseLandmark, image: np.ndarray) -> dict[str, float]:
+        top = model.infer([image], crops).maps[0].reshape(len(KEYPOINTS), -1).max(axis=1)
+        return {k: float(top[INDEX[k]]) for k in ("left_wrist", "left_elbow", "left_hand", "right_wrist", "right_elbow",
+                                                   "left_knee")}
+
+    seen, hidden, guessed = peaks(lm, messi), peaks(lm, covered), peaks(heatmaps_only, covered)
+    for k in ("left_wrist", "left_elbow", "left_hand"):
+        assert seen[k] > 0.6 and guessed[k] > MIN_PEAK and hidden[k] < MIN_PEAK, (k, seen[k], guessed[k], hidden[k])
+    for k in ("right_wrist", "right_elbow", "left_knee"):
+        assert hidden[k] > 0.5, (k, hidden[k])
+    pv = lm.infer([covered], crops)
+    _, counted = pv.centroids(threshold=0.3)
+    for k in ("left_wrist", "left_elbow", "left_hand"):
+        assert counted[0, INDEX[k]] == pytest.approx(guessed[k], abs=0.02), (k, counted[0, INDEX[k]], guessed[k])
+
+
 def test_all_views_in_one_batch_equal_single_calls(models, messi) -> None:
     _, lm = models
     crops = Crops([0, 0], [[260, 170], [240, 180]], [420, 380], [0.0, -0.3])
@@ -130,7 +159,7 @@ def test_thread_strategies_give_the_same_maps(models, messi) -> None:
     np.testing.assert_allclose(a.maps, b.maps, atol=1e-4)
     np.testing.assert_allclose(a.presence, b.presence, atol=1e-5)
     # infer warps each thread's crops in that thread (Runner.run_built): the same as warping first
-    eager, _ = lm.decode(lm.run(lm.sample([messi], lm.views_from_crops(crops))))
+    eager = lm.pcm(lm.run(lm.sample([messi], lm.views_from_crops(crops))))[0]
     np.testing.assert_array_equal(a.maps, eager)
     one = lm.infer([messi], Crops([0], [260, 170], [420], [0.0]))  # a single view: the intra-op session
     np.testing.assert_allclose(one.maps[0], a.maps[0], atol=1e-4)

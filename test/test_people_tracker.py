@@ -210,26 +210,36 @@ def test_two_people_each_tracked_with_their_own_id(rig, scene, tmp_path):
 def test_two_people_offline_each_from_their_own_whole_recording(rig, scene, tmp_path):
     """`vmocap process --max-people 2 --offline`: each person's live results go through the
     whole-recording pass on their own (identified over all their frames, smoothed without
-    lag). Both bodies keep their own ids, with no ghost, and each is nearer its truth than live;
-    the subject topics hold the first person's offline results."""
+    lag). Both bodies keep their own ids, with no ghost, and each is nearer its truth than live
+    on the frame sets both give them (offline also gives the frame sets live held back while the
+    track was being confirmed: a person walking in, harder to see); the subject topics hold the
+    first person's offline results."""
     from vmocap_core.apps.bench import images, people
     from vmocap_core.apps.process import process_bag
 
     rec, stamps, truths = scene
     seen = people.seen_by(rig, truths) >= 2
     figures = {}
+    errors = {}  # mode -> (P, T): each person's MPJPE against the nearest body (NaN: none within the bound)
     for mode in ("live", "offline"):
         out = tmp_path / f"{mode}.mcap"
         stats = process_bag(rec, out, rig, config={"fps": 60.0, "offline": mode == "offline"}, progress=False,
                             max_people=2, provider=images._Provider(rig, "all", _precision()))
-        figures[mode] = people.people_figures(people.body_tracks(out, stamps), truths, seen)
-    print(figures)
+        bodies = people.body_tracks(out, stamps)
+        figures[mode] = people.people_figures(bodies, truths, seen)
+        e = np.stack([[images.frame_mpjpe(b, truth) for b in bodies.values()] for truth in truths])  # (P, B, T)
+        e = np.where(e <= images.FALSE_TRACKING_MM, e, np.inf).min(axis=1)
+        errors[mode] = np.where(np.isfinite(e), e, np.nan)
+    both = np.isfinite(errors["live"]) & np.isfinite(errors["offline"])
+    common = {mode: [float(np.mean(e[k][both[k]])) for k in range(len(truths))] for mode, e in errors.items()}
+    print(figures, "on the frame sets both give:", common)
     assert stats["people_offline"] == {"reconstructed": 2, "never_tracked": 0}, stats
     live, offline = figures["live"], figures["offline"]
     assert offline["ghost_frames"] == 0 and len(offline["persons"]) == 2, offline
-    for a, b in zip(live["persons"], offline["persons"]):
+    for k, (a, b) in enumerate(zip(live["persons"], offline["persons"])):
         assert b["identity_switches"] == 0 and b["missed_pct"] <= a["missed_pct"] + 1.0, figures
-        assert b["mpjpe_mm"] < a["mpjpe_mm"], figures
+        assert both[k].sum() > 0.5 * np.isfinite(errors["live"][k]).sum(), both[k].sum()
+        assert common["offline"][k] < common["live"][k] and b["mpjpe_mm"] < 40.0, (common, figures)
     subject = images.read_estimates(tmp_path / "offline.mcap", stamps)
     tracked = np.isfinite(subject).all(axis=(1, 2))
     assert tracked.sum() > 0.8 * len(stamps)

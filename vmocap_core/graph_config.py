@@ -167,6 +167,8 @@ NODE_PARAMS["vmocap_people"] = [p for p in NODE_PARAMS["vmocap_pcm"] if p.name i
           "/humans/bodies/tracked", 0.05, 600.0),
     Param("remember_s", 60.0, "an ended person's identified skeleton is kept this long (s): a newcomer with its "
           "link lengths is tracked at once, without a new identification phase (0: forget at once)", 0.0, 86400.0),
+    Param("confirm_frames", 3, "a person's track (new, or found again) is published once this many frame sets "
+          "agreed with its skeleton (check_confirm_frames of vmocap_skeleton if larger)", 0, 600),
     Param("hri", True, "publish every person the ROS4HRI way (REP-155): /humans/bodies/tracked, "
           "/humans/bodies/<id>/{joint_states,urdf} and NS/bodies/<id>/keypoints (needs hri_msgs)"),
 ]

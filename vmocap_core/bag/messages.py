@@ -4,10 +4,13 @@ Both the rclpy nodes and the offline pipeline (`vmocap process`) use these funct
 graph and the offline run see bit-identical inputs.
 
 PCM message (one per view and frame set), a pair with the same header:
-- `sensor_msgs/Image`, encoding `32FC<N>`, N = J + 1: row-major H x W cells, channels
-  interleaved (OpenCV layout). Channels 0..J-1 are the keypoints in the order of the graph
-  config's `pcm.keypoints`; a channel that is all NaN means "this view says nothing about
+- `sensor_msgs/Image`, encoding `32FC<N>`, N = J + 1 or J + 2: row-major H x W cells,
+  channels interleaved (OpenCV layout). Channels 0..J-1 are the keypoints in the order of the
+  graph config's `pcm.keypoints`; a channel that is all NaN means "this view says nothing about
   that keypoint" (`PcmViews.valid` False). Channel J is constant: the view's `presence`.
+  Channel J + 1, present when the maps were weighed by the CNN's landmark visibility
+  (`PcmViews.visibility`, not all ones): its first J cells (row-major) hold the J keypoints'
+  visibility, the other cells 0.
   `header.frame_id` is the camera name (as in the rig), `header.stamp` the capture time.
 - `sensor_msgs/CameraInfo` of the heatmap as a camera: width W, height H, the camera's own D
   and distortion model, K = A K_cam with A the 3x3 form of `image_to_map`
@@ -187,22 +190,30 @@ def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, d
     Images carry no `data` but refer to `views` (PCM_VIEW), for receivers in this process
     only (`pcm_views` reads them; CDR would encode them empty)."""
     V, J, H, W = views.maps.shape
+    weighed = bool(np.any(views.visibility != 1.0))
+    N = J + 2 if weighed else J + 1
+    if weighed and H * W < J:
+        raise HeatmapError(f"{W}x{H} maps cannot carry {J} keypoints' visibility")
     if data:
-        # all views at once: (V, H, W, J + 1) interleaved, invalid channels NaN, presence last
-        stack = np.empty((V, H, W, J + 1), dtype=np.float32)
+        # all views at once: (V, H, W, N) interleaved, invalid channels NaN, presence (and visibility) last
+        stack = np.empty((V, H, W, N), dtype=np.float32)
         np.copyto(stack[..., :J], views.maps.transpose(0, 2, 3, 1))
         invalid = ~np.asarray(views.valid, dtype=bool)
         if invalid.any():
             stack[..., :J] = np.where(invalid[:, None, None, :], np.float32(np.nan), stack[..., :J])
         stack[..., J] = np.asarray(views.presence, dtype=np.float32)[:, None, None]
+        if weighed:
+            plane = np.zeros((V, H * W), dtype=np.float32)
+            plane[:, :J] = views.visibility
+            stack[..., J + 1] = plane.reshape(V, H, W)
     out = []
     for v in range(V):
         cam = rig[int(views.camera[v])]
         if data:
-            img = image_msg(stack[v], views.stamp_ns, cam.name, encoding=f"32FC{J + 1}", copy=False)  # stack is ours
+            img = image_msg(stack[v], views.stamp_ns, cam.name, encoding=f"32FC{N}", copy=False)  # stack is ours
         else:
-            img = {"header": header(views.stamp_ns, cam.name), "height": H, "width": W, "encoding": f"32FC{J + 1}",
-                   "is_bigendian": 0, "step": 4 * W * (J + 1), PCM_VIEW: (views, v)}
+            img = {"header": header(views.stamp_ns, cam.name), "height": H, "width": W, "encoding": f"32FC{N}",
+                   "is_bigendian": 0, "step": 4 * W * N, PCM_VIEW: (views, v)}
         A = np.vstack([views.image_to_map[v], [0.0, 0.0, 1.0]])
         info = camera_info_msg(cam, views.stamp_ns, K=A @ cam.K, size=(W, H))
         out.append((img, info))
@@ -222,8 +233,8 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         name = img["header"]["frame_id"]
         if name not in names:
             raise HeatmapError(f"PCM view of unknown camera {name!r} (rig has {names})")
-        if img["encoding"] != f"32FC{J + 1}":
-            raise HeatmapError(f"PCM of {name}: {img['encoding']} but {J} keypoints + presence expected")
+        if img["encoding"] not in (f"32FC{J + 1}", f"32FC{J + 2}"):
+            raise HeatmapError(f"PCM of {name}: {img['encoding']} but {J} keypoints + presence (+ visibility) expected")
         if (info["width"], info["height"]) != (img["width"], img["height"]):
             raise HeatmapError(f"PCM of {name}: CameraInfo size differs from the heatmap's")
         if (img["height"], img["width"]) != (H, W):
@@ -237,20 +248,25 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         maps = views.maps.astype(np.float32, copy=True)
         maps[~np.asarray(views.valid, dtype=bool)] = np.nan
         presence = np.asarray(views.presence, dtype=np.float32).astype(np.float64)
+        visibility = np.asarray(views.visibility, dtype=np.float32).astype(np.float64)
     else:
         maps = np.empty((V, J, H, W), dtype=np.float32)
         presence = np.zeros(V)
+        visibility = np.ones((V, J))
         for i, ((img, _), source) in enumerate(zip(pairs, sources)):
             if source is None:
-                arr = image_array(img)  # (H, W, J + 1), channels interleaved
+                arr = image_array(img)  # (H, W, J + 1 or J + 2), channels interleaved
                 maps[i] = arr[..., :J].transpose(2, 0, 1)
                 if H * W:
                     presence[i] = arr[0, 0, J]
+                if arr.shape[-1] == J + 2:
+                    visibility[i] = arr[..., J + 1].reshape(-1)[:J]
             else:
                 views, v = source
                 maps[i] = views.maps[v]
                 maps[i][~np.asarray(views.valid[v], dtype=bool)] = np.nan
                 presence[i] = np.float32(views.presence[v])
+                visibility[i] = views.visibility[v].astype(np.float32)
     # (V, J): an all-NaN channel says nothing; only a channel whose first cell is NaN can be one
     flat = maps.reshape(V * J, H * W)
     valid: np.ndarray = np.full(V * J, H * W > 0)  # an empty map says nothing either
@@ -269,6 +285,7 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         valid=valid,
         presence=presence,
         stamp_ns=stamp_ns(pairs[0][0]),
+        visibility=visibility,
     )
 
 

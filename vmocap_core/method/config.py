@@ -76,7 +76,10 @@ class MarkersConfig(_Stage):
     reacquire_radius: float = 0.6  # metres from the previous keypoint a re-acquired one may lie
     reacquire_after: int = 2  # consecutive weak frames before the search at the PCM peaks
     init_max_reprojection_px: float = 12.0  # views agree: triangulation residual below this
-    init_min_peak: float = 0.3  # a centroid counts when its PCM peak is at least this
+    # a centroid counts when its PCM peak is at least this, before the landmark visibility
+    # weighed it (PcmViews.visibility): the start triangulates the CNN's guesses of hidden
+    # keypoints too, as the paper's II-C does, and checks them by their residuals
+    init_min_peak: float = 0.3
     lost_score: float = 0.15  # mean marker weight per view below this ...
     lost_frames: int = 10  # ... for this many frames -> re-initialize
 

@@ -15,6 +15,12 @@ peaks, or beside the person, reads low values; a view whose map for the keypoint
 (below MIN_PEAK everywhere: occluded, outside the crop, the person missed) cannot agree. A view
 *agrees* on a keypoint when r >= AGREE.
 
+The maps arrive weighed by the CNN's landmark visibility (pcm/model.py), which the lattice
+search wants; the check reads them as the CNN drew them (r and the flat-map floor scaled back by
+the visibility). A view that shows a hidden keypoint faintly still counts against a skeleton off
+the place it draws: a skeleton sliding between two bodies keeps failing in the views that see
+the other body's limbs.
+
 Per keypoint, `confidence` = the fraction of the views that see it (in front of the camera,
 a channel for it) that agree: what a controller can weigh each keypoint by (NS/keypoints'
 score). Per frame, `agreement` = the mean confidence over the keypoints some view sees, and
@@ -112,7 +118,11 @@ def check_views(rig: Rig, pcm: PcmViews, keypoints: np.ndarray, sampler: PcmSamp
     cam = np.asarray(pcm.camera, dtype=np.intp)
     _, front = rig.project(pts)  # (C, J)
     sees = np.asarray(pcm.valid, bool) & np.asarray(front, bool)[cam] & known[None, :]
-    agree = sees & (value >= AGREE * np.maximum(peak, MIN_PEAK))
+    # the maps as the CNN drew them, before the visibility weighed them (module doc); a view
+    # whose visibility is 0 carries no map and cannot agree
+    vis = np.asarray(pcm.visibility, np.float64)
+    drawn, top = (np.divide(a, vis, out=np.zeros_like(a), where=vis > 0) for a in (value, peak))
+    agree = sees & (vis > 0) & (drawn >= AGREE * np.maximum(top, MIN_PEAK))
     n = sees.sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         out.confidence[kp] = np.where(n > 0, agree.sum(axis=0) / n, np.nan)
@@ -183,6 +193,11 @@ class Verdict:
         "lost" after lost_frames without them."""
         self.reset()
         self.uncertain, self._needed = True, frames
+
+    @property
+    def disagreed(self) -> bool:
+        """The last check was bad (the hysteresis may still say "ok")."""
+        return self._bad > 0
 
     def update(self, check: ViewCheck | None) -> str:
         if check is not None and self.min_agreement > 0:

@@ -10,6 +10,7 @@ its own frame set (consistency.py), and the next markers carry that check to the
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -162,7 +163,7 @@ class MarkerStage:
         only[:, cand] = pcm.valid[:, cand]
         centres = markers.copy()
         centres[cand] = pts[ok]
-        masked = PcmViews(pcm.maps, pcm.image_to_map, pcm.camera, pcm.keypoints, only, pcm.presence, pcm.stamp_ns)
+        masked = dataclasses.replace(pcm, valid=only)
         alt = lattice_search(self.rig, masked, centres, k=1, spacing=cfg.lattice_spacing, subcell=cfg.subcell)
         alt.markers, alt.weights, alt.n_views = alt.markers[cand], alt.weights[cand], alt.n_views[cand]
         better = alt.weights > weights[cand]

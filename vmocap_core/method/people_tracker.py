@@ -66,12 +66,18 @@ class PeopleConfig:
     wait_search_s: float = 0.1  # while someone waits for crops (found, lost): the detector runs this often
     closer_every: int = 4  # every this many searches for newcomers look closer in every camera (_search)
     remember_s: float = 60.0  # an ended person's skeleton is kept this long: if they come back, no new identification
+    # a person's track (identified, or found again) is output once this many frame sets agreed
+    # with its skeleton (SkeletonConfig.check_confirm_frames, the larger of the two): with other
+    # bodies about, a first fit may lean on one of them or on a body half up off the floor
+    confirm_frames: int = 3
 
     def __post_init__(self) -> None:
         if int(self.max_people) < 1:
             raise PeopleError(f"max_people must be at least 1, got {self.max_people}")
         if min(self.detect_every_s, self.count_every_s) < 0:
             raise PeopleError("detect_every_s and count_every_s must be >= 0")
+        if int(self.confirm_frames) < 0:
+            raise PeopleError(f"confirm_frames must be >= 0, got {self.confirm_frames}")
 
 
 @dataclass
@@ -185,8 +191,9 @@ class PeopleTracker:
         self.seen = rig.binned(binning) if binning > 1 else rig
         self._to_binned = binning_affine(binning) if binning > 1 else None
         cfg = config or PipelineConfig()
-        self.config = cfg.replace(landmarks=resolve(cfg.skeleton.landmarks, landmarks))
         self.people_config = people or PeopleConfig()
+        confirm = max(cfg.skeleton.check_confirm_frames, int(self.people_config.confirm_frames))
+        self.config = cfg.replace(landmarks=resolve(cfg.skeleton.landmarks, landmarks), check_confirm_frames=confirm)
         self.crop_prediction = crop_prediction
         self.people: list[Person] = []
         self._next = 0

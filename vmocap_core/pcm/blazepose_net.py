@@ -4,8 +4,10 @@ CPU; the self-check runs this class on the files it compares).
 
 Input: a 256 x 256 RGB crop in [0, 1], rotated so the person is upright (crops.py).
 Outputs used: `Identity_3` (1 x 64 x 64 x 39 heatmap logits: 33 landmarks + 6 auxiliary
-channels; sigmoid -> our PCM) and `Identity_1` (pose presence, already a probability in the
-converted graph: ~1 with a person, ~0 on blank or noise images).
+channels; sigmoid -> our PCM), `Identity_1` (pose presence, already a probability in the
+converted graph: ~1 with a person, ~0 on blank or noise images) and `Identity` (1 x 195: per
+landmark x, y, z, visibility and presence logits; we read the visibility, MediaPipe's
+probability that the landmark is in view and not occluded).
 
 Heatmap cell (x, y) is centred on crop pixel (4x - 0.5, 4y - 0.5) in the OpenCV centre
 convention, i.e. at (x / 64, y / 64) of the crop edge to edge (MediaPipe's own heatmap
@@ -57,6 +59,8 @@ TO_BLAZEPOSE: dict[str, str] = {k: _RENAMED.get(k, k) for k in KEYPOINTS if _REN
 # for each of our 25 channels, the BlazePose heatmap channel (-1: none)
 CHANNEL: np.ndarray = np.array([BLAZEPOSE_NAMES.index(TO_BLAZEPOSE[k]) if k in TO_BLAZEPOSE else -1 for k in KEYPOINTS])
 
+LANDMARK_VALUES, VISIBILITY = 5, 3  # `Identity` holds x, y, z, visibility, presence per landmark
+
 # crop pixel (centre convention) -> heatmap cell coordinates: x = (p + 0.5) / 4
 CROP_TO_MAP = np.array([[0.25, 0.0, 0.125], [0.0, 0.25, 0.125]])
 
@@ -75,15 +79,17 @@ class BlazePoseNet(PcmModel):
     pixel_offset = 0.0
     keypoints = np.arange(len(KEYPOINTS))
     channel_valid = CHANNEL >= 0
-    output_names = ("pcm", "Identity_1")  # "pcm" is added by extend_graph
+    output_names: tuple[str, ...] = ("pcm", "Identity_1", "Identity")  # "pcm" is added by extend_graph
 
     def __init__(self, path: Path | str | None = None, threads: int = DEFAULT_THREADS, variant: str = "full",
                  min_presence: float | None = None, parallel: str = DEFAULT_PARALLEL, precision: str | None = None,
                  session_config: dict[str, str] | None = None, input_size: int | None = None,
-                 slim: bool = True) -> None:
+                 slim: bool = True, visibility: bool = True) -> None:
         """input_size: crop side in network pixels (budget.input_size: 256 is the published
         network, smaller sizes run the same weights on smaller crops, maps of input_size / 4);
         slim: the heatmap convolution computes only the channels used (same maps; False: all 39);
+        visibility: weigh each map by the landmark's visibility (PcmModel.visibility; False: the
+        heatmaps alone, without the landmark head);
         min_presence: views below it are invalid (default 0.5, MediaPipe's tracking threshold);
         parallel: "views" or "intra" (runner.py); path, precision, session_config: `model_file`."""
         if variant not in VARIANTS:
@@ -93,6 +99,9 @@ class BlazePoseNet(PcmModel):
         self.input_size, self.file_input_size = (side, side), (budget.NATIVE_SIZE, budget.NATIVE_SIZE)
         self.map_size = side // 4
         self.slim = bool(slim)
+        self.use_visibility = bool(visibility)
+        if not self.use_visibility:
+            self.output_names = ("pcm", "Identity_1")
         path, self.precision, self.precision_reason, session_config = self.model_file(path, precision, session_config)
         super().__init__(path, threads, min_presence, parallel, session_config)
 
@@ -124,7 +133,8 @@ class BlazePoseNet(PcmModel):
             if slim is not None:
                 out, channels = slim
                 g = out.graph
-        out = budget.resize_input(out, self.input_size[0], (["Identity_1"], ["Identity_3"]))
+        heads = list(self.output_names[1:])  # presence (and landmark) heads, apart from the heatmaps
+        out = budget.resize_input(out, self.input_size[0], (heads, ["Identity_3"]))
         g = out.graph
         mask = self.channel_valid.astype(np.float32).reshape(1, -1, 1, 1)
         g.initializer.extend([
@@ -143,12 +153,20 @@ class BlazePoseNet(PcmModel):
         return out
 
     def decode(self, outputs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        maps, presence = outputs
+        maps, presence = outputs[:2]
         expect = (len(KEYPOINTS), self.map_size, self.map_size)
         if maps.ndim != 4 or maps.shape[1:] != expect:
             raise ModelError(f"{self.path}: heatmap output shape {maps.shape}, expected (V, *{expect})")
         pres = np.nan_to_num(presence.reshape(len(maps)).astype(np.float64), nan=0.0)
         return maps, np.clip(pres, 0.0, 1.0)
+
+    def visibility(self, outputs: list[np.ndarray]) -> np.ndarray | None:
+        if not self.use_visibility:
+            return None
+        head = outputs[2].reshape(len(outputs[2]), -1, LANDMARK_VALUES)
+        logits = head[:, np.maximum(CHANNEL, 0), VISIBILITY].astype(np.float64)
+        with np.errstate(over="ignore"):
+            return np.where(CHANNEL >= 0, 1.0 / (1.0 + np.exp(-logits)), 1.0)
 
 
 def _heatmap_planes(g: onnx.GraphProto, name: str) -> tuple[str, int, bool]:

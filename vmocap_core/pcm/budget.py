@@ -104,7 +104,8 @@ def resize_input(model: onnx.ModelProto, size: int, native_branch: tuple[list[st
         _native_branch(g, *native_branch, native, scale)
     del g.value_info[:]
     for o in g.output:  # spatial output dims are stale: leave them to onnxruntime
-        for d in o.type.tensor_type.shape.dim[1:]:
+        shape = o.type.tensor_type.shape.dim
+        for d in shape[1:] if len(shape) == 4 else ():  # (batch, values) outputs keep theirs
             if d.dim_value and d.dim_value > 3:
                 d.dim_param, d.dim_value = "", 0
     return out

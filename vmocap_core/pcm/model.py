@@ -193,6 +193,24 @@ class PcmModel(abc.ABC):
     def decode(self, outputs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Raw outputs (batch first) -> maps (V, J, h, w) in [0, 1] and presence (V,) in [0, 1]."""
 
+    def visibility(self, outputs: list[np.ndarray]) -> np.ndarray | None:
+        """Raw outputs -> (V, J) the probability that each keypoint is in view and not occluded
+        (None: the model does not say)."""
+        return None
+
+    def pcm(self, outputs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Raw outputs -> the PCMs (V, J, h, w), presence (V,) and visibility (V, J): `decode`'s
+        maps, each weighed by its keypoint's visibility where the model gives one (else ones)."""
+        maps, presence = self.decode(outputs)
+        visible = self.visibility(outputs)
+        if visible is not None:
+            # A hidden landmark's heatmap is the network's guess and peaks as high as a seen one:
+            # weighed by its visibility, the PCMs summed over the views (eq. 1) follow the views
+            # that see the keypoint, and a keypoint hidden in every view weighs little (eq. 5).
+            maps = maps * visible[:, :, None, None].astype(maps.dtype)
+            return maps, presence, visible
+        return maps, presence, np.ones(maps.shape[:2])
+
     def default_views(self, images: Sequence[np.ndarray]) -> InputViews:
         """Views used when none are given (whole-image models); crop models raise."""
         raise ModelError(f"{type(self).__name__} needs crops (from the detector or the skeleton)")
@@ -259,7 +277,7 @@ class PcmModel(abc.ABC):
             views = self.views_from_crops(views)
         if len(views.camera) == 0:
             raise ModelError("no views to run")
-        maps, presence = self.decode(self.runner.run_built(self.output_names, len(views.camera), self._warper(images, views)))
+        maps, presence, visible = self.pcm(self.runner.run_built(self.output_names, len(views.camera), self._warper(images, views)))
         A = np.asarray(views.image_to_input, dtype=np.float64)
         image_to_map = compose_affine(self.input_to_map()[None], A)
         # Heatmaps look confident on anything; only the presence output (and these guards) flag
@@ -278,6 +296,7 @@ class PcmModel(abc.ABC):
             valid=valid,
             presence=presence,
             stamp_ns=stamp_ns,
+            visibility=visible,
         ).sanitized()
 
     __call__ = infer

@@ -4,6 +4,7 @@ skeleton fed back from the previous frame set."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,7 @@ class BagPcmProvider:
     def infer(self, images: list[np.ndarray], cameras: np.ndarray, stamp_ns: int, feedback: np.ndarray | None) -> PcmViews:
         src = self.frames[self._k % len(self.frames)]
         self._k += 1
-        return PcmViews(src.maps, src.image_to_map, src.camera, src.keypoints, src.valid, src.presence, stamp_ns)
+        return dataclasses.replace(src, stamp_ns=stamp_ns)
 
 
 class SyntheticPcmProvider:

@@ -138,19 +138,22 @@ class Agreement:
     max_cells: float
     presence_diff: float
     peaks: int
+    visibility_diff: float = 0.0  # the landmarks' visibility (weighs the maps: model.py), same bound as presence
 
     @property
     def ok(self) -> bool:
-        return self.median_cells <= MEDIAN_CELLS and self.p95_cells <= P95_CELLS and self.presence_diff <= PRESENCE
+        return (self.median_cells <= MEDIAN_CELLS and self.p95_cells <= P95_CELLS and self.presence_diff <= PRESENCE
+                and self.visibility_diff <= PRESENCE)
 
     def describe(self) -> str:
         return (f"peaks moved {self.median_cells:.3f} cells median (bound {MEDIAN_CELLS}), {self.p95_cells:.3f} p95 "
-                f"(bound {P95_CELLS}), presence by up to {self.presence_diff:.3f} (bound {PRESENCE}) on {self.peaks} peaks")
+                f"(bound {P95_CELLS}), presence by up to {self.presence_diff:.3f}, visibility by up to "
+                f"{self.visibility_diff:.3f} (bound {PRESENCE} each) on {self.peaks} peaks")
 
 
-def agreement(ref: tuple[np.ndarray, np.ndarray], test: tuple[np.ndarray, np.ndarray], channels: np.ndarray) -> Agreement:
-    """Compare (maps (V, J, h, w), presence (V,)) of a model with those of the reference model;
-    only the peaks the reference is confident about (> 0.5) on `channels` count."""
+def agreement(ref: tuple[np.ndarray | None, ...], test: tuple[np.ndarray | None, ...], channels: np.ndarray) -> Agreement:
+    """Compare (maps (V, J, h, w), presence (V,)[, visibility (V, J)]) of a model with those of the
+    reference model; only the peaks the reference is confident about (> 0.5) on `channels` count."""
     ca, va = peak_centroids(ref[0])
     cb, _ = peak_centroids(test[0])
     confident = (va > 0.5) & np.asarray(channels, bool)[None]
@@ -158,7 +161,9 @@ def agreement(ref: tuple[np.ndarray, np.ndarray], test: tuple[np.ndarray, np.nda
     if shift.size == 0:
         raise ModelError("self-check: the float model sees no confident keypoint on the reference crops")
     dp = float(np.abs(np.asarray(ref[1]) - np.asarray(test[1])).max())
-    return Agreement(float(np.median(shift)), float(np.percentile(shift, 95)), float(shift.max()), dp, int(shift.size))
+    vis = [x[2] if len(x) > 2 else None for x in (ref, test)]
+    dv = 0.0 if vis[0] is None or vis[1] is None else float(np.abs(vis[0] - vis[1])[:, np.asarray(channels, bool)].max())
+    return Agreement(float(np.median(shift)), float(np.percentile(shift, 95)), float(shift.max()), dp, int(shift.size), dv)
 
 
 @dataclass(frozen=True)
@@ -234,7 +239,11 @@ def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tup
     batch = reference_crops()
     flt = BlazePoseNet(fetch.model_path(f"pose_landmark_{variant}"), threads=1, variant=variant, precision="float",
                        input_size=CROP)
-    ref = flt.decode(flt.run(batch))
+    def outputs(model: BlazePoseNet) -> tuple[np.ndarray | None, ...]:
+        out = model.run(batch)
+        return (*model.decode(out), model.visibility(out))
+
+    ref = outputs(flt)
 
     def result(precision: str, reason: str, used: str | None = None, ms: dict | None = None) -> CheckResult:
         ms = ms or {"float": _time_batch(flt, batch) * 1e3 / len(batch)}
@@ -252,7 +261,7 @@ def run_check(variant: str = "full", repeats: int = TIMING_REPEATS, kernels: tup
             continue
         q = BlazePoseNet(int8_path, threads=1, variant=variant, precision="int8", session_config=config,
                          input_size=CROP)
-        tried[name] = agreement(ref, q.decode(q.run(batch)), flt.channel_valid)
+        tried[name] = agreement(ref, outputs(q), flt.channel_valid)
         if tried[name].ok:
             break
     used = next((k for k, a in tried.items() if a.ok), None)
@@ -277,8 +286,8 @@ _lock = threading.Lock()
 def from_dict(d: dict) -> CheckResult:
     """The CheckResult that `to_dict` wrote."""
     cpu = CpuInfo(d["cpu"]["arch"], d["cpu"]["model"], tuple(d["cpu"]["flags"]))
-    tried = {k: Agreement(**{f: a[f] for f in ("median_cells", "p95_cells", "max_cells", "presence_diff", "peaks")})
-             for k, a in d["tried"].items()}
+    fields = ("median_cells", "p95_cells", "max_cells", "presence_diff", "peaks", "visibility_diff")
+    tried = {k: Agreement(**{f: a[f] for f in fields if f in a}) for k, a in d["tried"].items()}
     return CheckResult(cpu, d["onnxruntime"], d["precision"], d["reason"], d["int8_kernels"], tried,
                        {k: float(v) for k, v in d["ms_per_crop"].items()})
 

@@ -53,6 +53,9 @@ class PcmViews:
     valid: np.ndarray  # (V, J) bool, False where the view says nothing about a keypoint
     presence: np.ndarray  # (V,) float in [0, 1], the model's confidence a person is there
     stamp_ns: int = 0
+    # (V, J) float in [0, 1]: the factor each map was weighed by, the CNN's probability that the
+    # keypoint is in view and not occluded (pcm/model.py); empty (default): ones, the model does not say
+    visibility: np.ndarray = field(default_factory=lambda: np.empty(0))
     # peaks() of every channel, kept: the consistency check reads them twice per frame set
     _all_peaks: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
 
@@ -66,6 +69,10 @@ class PcmViews:
         self.keypoints = np.asarray(self.keypoints, dtype=np.intp).reshape(J)
         self.valid = np.asarray(self.valid, dtype=bool).reshape(V, J)
         self.presence = np.asarray(self.presence, dtype=np.float64).reshape(V)
+        # float32 values, as the PCM message carries them: the graph and the offline run then
+        # read the same peaks before the visibility (centroids), bit for bit
+        visibility = np.asarray(self.visibility, dtype=np.float32).astype(np.float64)
+        self.visibility = np.ones((V, J)) if visibility.size == 0 else visibility.reshape(V, J)
 
     @classmethod
     def empty(cls, channels: int, map_size: int, stamp_ns: int = 0) -> "PcmViews":
@@ -78,7 +85,7 @@ class PcmViews:
         """The views where `keep` (V,) is True (stamped `stamp_ns` when given)."""
         keep = np.asarray(keep, dtype=bool).reshape(self.n_views)
         return PcmViews(self.maps[keep], self.image_to_map[keep], self.camera[keep], self.keypoints, self.valid[keep],
-                        self.presence[keep], self.stamp_ns if stamp_ns is None else stamp_ns)
+                        self.presence[keep], self.stamp_ns if stamp_ns is None else stamp_ns, self.visibility[keep])
 
     @property
     def n_views(self) -> int:
@@ -106,6 +113,7 @@ class PcmViews:
             valid=self.valid & ~bad,
             presence=self.presence,
             stamp_ns=self.stamp_ns,
+            visibility=self.visibility,
         )
 
     def corrupted(self) -> dict[int, int]:
@@ -159,7 +167,9 @@ class PcmViews:
 
     def centroids(self, threshold: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
         """Per view and channel, the image pixel of the PCM centroid around the peak (V, J, 2)
-        and the peak value (V, J) (II-C uses centroids of the maps for initialization).
+        and the peak value (V, J) (II-C uses centroids of the maps for initialization), taken
+        before the visibility weighed the map (the CNN's guess of a hidden keypoint counts, as
+        the triangulation's residuals check it); 0 where it is below `threshold`.
 
         The centroid is taken over cells within 3 cells of the peak whose value is at least
         half the peak, so a second person or a false peak elsewhere does not drag it.
@@ -184,8 +194,9 @@ class PcmViews:
         xy = np.stack([cx, cy], axis=-1)
         inv = invert_affine(self.image_to_map)
         uv = np.einsum("vij,vkj->vki", inv[:, :, :2], xy) + inv[:, None, :, 2]
-        ok = self.valid & (val >= threshold)
-        return uv, np.where(ok, val, 0.0)
+        guess = np.divide(val, self.visibility, out=np.zeros(val.shape), where=self.visibility > 0)
+        ok = self.valid & (guess >= threshold)
+        return uv, np.where(ok, np.minimum(guess, 1.0), 0.0)
 
 
 def blank_views(pcm: PcmViews, cameras: list[int]) -> PcmViews:
@@ -200,4 +211,4 @@ def blank_views(pcm: PcmViews, cameras: list[int]) -> PcmViews:
                     np.concatenate([pcm.image_to_map, np.tile(np.eye(2, 3), (n, 1, 1))]),
                     np.concatenate([pcm.camera, cams]), pcm.keypoints,
                     np.concatenate([pcm.valid, np.zeros((n, J), bool)]), np.concatenate([pcm.presence, np.zeros(n)]),
-                    pcm.stamp_ns)
+                    pcm.stamp_ns, np.concatenate([pcm.visibility, np.ones((n, J))]))

@@ -48,7 +48,8 @@ class PeopleNode(VmocapNode):
         self.tracker = PeopleTracker(
             self.rig, provider.pcm, config.pipeline_config(),
             PeopleConfig(max_people=p["max_people"], detect_every_s=p["detect_every_s"], count_every_s=p["count_every_s"],
-                         end_after_s=p["end_after_s"], remember_s=p["remember_s"]),
+                         end_after_s=p["end_after_s"], remember_s=p["remember_s"],
+                         confirm_frames=p["confirm_frames"]),
             landmarks=provider.landmarks, crop_prediction=p["crop_prediction"], binning=p["binning"])
         for cam in names:
             self.subscribe(IMAGE, self.topics.image(cam), lambda m, n=cam: self._on_image(n, m), depth=max(2, p["queue_depth"]))

@@ -8,6 +8,7 @@ documented synthetic noise model. PCM synthesis is not timed; only the tracker's
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -110,7 +111,7 @@ def time_pipeline(frames: list[PcmViews], rig: Rig, config: PipelineConfig | Non
     ms = np.empty(n)
     for k in range(n):
         src = frames[k % len(frames)]
-        pcm = PcmViews(src.maps, src.image_to_map, src.camera, src.keypoints, src.valid, src.presence, k * period_ns)
+        pcm = dataclasses.replace(src, stamp_ns=k * period_ns)
         t0 = time.perf_counter()
         pipe.step(pcm)
         ms[k] = 1e3 * (time.perf_counter() - t0)
