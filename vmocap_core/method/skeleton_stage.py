@@ -71,6 +71,7 @@ class SkeletonStage:
         self._pelvis = np.full(3, np.nan)  # the track's hip centre (the last first IK's)
         self.faded: float | None = None  # the markers' weight ratio behind an "uncertain" step (below check_min_weight_ratio)
         self._last_stamp: int | None = None
+        self._held = False  # the last frame set was tracked but not output ("uncertain")
         # The skeleton identified for the subject: kept when the subject is lost, so that finding
         # it again needs no new identification phase (II-C identifies a body once).
         self.identified: Skeleton | None = None
@@ -97,6 +98,7 @@ class SkeletonStage:
         self.verdict.reset()
         self.weights.reset()
         self.path.reset()
+        self._held = False
         self.status = "initializing"
 
     def warning(self, status: str, names: list[str]) -> str | None:
@@ -131,6 +133,10 @@ class SkeletonStage:
             if resumed and verdict == "ok" and self.verdict.min_agreement > 0 and self.config.check_confirm_frames > 0:
                 self.verdict.doubt(self.config.check_confirm_frames)
                 verdict = "uncertain"
+            if verdict == "ok" and self._held and self.verdict.disagreed:
+                # the hysteresis forgives one bad check while the output flows, not right
+                # after a frame set was held back: output resumes on a check that agrees
+                verdict = "uncertain"
             if verdict != "ok":  # what the diagnostics name: the keypoints and views that disagree
                 self.disagreement = self.verdict.last
             support = markers.support
@@ -161,6 +167,7 @@ class SkeletonStage:
                     result = self._confirmed(markers, result, resumed=was == "uncertain")
             if markers.check is not None:
                 result.confidence = markers.check.confidence.copy()
+            self._held = result.status == "uncertain"
             return result
         if markers.kind == "triangulated" and self.skeleton is not None:
             self.reset()
