@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from vmocap_core.keypoints import KEYPOINTS
+
 REPO = Path(__file__).resolve().parents[2]
 MOTION = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
 FPS = 30.0
@@ -46,10 +48,14 @@ def synthetic_bag(path: Path, frames: int, images: bool, size: tuple[int, int] =
     return rig, rig_path, [KEYPOINTS[i] for i in np.flatnonzero(m.present)]
 
 
-def alter_heatmaps(src: Path, dst: Path, frames: range, views: list[str], how: str) -> Path:
+def alter_heatmaps(src: Path, dst: Path, frames: range, views: list[str], how: str,
+                   keypoints: int = len(KEYPOINTS)) -> Path:
     """A copy of `src` whose heatmaps of `views` in `frames` are NaN, +Inf, negative, or say
-    "nobody here" (`absent`: every keypoint channel NaN, presence 0)."""
+    "nobody here" (`absent`: every keypoint channel NaN, presence 0). The maps hold `keypoints`
+    channels, then presence, then (BlazePose) the visibility plane (bag/messages.py)."""
     from vmocap_core.bag import BagReader, BagWriter, cdr
+
+    J = keypoints
 
     lo, hi = stamp_of(frames.start), stamp_of(frames.stop)
     with BagReader(src) as r, BagWriter(dst, overwrite=SCRATCH) as w:
@@ -59,11 +65,13 @@ def alter_heatmaps(src: Path, dst: Path, frames: range, views: list[str], how: s
             if m.topic.endswith("/heatmaps") and view in views and lo <= m.log_time_ns < hi:
                 msg = cdr.decode(m.type, data)
                 ch = int(msg["encoding"][4:])
+                if ch not in (J + 1, J + 2):
+                    raise ValueError(f"{m.topic}: {msg['encoding']}, not {J} keypoints + presence (+ visibility)")
                 a = np.frombuffer(bytes(msg["data"]), np.float32).reshape(msg["height"], msg["width"], ch).copy()
                 if how == "absent":
-                    a[..., :-1], a[..., -1] = np.nan, 0.0
+                    a[..., :J], a[..., J] = np.nan, 0.0
                 else:
-                    a[..., :-1] = {"nan": np.nan, "inf": np.inf, "negative": -1.0}[how]
+                    a[..., :J] = {"nan": np.nan, "inf": np.inf, "negative": -1.0}[how]
                 msg["data"] = a.tobytes()
                 data = cdr.encode(m.type, msg)
             w.write(m.topic, m.type, data, m.log_time_ns)
