@@ -125,7 +125,7 @@ def run(tmp_path_factory) -> HriListener:
     env = domain_env(11)
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
     rig, rig_path, kps = synthetic_bag(d / "full.mcap", FRAMES, fps=FPS)
-    alter_heatmaps(d / "full.mcap", d / "away.mcap", AWAY, rig.names, "absent")
+    alter_heatmaps(d / "full.mcap", d / "away.mcap", AWAY, rig.names, "absent", len(kps))
     (d / "full.mcap").unlink()
     bag = without_frames(d / "away.mcap", d / "in.mcap", DROPPED, FPS)
     (d / "away.mcap").unlink()

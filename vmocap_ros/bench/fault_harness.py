@@ -16,8 +16,6 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from vmocap_core.keypoints import KEYPOINTS
-
 REPO = Path(__file__).resolve().parents[2]
 MOTION = REPO / "vmocap_core" / "data" / "motions" / "walk.npz"
 FPS = 30.0
@@ -48,8 +46,7 @@ def synthetic_bag(path: Path, frames: int, images: bool, size: tuple[int, int] =
     return rig, rig_path, [KEYPOINTS[i] for i in np.flatnonzero(m.present)]
 
 
-def alter_heatmaps(src: Path, dst: Path, frames: range, views: list[str], how: str,
-                   keypoints: int = len(KEYPOINTS)) -> Path:
+def alter_heatmaps(src: Path, dst: Path, frames: range, views: list[str], how: str, keypoints: int) -> Path:
     """A copy of `src` whose heatmaps of `views` in `frames` are NaN, +Inf, negative, or say
     "nobody here" (`absent`: every keypoint channel NaN, presence 0). The maps hold `keypoints`
     channels, then presence, then (BlazePose) the visibility plane (bag/messages.py)."""

@@ -93,7 +93,7 @@ def pcm_fault(name: str, mode: str, work: Path, bag: Path, rig_path: Path, kps: 
     src = bag
     if name.startswith("heatmaps_") or name == "person_leaves":
         how = "absent" if name == "person_leaves" else name.split("_", 1)[1]
-        src = H.alter_heatmaps(bag, work / f"{name}.mcap", window, bad_views, how)
+        src = H.alter_heatmaps(bag, work / f"{name}.mcap", window, bad_views, how, len(kps))
     if name.startswith("calibration_"):  # the bag is right, the rig the graph is given is not
         rig_path = H.miscalibrated(rig_path, work / "wrong.rig.yaml", "cam2", name.split("_")[1])
     if name == "camera_late":  # cam2's images two frame sets late; long enough for a timing probe after tracking starts
