@@ -465,7 +465,10 @@ def test_pcm_node_in_another_process_takes_the_frames_through_shared_memory(tmp_
             deadline = time.monotonic() + 60.0
             while time.monotonic() < deadline and not (read()[0].get("received", 0) >= 40 and read()[2] >= 20
                                                        and read()[1].get("shared_memory")
-                                                       and shm_status("vmocap_markers").get("received", 0) >= 20):
+                                                       and shm_status("vmocap_markers").get("received", 0) >= 20
+                                                       # a view added on demand (a second crop) turns on once
+                                                       # its reader matched: wait for that, not for a snapshot
+                                                       and status.get("vmocap_pcm", {}).get("heatmaps_shared_memory") == "True"):
                 ex.spin_once(timeout_sec=0.1)
         finally:
             log = stop(launch, signal.SIGINT)
