@@ -120,9 +120,7 @@ def check_views(rig: Rig, pcm: PcmViews, keypoints: np.ndarray, sampler: PcmSamp
     sees = np.asarray(pcm.valid, bool) & np.asarray(front, bool)[cam] & known[None, :]
     # the maps as the CNN drew them, before the visibility weighed them (module doc); a view
     # whose visibility is 0 carries no map and cannot agree
-    vis = np.asarray(pcm.visibility, np.float64)
-    drawn, top = (np.divide(a, vis, out=np.zeros_like(a), where=vis > 0) for a in (value, peak))
-    agree = sees & (vis > 0) & (drawn >= AGREE * np.maximum(top, MIN_PEAK))
+    agree = sees & (pcm.visibility > 0) & (pcm.unweighed(value) >= AGREE * np.maximum(pcm.unweighed(peak), MIN_PEAK))
     n = sees.sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         out.confidence[kp] = np.where(n > 0, agree.sum(axis=0) / n, np.nan)

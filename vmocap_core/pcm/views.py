@@ -165,6 +165,11 @@ class PcmViews:
             self._all_peaks = out
         return out
 
+    def unweighed(self, values: np.ndarray) -> np.ndarray:
+        """(V, J) values read on the maps, as on the maps before the visibility weighed them
+        (0 where the visibility is 0: that map carries nothing)."""
+        return np.divide(values, self.visibility, out=np.zeros(np.shape(values)), where=self.visibility > 0)
+
     def centroids(self, threshold: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
         """Per view and channel, the image pixel of the PCM centroid around the peak (V, J, 2)
         and the peak value (V, J) (II-C uses centroids of the maps for initialization), taken
@@ -194,7 +199,7 @@ class PcmViews:
         xy = np.stack([cx, cy], axis=-1)
         inv = invert_affine(self.image_to_map)
         uv = np.einsum("vij,vkj->vki", inv[:, :, :2], xy) + inv[:, None, :, 2]
-        guess = np.divide(val, self.visibility, out=np.zeros(val.shape), where=self.visibility > 0)
+        guess = self.unweighed(val)
         ok = self.valid & (guess >= threshold)
         return uv, np.where(ok, np.minimum(guess, 1.0), 0.0)
 
