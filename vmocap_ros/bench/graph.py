@@ -130,6 +130,12 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         s = {k: list(v) for k, v in probe.samples.items()}
         diag = {n: in_window(list(v), t0, t1) for n, v in probe.diag.items()}
         status = {n: v[-1] for n, v in diag.items() if v}
+        if player is None:
+            # the input rate is read between two of the camera node's once-a-second reports; on a
+            # loaded core a short window may hold one or none, so wait for the first one after it
+            deadline = time.monotonic() + 5.0
+            while not any(t > t1 for t, _ in probe.diag.get("vmocap_camera", [])) and time.monotonic() < deadline:
+                probe.spin_for(0.1)
     finally:
         procs = [p for p in (player, launch) if p is not None]
         for p in procs:
@@ -157,10 +163,10 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         # a frame set that never came out
         missing = missing_periods(sorted(sets_out), 1e9 / args.fps)
         expected = len(sets_out) + missing
-        # from the camera's last report before the window on: at one report a second, a short
-        # window on a loaded machine may hold only one
-        reports = [(t, v) for t, v in probe.diag.get("vmocap_camera", []) if t <= t1]
-        reports = [r for r in reports if r[0] < t0][-1:] + [r for r in reports if r[0] >= t0]
+        # from the camera's last report before the window to its first after it
+        reports = probe.diag.get("vmocap_camera", [])
+        reports = ([r for r in reports if r[0] < t0][-1:] + [r for r in reports if t0 <= r[0] <= t1]
+                   + [r for r in reports if r[0] > t1][:1])
         # frames the camera node read: those it sent per camera, and the frame sets its flow
         # control did not send while the CNN was busy (cameras/flow.py)
         cam = [(t, ast.literal_eval(v["published"]), ast.literal_eval(v.get("flow", "{}")).get("skipped", 0))
