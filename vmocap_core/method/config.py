@@ -173,6 +173,10 @@ class SkeletonConfig(_Stage):
     # frame sets agreed with its skeleton (the first check of a new skeleton is the next frame
     # set's); 0: output from its first frame set.
     check_confirm_frames: int = 1
+    # After a frame set held back (uncertain, for whatever reason), the output resumes on the
+    # `check_resume_frames`-th frame set in a row that passes every rule: a track that flickers
+    # between held and passing lies on the edge of another body or of the maps (1: at once).
+    check_resume_frames: int = 2
     # A frame set whose markers weigh less than this share of the track's median over its last
     # `check_weight_window` frame sets (mean weight of the keypoints seen) is not output: the
     # CNN's maps fading, or the crops losing the body in several cameras at once, as a body
@@ -197,6 +201,8 @@ class SkeletonConfig(_Stage):
             raise ConfigError("check_uncertain_frames, check_fail_frames, check_recover_frames and check_lost_frames must be >= 1")
         if self.check_confirm_frames < 0:
             raise ConfigError("check_confirm_frames must be >= 0")
+        if self.check_resume_frames < 1:
+            raise ConfigError("check_resume_frames must be >= 1")
         if not 0 <= self.check_min_weight_ratio < 1 or self.check_weight_window < 2:
             raise ConfigError("check_min_weight_ratio must lie in [0, 1) and check_weight_window be >= 2")
         if self.check_resume_max_m < 0 or self.check_resume_horizon_s < 0:

@@ -71,7 +71,9 @@ class SkeletonStage:
         self._pelvis = np.full(3, np.nan)  # the track's hip centre (the last first IK's)
         self.faded: float | None = None  # the markers' weight ratio behind an "uncertain" step (below check_min_weight_ratio)
         self._last_stamp: int | None = None
-        self._held = False  # the last frame set was tracked but not output ("uncertain")
+        # frame sets in a row that passed every rule since the output was held (None: flowing)
+        self._passed: int | None = None
+        self.resuming: int | None = None  # the passing frame sets behind an "uncertain" step (below check_resume_frames)
         # The skeleton identified for the subject: kept when the subject is lost, so that finding
         # it again needs no new identification phase (II-C identifies a body once).
         self.identified: Skeleton | None = None
@@ -98,7 +100,7 @@ class SkeletonStage:
         self.verdict.reset()
         self.weights.reset()
         self.path.reset()
-        self._held = False
+        self._passed = None
         self.status = "initializing"
 
     def warning(self, status: str, names: list[str]) -> str | None:
@@ -119,10 +121,13 @@ class SkeletonStage:
             return (f"{status}: this frame set's markers weigh {self.faded:.0%} of the track's recent median "
                     f"(check_min_weight_ratio {cfg.check_min_weight_ratio:.0%}): the CNN's maps are fading, "
                     "this frame set is not output")
+        if self.resuming is not None:
+            return (f"{status}: {self.resuming} frame set(s) in a row agree with the images after output was held "
+                    f"(check_resume_frames {cfg.check_resume_frames}), this frame set is not output")
         return None
 
     def step(self, markers: Markers) -> TrackResult:
-        self.disagreement = self.unsupported = self.faded = self.strayed = None
+        self.disagreement = self.unsupported = self.faded = self.strayed = self.resuming = None
         if markers.kind == "lattice" and self.skeleton is not None:
             # markers again after frame sets without any (every view covered, or none came for
             # RESUME_GAP_S): the skeleton is the one from before, so the output waits for the
@@ -133,22 +138,30 @@ class SkeletonStage:
             if resumed and verdict == "ok" and self.verdict.min_agreement > 0 and self.config.check_confirm_frames > 0:
                 self.verdict.doubt(self.config.check_confirm_frames)
                 verdict = "uncertain"
-            if verdict == "ok" and self._held and self.verdict.disagreed:
-                # the hysteresis forgives one bad check while the output flows, not right
-                # after a frame set was held back: output resumes on a check that agrees
-                verdict = "uncertain"
             if verdict != "ok":  # what the diagnostics name: the keypoints and views that disagree
                 self.disagreement = self.verdict.last
+            judged = self.verdict.min_agreement > 0
             support = markers.support
-            if verdict == "ok" and self.verdict.min_agreement > 0 and support is not None \
-                    and support < self.config.check_min_support:
-                # this frame set's own markers, most of them seen by one camera only: the skeleton
-                # fitted to them is not output, the track goes on (the next check decides)
-                verdict, self.unsupported = "uncertain", support
+            # this frame set's own markers, most of them seen by one camera only: the skeleton
+            # fitted to them is not output, the track goes on (the next check decides)
+            unsupported = judged and support is not None and support < self.config.check_min_support
             ratio = self.weights.ratio(markers.weights, markers.check)
-            if verdict == "ok" and self.verdict.min_agreement > 0 and ratio is not None \
-                    and ratio < self.config.check_min_weight_ratio:
+            faded = judged and ratio is not None and ratio < self.config.check_min_weight_ratio
+            if verdict == "ok" and unsupported:
+                verdict, self.unsupported = "uncertain", support
+            elif verdict == "ok" and faded:
                 verdict, self.faded = "uncertain", ratio
+            # held back before: output resumes on the check_resume_frames-th frame set in a row
+            # that passes every rule (the hysteresis forgives one bad check only while it flows)
+            passed = not (self.verdict.disagreed or unsupported or faded)
+            if self._passed is not None:
+                self._passed = self._passed + 1 if passed else 0
+                if verdict == "ok" and self._passed < self.config.check_resume_frames:
+                    verdict = "uncertain"
+                    if self.verdict.disagreed:
+                        self.disagreement = self.verdict.last
+                    else:
+                        self.resuming = self._passed
             if verdict == "lost":  # the images disagreed for check_lost_frames: start over
                 # off the subject's path: look where it was heading (None: where the track is)
                 seed = self.path.strayed(markers.stamp_ns, self._pelvis)
@@ -167,7 +180,10 @@ class SkeletonStage:
                     result = self._confirmed(markers, result, resumed=was == "uncertain")
             if markers.check is not None:
                 result.confidence = markers.check.confidence.copy()
-            self._held = result.status == "uncertain"
+            if result.status == "uncertain" and self._passed is None:
+                self._passed = int(passed)  # output held: count the frame sets that pass from here
+            elif result.status == "tracking":
+                self._passed = None
             return result
         if markers.kind == "triangulated" and self.skeleton is not None:
             self.reset()
