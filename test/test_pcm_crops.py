@@ -14,6 +14,7 @@ from vmocap_core.pcm.blazepose import rotated_crops
 from vmocap_core.pcm.blazepose_net import CROP_TO_MAP
 from vmocap_core.pcm.crops import (
     BODY_FRACTION,
+    TURNED_BODY_FRACTION,
     Crops,
     body_length,
     compose_affine,
@@ -150,6 +151,34 @@ def test_crop_side_does_not_shrink_with_foreshortening() -> None:
     assert ok[2] and side[2] == pytest.approx(least) and side[2] > 2 * 1.25 * extent
     # the side views see the standing body at full length: the extent rules there (see above)
     assert (side[:2] > least * 4.05 / 5.05).all()
+
+
+def test_a_body_lying_keeps_the_scale_of_a_standing_one() -> None:
+    """A trunk leaning from the world's up gets the larger least side (TURNED_BODY_FRACTION at
+    90 degrees and more: lying, upside down), a body bending over up to 45 degrees the upright
+    one, whatever the cameras' roll."""
+    rig = _rig()
+    standing = _standing()
+    lying = standing.copy()  # the same body turned about the x axis onto its back, at 0.3 m
+    lying[:, 1], lying[:, 2] = standing[:, 2] - 0.95, 0.3 - standing[:, 1]
+    bent = standing.copy()  # the trunk 30 degrees forward about the pelvis
+    top = bent[:, 2] > 0.95
+    a = np.radians(30.0)
+    bent[top, 0] = (bent[top, 2] - 0.95) * np.sin(a)
+    bent[top, 2] = 0.95 + (bent[top, 2] - 0.95) * np.cos(a)
+
+    def least(kp: np.ndarray, fraction: float) -> np.ndarray:
+        depth = rig.to_camera_frames(kp[INDEX["pelvis"]][None])[:, 0, 2]
+        return fraction * 1.25 * body_length(kp) * 800 / depth
+
+    _, side, _, _ = crops_from_skeleton(rig, lying)
+    assert (side >= least(lying, TURNED_BODY_FRACTION) - 1e-9).all()
+    assert np.isclose(side, least(lying, TURNED_BODY_FRACTION)).any()  # the floor rules somewhere
+    _, side_bent, _, _ = crops_from_skeleton(rig, bent)
+    _, side_old, _, _ = crops_from_skeleton(rig, bent, turned_fraction=BODY_FRACTION)
+    np.testing.assert_allclose(side_bent, side_old)
+    _, side_people, _, _ = crops_from_skeleton(rig, lying, turned_fraction=BODY_FRACTION)
+    assert (side_people <= side + 1e-9).all() and (side_people < side).any()
 
 
 def test_rotated_crops_variants() -> None:

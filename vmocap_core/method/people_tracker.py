@@ -34,7 +34,7 @@ from ..cameras.projection import Rig, binning_affine
 from ..errors import VmocapError
 from ..keypoints import INDEX, KEYPOINTS
 from ..pcm.choice import AGREE_FRACTION, choose_subject, detection_arrays
-from ..pcm.crops import Crops
+from ..pcm.crops import BODY_FRACTION, Crops
 from ..pcm.detector import Detection
 from ..pcm.views import PcmViews
 from .config import PipelineConfig
@@ -257,7 +257,7 @@ class PeopleTracker:
             kp = skeleton_of(p.pipeline.predictor.predict(stamp_ns))
             if kp is not None:
                 tracked[p.number] = kp
-                c = self.pcm.crops_from_skeleton(kp)
+                c = self.pcm.crops_from_skeleton(kp, turned_fraction=BODY_FRACTION)
                 crops[p.number] = c.select(have[c.camera])
         waiting = [p for p in self.people if p.number not in tracked]
         search = self._search_due(stamp_ns, waiting)

@@ -134,9 +134,17 @@ def crops_from_keypoints_2d(
     return center, side, rot
 
 
-# Least crop side / (margin x body_length at the pelvis' depth): below the extent of a standing
-# person (whose crops stay as they were), above that of a body foreshortened in the view.
+# Least crop side / (margin x body_length at the pelvis' depth): below the extent of a person
+# upright in the view (whose crops stay as they were: tight crops gave the demo's real videos
+# their best reprojection), above that of a body foreshortened in the view.
 BODY_FRACTION = 0.8
+# The same for a body whose trunk leans TURNED_LEAN[1] or more from the world's up (z; from
+# TURNED_LEAN[0], where people bending over still get BODY_FRACTION, linear): above an upright person's extent, so that a body lying, rolling or getting up keeps the scale
+# BlazePose was trained at (with BODY_FRACTION the CNN lost such bodies, docs/benchmarks.md
+# "Session 35"). Several people tracked at once keep BODY_FRACTION: a larger crop takes in
+# the person beside.
+TURNED_BODY_FRACTION = 1.1
+TURNED_LEAN = (np.radians(45.0), np.radians(90.0))
 
 
 def body_length(keypoints: np.ndarray) -> float:
@@ -156,13 +164,15 @@ def crops_from_skeleton(
     keypoints: np.ndarray,
     rotation: np.ndarray | None = None,
     margin: float = 1.25,
+    turned_fraction: float = TURNED_BODY_FRACTION,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Crops for every camera from the current 3D skeleton (25, 3) in KEYPOINTS order (metres).
 
     Projects with `rig.project` (lens distortion included); points behind a camera are ignored.
     rotation: (C,) per-camera trunk tilt (e.g. `tracker.trunk_tilt(rig, keypoints)`); default
     computed here from the projected pelvis -> neck vector; pass zeros for upright crops.
-    The side is at least BODY_FRACTION x margin x body_length imaged at the pelvis' depth.
+    The side is at least BODY_FRACTION (up to `turned_fraction` for a body whose trunk leans from
+    the world's up) x margin x body_length imaged at the pelvis' depth.
     Returns centre (C, 2), side (C,), rotation (C,), usable (C,) bool (False: the body is not
     in front of the camera or its crop lies entirely outside the image).
     """
@@ -175,13 +185,19 @@ def crops_from_skeleton(
     # The 2D extent shrinks with the pose (lying along a camera's line of sight, crouching), but
     # BlazePose expects the person at a pose-independent scale (MediaPipe's crop: 2.5 x hips to
     # head-top): a crop fitted to a foreshortened body was half the detector's, and the hips came
-    # out 20-70 px off with presence ~0. So the side is at least BODY_FRACTION x `margin` x the
+    # out 20-70 px off with presence ~0. So the side is at least a fraction of `margin` x the
     # body's length (legs + trunk + neck to nose, pose-independent) imaged at the pelvis' depth.
     size = body_length(kp)
     depth = rig.to_camera_frames(kp[INDEX["pelvis"]][None])[:, 0, 2]  # (C,)
     focal = np.array([c.K[0, 0] for c in rig.cameras])
+    # the trunk's lean from the world's up, the same in every view (a camera mounted rolled
+    # sees an upright body upside down: its crop stays an upright body's)
+    trunk = kp[INDEX["neck"]] - kp[INDEX["pelvis"]]
+    n = float(np.linalg.norm(trunk))
+    lean = float(np.arccos(np.clip(trunk[2] / n, -1.0, 1.0))) if np.isfinite(n) and n > 0 else 0.0
+    fraction = BODY_FRACTION + (max(turned_fraction, BODY_FRACTION) - BODY_FRACTION) * float(np.clip((lean - TURNED_LEAN[0]) / (TURNED_LEAN[1] - TURNED_LEAN[0]), 0.0, 1.0))
     with np.errstate(divide="ignore", invalid="ignore"):
-        least = np.where((depth > 0) & np.isfinite(size), BODY_FRACTION * margin * size * focal / depth, 0.0)
+        least = np.where((depth > 0) & np.isfinite(size), fraction * margin * size * focal / depth, 0.0)
     side = np.where(np.isfinite(side), np.maximum(side, least), side)
     wh = np.array([[c.width, c.height] for c in rig.cameras], dtype=np.float64)
     half = np.where(np.isfinite(side), side, 0.0)[:, None] * 0.7072  # circumradius of the square

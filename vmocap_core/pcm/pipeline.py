@@ -20,7 +20,7 @@ from ..keypoints import INDEX, KEYPOINTS
 from .blazepose import DEFAULT_ROTATION, MIN_TILT, BlazePoseLandmark, rotated_crops
 from .census import Census
 from .choice import choose_subject
-from .crops import Crops, crops_from_skeleton
+from .crops import TURNED_BODY_FRACTION, Crops, crops_from_skeleton
 from .detector import Detection, PoseDetector
 from .model import DEFAULT_THREADS
 from .runner import DEFAULT_PARALLEL
@@ -109,9 +109,11 @@ class BlazePosePcm:
         cams = [c for c in range(len(found)) if choice.index[c] >= 0]
         return Crops.from_rectangles(cams, [found[c][choice.index[c]].crop() for c in cams])
 
-    def crops_from_skeleton(self, keypoints: np.ndarray, tilt: np.ndarray | None = None) -> Crops:
-        """Tracking crops from the skeleton (25, 3); tilt (C,) overrides the computed trunk tilt."""
-        centre, side, rot, usable = crops_from_skeleton(self.rig, keypoints, tilt, self.margin)
+    def crops_from_skeleton(self, keypoints: np.ndarray, tilt: np.ndarray | None = None,
+                            turned_fraction: float = TURNED_BODY_FRACTION) -> Crops:
+        """Tracking crops from the skeleton (25, 3); tilt (C,) overrides the computed trunk tilt;
+        turned_fraction: the least side's for a body turned in the view (crops.py)."""
+        centre, side, rot, usable = crops_from_skeleton(self.rig, keypoints, tilt, self.margin, turned_fraction)
         cams = np.flatnonzero(usable)
         return rotated_crops(cams, centre[cams], side[cams], rot[cams], self.rotation, self.min_tilt)
 
