@@ -27,6 +27,7 @@ import numpy as np
 from ..calibration import datasets
 from ..errors import VmocapError
 from ..keypoints import INDEX
+from ..method.rotation import trunk_lean
 from ..method.skeleton import BodyDimensions, Skeleton
 from .markers import Z_TO_Y_UP, write_marker_trc
 from .opensim_ik import IKResult, inverse_kinematics  # noqa: F401 (inverse_kinematics re-exported)
@@ -135,8 +136,7 @@ def upright_stretch(keypoints: np.ndarray, rate_hz: float) -> slice | None:
     of them; None when there is none. Gaps (NaN) are never upright."""
     P = {k: keypoints[:, INDEX[k]] for k in ("pelvis", "neck", "left_hip", "left_knee", "left_ankle",
                                              "right_hip", "right_knee", "right_ankle")}
-    trunk = P["neck"] - P["pelvis"]
-    tilt = np.degrees(np.arccos(np.clip(trunk[:, 2] / np.linalg.norm(trunk, axis=1), -1.0, 1.0)))
+    tilt = np.degrees(trunk_lean(keypoints))
     ok = tilt <= UPRIGHT_TRUNK_DEG  # NaN compares false
     score = tilt.copy()
     for s in ("left", "right"):

@@ -16,3 +16,12 @@ def trunk_tilt(rig: Rig, keypoints: np.ndarray) -> np.ndarray:
     uv, _ = rig.project(pts)  # (C, 2, 2)
     d = uv[:, 1] - uv[:, 0]
     return np.arctan2(d[:, 0], -d[:, 1])
+
+
+def trunk_lean(keypoints: np.ndarray) -> np.ndarray:
+    """The angle (radians, (...,)) of the pelvis->neck vector from the world's up (z) for
+    keypoints (..., 25, 3): 0 upright, pi upside down; NaN where the trunk is unknown."""
+    kp = np.asarray(keypoints, dtype=np.float64)
+    trunk = kp[..., INDEX["neck"], :] - kp[..., INDEX["pelvis"], :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.arccos(np.clip(trunk[..., 2] / np.linalg.norm(trunk, axis=-1), -1.0, 1.0))

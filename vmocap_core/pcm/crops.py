@@ -22,6 +22,7 @@ import numpy as np
 from ..cameras.projection import Rig
 from ..errors import ModelError
 from ..keypoints import INDEX, KEYPOINTS
+from ..method.rotation import trunk_lean
 
 MIN_SIDE_PX = 32.0  # a crop smaller than this says nothing useful (and guards division by 0)
 
@@ -138,11 +139,11 @@ def crops_from_keypoints_2d(
 # upright in the view (whose crops stay as they were: tight crops gave the demo's real videos
 # their best reprojection), above that of a body foreshortened in the view.
 BODY_FRACTION = 0.8
-# The same for a body whose trunk leans TURNED_LEAN[1] or more from the world's up (z; from
-# TURNED_LEAN[0], where people bending over still get BODY_FRACTION, linear): above an upright person's extent, so that a body lying, rolling or getting up keeps the scale
-# BlazePose was trained at (with BODY_FRACTION the CNN lost such bodies, docs/benchmarks.md
-# "Session 35"). Several people tracked at once keep BODY_FRACTION: a larger crop takes in
-# the person beside.
+# The same for a body whose trunk leans TURNED_LEAN[1] or more from the world's up (z), linear
+# from TURNED_LEAN[0] (people bending over keep BODY_FRACTION): above an upright person's
+# extent, so that a body lying, rolling or getting up keeps the scale BlazePose was trained at
+# (with BODY_FRACTION the CNN lost such bodies, docs/benchmarks.md "Session 35"). Several people
+# tracked at once keep BODY_FRACTION: a larger crop takes in the person beside.
 TURNED_BODY_FRACTION = 1.1
 TURNED_LEAN = (np.radians(45.0), np.radians(90.0))
 
@@ -192,10 +193,8 @@ def crops_from_skeleton(
     focal = np.array([c.K[0, 0] for c in rig.cameras])
     # the trunk's lean from the world's up, the same in every view (a camera mounted rolled
     # sees an upright body upside down: its crop stays an upright body's)
-    trunk = kp[INDEX["neck"]] - kp[INDEX["pelvis"]]
-    n = float(np.linalg.norm(trunk))
-    lean = float(np.arccos(np.clip(trunk[2] / n, -1.0, 1.0))) if np.isfinite(n) and n > 0 else 0.0
-    fraction = BODY_FRACTION + (max(turned_fraction, BODY_FRACTION) - BODY_FRACTION) * float(np.clip((lean - TURNED_LEAN[0]) / (TURNED_LEAN[1] - TURNED_LEAN[0]), 0.0, 1.0))
+    turn = np.clip((np.nan_to_num(trunk_lean(kp)) - TURNED_LEAN[0]) / (TURNED_LEAN[1] - TURNED_LEAN[0]), 0.0, 1.0)
+    fraction = BODY_FRACTION + (turned_fraction - BODY_FRACTION) * float(turn)
     with np.errstate(divide="ignore", invalid="ignore"):
         least = np.where((depth > 0) & np.isfinite(size), fraction * margin * size * focal / depth, 0.0)
     side = np.where(np.isfinite(side), np.maximum(side, least), side)

@@ -112,7 +112,7 @@ class BlazePosePcm:
     def crops_from_skeleton(self, keypoints: np.ndarray, tilt: np.ndarray | None = None,
                             turned_fraction: float = TURNED_BODY_FRACTION) -> Crops:
         """Tracking crops from the skeleton (25, 3); tilt (C,) overrides the computed trunk tilt;
-        turned_fraction: the least side's for a body turned in the view (crops.py)."""
+        turned_fraction: the least side's for a trunk leaning from the world's up (crops.py)."""
         centre, side, rot, usable = crops_from_skeleton(self.rig, keypoints, tilt, self.margin, turned_fraction)
         cams = np.flatnonzero(usable)
         return rotated_crops(cams, centre[cams], side[cams], rot[cams], self.rotation, self.min_tilt)

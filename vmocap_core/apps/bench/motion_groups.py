@@ -16,6 +16,7 @@ import numpy as np
 
 from ...errors import VmocapError
 from ...keypoints import INDEX
+from ...method.rotation import trunk_lean
 
 GROUPS = ("regular", "inverted", "floor")
 LOW_PELVIS = 0.6  # x leg length (hip-knee-ankle): a standing pelvis is at ~1.0, a kneeling one at ~0.5
@@ -35,8 +36,7 @@ def group_features(positions: np.ndarray) -> dict[str, float]:
             for s in ("left", "right")]
     leg = float(np.median(np.concatenate(legs)))
     ground = float(np.nanmin(positions[..., 2]))
-    trunk = P["neck"] - P["pelvis"]
-    tilt = np.degrees(np.arccos(np.clip(trunk[:, 2] / np.linalg.norm(trunk, axis=1), -1.0, 1.0)))
+    tilt = np.degrees(trunk_lean(positions))
     return {"low_pelvis_share": float(np.mean(P["pelvis"][:, 2] - ground < LOW_PELVIS * leg)),
             "upside_down_share": float(np.mean(tilt > UPSIDE_DOWN_DEG)), "leg_m": leg}
 
