@@ -14,12 +14,14 @@ from vmocap_core.pcm.blazepose import rotated_crops
 from vmocap_core.pcm.blazepose_net import CROP_TO_MAP
 from vmocap_core.pcm.crops import (
     BODY_FRACTION,
+    COMPACT_HEIGHT,
     TURNED_BODY_FRACTION,
     Crops,
     body_length,
     compose_affine,
     crop_affine,
     crops_from_skeleton,
+    stance_height,
     tilt_from_points,
 )
 from vmocap_core.pcm.model import letterbox_affine
@@ -155,8 +157,8 @@ def test_crop_side_does_not_shrink_with_foreshortening() -> None:
 
 def test_a_body_lying_keeps_the_scale_of_a_standing_one() -> None:
     """A trunk leaning from the world's up gets the larger least side (TURNED_BODY_FRACTION at
-    90 degrees and more: lying, upside down), a body bending over up to 45 degrees the upright
-    one, whatever the cameras' roll."""
+    90 degrees and more: lying, upside down), and so does a body whose height is short of a
+    standing one's (sitting); a body bending over up to 45 degrees keeps the upright one."""
     rig = _rig()
     standing = _standing()
     lying = standing.copy()  # the same body turned about the x axis onto its back, at 0.3 m
@@ -179,6 +181,15 @@ def test_a_body_lying_keeps_the_scale_of_a_standing_one() -> None:
     np.testing.assert_allclose(side_bent, side_old)
     _, side_people, _, _ = crops_from_skeleton(rig, lying, turned_fraction=BODY_FRACTION)
     assert (side_people <= side + 1e-9).all() and (side_people < side).any()
+    # sitting on the floor, trunk upright, legs out in front: not standing either
+    sitting = standing - [0.0, 0.0, 0.85]
+    legs = np.array([k.split("_")[-1] in ("knee", "ankle", "heel", "toe") for k in KEYPOINTS])
+    sitting[legs, 2] = 0.1
+    sitting[legs, 0] = np.where([k.endswith("knee") for k in np.array(KEYPOINTS)[legs]], 0.45, 0.95)
+    assert stance_height(sitting) < COMPACT_HEIGHT[0] < COMPACT_HEIGHT[1] < stance_height(standing)
+    _, side_sitting, _, _ = crops_from_skeleton(rig, sitting)
+    assert (side_sitting >= least(sitting, TURNED_BODY_FRACTION) - 1e-9).all()
+    assert np.isclose(side_sitting, least(sitting, TURNED_BODY_FRACTION)).any()
 
 
 def test_rotated_crops_variants() -> None:

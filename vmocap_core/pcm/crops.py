@@ -139,13 +139,19 @@ def crops_from_keypoints_2d(
 # upright in the view (whose crops stay as they were: tight crops gave the demo's real videos
 # their best reprojection), above that of a body foreshortened in the view.
 BODY_FRACTION = 0.8
-# The same for a body whose trunk leans TURNED_LEAN[1] or more from the world's up (z), linear
-# from TURNED_LEAN[0] (people bending over keep BODY_FRACTION): above an upright person's
-# extent, so that a body lying, rolling or getting up keeps the scale BlazePose was trained at
-# (with BODY_FRACTION the CNN lost such bodies, docs/benchmarks.md "Session 35"). Several people
-# tracked at once keep BODY_FRACTION: a larger crop takes in the person beside.
+# The same for a body that is not standing: above an upright person's extent, so that a body
+# lying, rolling, crouching or getting up keeps the scale BlazePose was trained at (with
+# BODY_FRACTION the CNN lost such bodies, docs/benchmarks.md "Session 35"). Reached, linearly,
+# when the trunk leans TURNED_LEAN[1] or more from the world's up (z), or when the body's height
+# along z (head, trunk and legs: the arms say nothing of the stance) is COMPACT_HEIGHT[0] x
+# body_length or less; whichever is further along. People bending over with their legs under
+# them keep BODY_FRACTION (the demo's subject: trunk lean up to 43 degrees, height 0.76-0.90).
+# Several people tracked at once keep BODY_FRACTION: a larger crop takes in the person beside.
 TURNED_BODY_FRACTION = 1.1
 TURNED_LEAN = (np.radians(45.0), np.radians(90.0))
+COMPACT_HEIGHT = (0.45, 0.7)
+_STANCE = [INDEX[k] for k in ("nose", "neck", "pelvis", "left_hip", "right_hip", "left_knee", "right_knee",
+                              "left_ankle", "right_ankle")]
 
 
 def body_length(keypoints: np.ndarray) -> float:
@@ -160,6 +166,15 @@ def body_length(keypoints: np.ndarray) -> float:
     return float(leg + d("pelvis", "neck") + d("neck", "nose"))
 
 
+def stance_height(keypoints: np.ndarray) -> float:
+    """The extent along the world's up (z) of a skeleton's (25, 3) head, trunk and legs over its
+    body_length: about 0.9 standing, below 0.5 sitting, crouching or lying (NaN when unknown)."""
+    kp = np.asarray(keypoints, dtype=np.float64)
+    z = kp[_STANCE, 2]
+    z = z[np.isfinite(z)]
+    return float((z.max() - z.min()) / body_length(kp)) if z.size >= 2 else float("nan")
+
+
 def crops_from_skeleton(
     rig: Rig,
     keypoints: np.ndarray,
@@ -172,8 +187,8 @@ def crops_from_skeleton(
     Projects with `rig.project` (lens distortion included); points behind a camera are ignored.
     rotation: (C,) per-camera trunk tilt (e.g. `tracker.trunk_tilt(rig, keypoints)`); default
     computed here from the projected pelvis -> neck vector; pass zeros for upright crops.
-    The side is at least BODY_FRACTION (up to `turned_fraction` for a body whose trunk leans from
-    the world's up) x margin x body_length imaged at the pelvis' depth.
+    The side is at least BODY_FRACTION (up to `turned_fraction` for a body lying, crouching or
+    turned over) x margin x body_length imaged at the pelvis' depth.
     Returns centre (C, 2), side (C,), rotation (C,), usable (C,) bool (False: the body is not
     in front of the camera or its crop lies entirely outside the image).
     """
@@ -191,10 +206,11 @@ def crops_from_skeleton(
     size = body_length(kp)
     depth = rig.to_camera_frames(kp[INDEX["pelvis"]][None])[:, 0, 2]  # (C,)
     focal = np.array([c.K[0, 0] for c in rig.cameras])
-    # the trunk's lean from the world's up, the same in every view (a camera mounted rolled
-    # sees an upright body upside down: its crop stays an upright body's)
-    turn = np.clip((np.nan_to_num(trunk_lean(kp)) - TURNED_LEAN[0]) / (TURNED_LEAN[1] - TURNED_LEAN[0]), 0.0, 1.0)
-    fraction = BODY_FRACTION + (turned_fraction - BODY_FRACTION) * float(turn)
+    # how far from standing the body is, the same in every view (a camera mounted rolled sees an
+    # upright body upside down: its crop stays an upright body's)
+    turn = max(float(np.clip((np.nan_to_num(trunk_lean(kp)) - TURNED_LEAN[0]) / (TURNED_LEAN[1] - TURNED_LEAN[0]), 0.0, 1.0)),
+               float(np.clip((COMPACT_HEIGHT[1] - np.nan_to_num(stance_height(kp), nan=1.0)) / (COMPACT_HEIGHT[1] - COMPACT_HEIGHT[0]), 0.0, 1.0)))
+    fraction = BODY_FRACTION + (turned_fraction - BODY_FRACTION) * turn
     with np.errstate(divide="ignore", invalid="ignore"):
         least = np.where((depth > 0) & np.isfinite(size), fraction * margin * size * focal / depth, 0.0)
     side = np.where(np.isfinite(side), np.maximum(side, least), side)
