@@ -166,13 +166,20 @@ def body_length(keypoints: np.ndarray) -> float:
     return float(leg + d("pelvis", "neck") + d("neck", "nose"))
 
 
-def stance_height(keypoints: np.ndarray) -> float:
+def stance_height(keypoints: np.ndarray, length: float | None = None) -> float:
     """The extent along the world's up (z) of a skeleton's (25, 3) head, trunk and legs over its
-    body_length: about 0.9 standing, below 0.5 sitting, crouching or lying (NaN when unknown)."""
+    body_length (`length`, when the caller has it): about 0.9 standing, below 0.5 sitting,
+    crouching or lying (NaN when unknown)."""
     kp = np.asarray(keypoints, dtype=np.float64)
     z = kp[_STANCE, 2]
     z = z[np.isfinite(z)]
-    return float((z.max() - z.min()) / body_length(kp)) if z.size >= 2 else float("nan")
+    size = body_length(kp) if length is None else length
+    return float((z.max() - z.min()) / size) if z.size >= 2 else float("nan")
+
+
+def _ramp(x: float, start: float, full: float) -> float:
+    """0 at `start`, 1 at `full` (either order), linear between, clipped; 0 where x is unknown."""
+    return float(np.nan_to_num(np.clip((x - start) / (full - start), 0.0, 1.0)))
 
 
 def crops_from_skeleton(
@@ -208,8 +215,7 @@ def crops_from_skeleton(
     focal = np.array([c.K[0, 0] for c in rig.cameras])
     # how far from standing the body is, the same in every view (a camera mounted rolled sees an
     # upright body upside down: its crop stays an upright body's)
-    turn = max(float(np.clip((np.nan_to_num(trunk_lean(kp)) - TURNED_LEAN[0]) / (TURNED_LEAN[1] - TURNED_LEAN[0]), 0.0, 1.0)),
-               float(np.clip((COMPACT_HEIGHT[1] - np.nan_to_num(stance_height(kp), nan=1.0)) / (COMPACT_HEIGHT[1] - COMPACT_HEIGHT[0]), 0.0, 1.0)))
+    turn = max(_ramp(float(trunk_lean(kp)), *TURNED_LEAN), _ramp(stance_height(kp, size), COMPACT_HEIGHT[1], COMPACT_HEIGHT[0]))
     fraction = BODY_FRACTION + (turned_fraction - BODY_FRACTION) * turn
     with np.errstate(divide="ignore", invalid="ignore"):
         least = np.where((depth > 0) & np.isfinite(size), fraction * margin * size * focal / depth, 0.0)
