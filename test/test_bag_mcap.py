@@ -11,6 +11,7 @@ import pytest
 from vmocap_core.bag import BagReader, BagWriter, cdr
 from vmocap_core.bag import messages as M
 from vmocap_core.errors import BagError
+from vmocap_core.keypoints import KEYPOINTS
 
 
 def _image(k: int) -> dict:
@@ -230,6 +231,46 @@ def test_pcm_messages_without_data_decode_like_the_data() -> None:
     mixed = M.pcm_views([full[0], pairs[1], pairs[2]], rig, kp)
     assert np.array_equal(mixed.maps, with_data.maps, equal_nan=True) and np.array_equal(mixed.presence, with_data.presence)
     assert np.array_equal(mixed.visibility, with_data.visibility)
+
+
+def test_the_others_in_view_travel_with_the_pcm_and_the_markers() -> None:
+    """The census's count (PcmViews.others) reaches vmocap_skeleton: in the PCM messages'
+    extra channel (with or without data) and in the checked markers' cloud; messages from
+    before it (no extra channel, the older cloud layout) read as not known (-1)."""
+    from vmocap_core.method.consistency import ViewCheck
+    from vmocap_core.method.results import Markers
+    from vmocap_core.outputs.messages import markers_from_message, markers_message
+    from vmocap_core.pcm.synthetic import benchmark_rig
+    from vmocap_core.pcm.views import PcmViews, stride_affine
+
+    rig = benchmark_rig()
+    kp = np.array([0, 1, 7])
+    views = PcmViews(maps=np.random.default_rng(4).random((2, 3, 12, 16)), image_to_map=np.stack([stride_affine(16)] * 2),
+                     camera=[0, 1], keypoints=kp, valid=np.ones((2, 3), bool), presence=[1.0, 1.0], stamp_ns=5)
+    assert M.pcm_msgs(views, rig)[0][0]["encoding"] == "32FC4" and M.pcm_views(M.pcm_msgs(views, rig), rig, kp).others == -1
+    for others in (0, 3):
+        views.others = others
+        wire = [(cdr.decode("sensor_msgs/msg/Image", cdr.encode("sensor_msgs/msg/Image", i)), c)
+                for i, c in M.pcm_msgs(views, rig)]
+        back = M.pcm_views(wire, rig, kp)
+        assert back.others == others and np.array_equal(back.visibility, np.ones((2, 3)))
+        assert M.pcm_views(M.pcm_msgs(views, rig, data=False), rig, kp).others == others
+    n = len(KEYPOINTS)
+    check = ViewCheck(np.ones(n), np.zeros(n, np.uint32), np.ones(n, np.uint32))
+    markers = Markers(5, np.zeros((n, 3)), np.ones(n), "lattice", check=check, others=2)
+    msg = markers_message(markers)
+    assert markers_from_message(msg).others == 2
+    markers.others = -1
+    assert markers_from_message(markers_message(markers)).others == -1
+    # the layout before the field: the same points without `others`
+    pts = np.frombuffer(msg["data"], dtype=M.CHECKED_DTYPE)
+    old = np.zeros(len(pts), dtype=M.CHECKED_V2_DTYPE)
+    for name in M.CHECKED_V2_DTYPE.names:
+        old[name] = pts[name]
+    msg_v2 = dict(msg, fields=msg["fields"][:len(M.CHECKED_V2_DTYPE.names)], point_step=M.CHECKED_V2_DTYPE.itemsize,
+                  row_step=M.CHECKED_V2_DTYPE.itemsize * len(old), data=old.tobytes())
+    back = markers_from_message(msg_v2)
+    assert back.others == -1 and back.check is not None and np.array_equal(back.check.agree, check.agree)
 
 
 def test_camera_info_mismatch_is_reported() -> None:

@@ -77,7 +77,7 @@ def test_check_agrees_with_consistent_maps_and_names_a_displaced_keypoint():
     old = np.zeros(len(pts), M.CHECKED_V1_DTYPE)
     for name in M.CHECKED_V1_DTYPE.names:
         old[name] = pts[name]
-    msg = {**msg, "fields": msg["fields"][:-1], "point_step": M.CHECKED_V1_DTYPE.itemsize,
+    msg = {**msg, "fields": msg["fields"][:len(M.CHECKED_V1_DTYPE.names)], "point_step": M.CHECKED_V1_DTYPE.itemsize,
            "row_step": M.CHECKED_V1_DTYPE.itemsize * len(old), "data": old.tobytes()}
     legacy = markers_from_message(msg)
     assert legacy.check is not None and legacy.check.agree is None and legacy.check.support is None
@@ -348,3 +348,32 @@ def test_a_track_back_from_doubt_on_another_body_is_lost_and_looks_where_the_sub
         else:  # tracking again on the body the markers slid to
             assert statuses[100:112] == ["uncertain"] * 12 and statuses[-1] == "tracking", statuses[100:]
             assert "lost" not in statuses
+
+
+def test_a_body_off_its_path_is_the_subject_when_nobody_else_is_in_view():
+    """The path gate (path_gate.py) ends a track that comes back from doubt far from where the
+    subject was heading: it has slid onto someone else. From frame set 100 half the views' maps
+    are flat (uncertain) while the body darts 0.5 m sideways in 0.2 s (a flip, a dive); the
+    views agree again at 112. When the detector's census counted nobody else in view
+    (`PcmViews.others` 0) the body is the subject and the track goes on; someone else in view
+    (1) or no count (-1, e.g. census off): lost, looked for where the subject was heading."""
+    m = _motion()
+    dart = np.clip((np.arange(len(m.positions)) - 100) / 12.0, 0.0, 1.0)  # 0 -> 1 over frame sets 100-112
+    walk = np.nanmean(np.diff(m.positions[:100, INDEX["pelvis"], :2], axis=0), axis=0)
+    side = np.array([-walk[1], walk[0], 0.0]) / np.linalg.norm(walk)
+    positions = m.positions + 0.5 * dart[:, None, None] * side
+    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
+    source = SyntheticPcmSource(rig, positions, m.present, seed=4, noise=CLEAN)
+    for others in (0, 1, -1):
+        tracker = Pipeline(rig, PipelineConfig.of(fps=60.0))
+        statuses = []
+        for t in range(150):
+            pcm = source.render(t)
+            pcm = _blank(pcm, [2, 3]) if 100 <= t < 112 else pcm
+            pcm.others = others
+            statuses.append(tracker.step(pcm).status)
+        assert statuses[60:100] == ["tracking"] * 40 and "uncertain" in statuses[100:112], (others, statuses[95:])
+        if others == 0:
+            assert "lost" not in statuses[100:] and statuses[125:] == ["tracking"] * 25, statuses[95:]
+        else:
+            assert "lost" in statuses[112:125], (others, statuses[95:])

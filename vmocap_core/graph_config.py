@@ -122,7 +122,8 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("inference_thread", True, "run the CNN in a thread of its own, beside the spin loop (the process's "
               "other nodes work while it runs); false: inside the subscription callback"),
         Param("census_every", 15, "while tracking, the CNN's detector looks for other people (diagnostics "
-              "others_in_view) on one camera every this many frame sets, in a thread at the lowest CPU priority "
+              "others_in_view; with nobody else counted, vmocap_skeleton's path gate lets a track far off the "
+              "subject's path go on) on one camera every this many frame sets, in a thread at the lowest CPU priority "
               "(frame sets never wait for it; skipped while the last look runs); 0: only at initialization", 0, 1000000),
     ],
     "vmocap_people": [],  # filled below: the CNN's parameters of vmocap_pcm and its own

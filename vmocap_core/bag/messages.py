@@ -9,8 +9,9 @@ PCM message (one per view and frame set), a pair with the same header:
   graph config's `pcm.keypoints`; a channel that is all NaN means "this view says nothing about
   that keypoint" (`PcmViews.valid` False). Channel J is constant: the view's `presence`.
   Channel J + 1, present when the maps were weighed by the CNN's landmark visibility
-  (`PcmViews.visibility`, not all ones): its first J cells (row-major) hold the J keypoints'
-  visibility, the other cells 0.
+  (`PcmViews.visibility`, not all ones) or the census counted the others in view
+  (`PcmViews.others` >= 0): its first J cells (row-major) hold the J keypoints' visibility,
+  cell J holds others + 1 (0: not known), the other cells 0.
   `header.frame_id` is the camera name (as in the rig), `header.stamp` the capture time.
 - `sensor_msgs/CameraInfo` of the heatmap as a camera: width W, height H, the camera's own D
   and distortion model, K = A K_cam with A the 3x3 form of `image_to_map`
@@ -58,13 +59,16 @@ _MARKERS_FIELDS = _CLOUD_FIELDS + [
 ]
 # Lattice markers that follow a fed-back skeleton carry that skeleton's check against the images
 # (method/consistency.py): per keypoint the fraction of agreeing views and the cameras that
-# disagree and agree (recordings made before the `agree` field still read, without it).
+# disagree and agree, and in every point the others in view the census counted + 1 (0: not
+# known); recordings made before the `agree` or `others` field still read, without it.
 CHECKED_V1_DTYPE = np.dtype(MARKERS_DTYPE.descr + [("confidence", "<f8"), ("disagree", "<u4")])
-CHECKED_DTYPE = np.dtype(CHECKED_V1_DTYPE.descr + [("agree", "<u4")])
+CHECKED_V2_DTYPE = np.dtype(CHECKED_V1_DTYPE.descr + [("agree", "<u4")])
+CHECKED_DTYPE = np.dtype(CHECKED_V2_DTYPE.descr + [("others", "<u4")])
 _CHECKED_FIELDS = _MARKERS_FIELDS + [
     {"name": "confidence", "offset": 52, "datatype": 8, "count": 1},
     {"name": "disagree", "offset": 60, "datatype": 6, "count": 1},
     {"name": "agree", "offset": 64, "datatype": 6, "count": 1},
+    {"name": "others", "offset": 68, "datatype": 6, "count": 1},
 ]
 
 
@@ -190,10 +194,10 @@ def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, d
     Images carry no `data` but refer to `views` (PCM_VIEW), for receivers in this process
     only (`pcm_views` reads them; CDR would encode them empty)."""
     V, J, H, W = views.maps.shape
-    weighed = bool(np.any(views.visibility != 1.0))
-    N = J + 2 if weighed else J + 1
-    if weighed and H * W < J:
-        raise HeatmapError(f"{W}x{H} maps cannot carry {J} keypoints' visibility")
+    extra = bool(np.any(views.visibility != 1.0)) or views.others >= 0
+    N = J + 2 if extra else J + 1
+    if extra and H * W <= J:
+        raise HeatmapError(f"{W}x{H} maps cannot carry {J} keypoints' visibility and the others in view")
     if data:
         # all views at once: (V, H, W, N) interleaved, invalid channels NaN, presence (and visibility) last
         stack = np.empty((V, H, W, N), dtype=np.float32)
@@ -202,9 +206,10 @@ def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, d
         if invalid.any():
             stack[..., :J] = np.where(invalid[:, None, None, :], np.float32(np.nan), stack[..., :J])
         stack[..., J] = np.asarray(views.presence, dtype=np.float32)[:, None, None]
-        if weighed:
+        if extra:
             plane = np.zeros((V, H * W), dtype=np.float32)
             plane[:, :J] = views.visibility
+            plane[:, J] = max(views.others, -1) + 1
             stack[..., J + 1] = plane.reshape(V, H, W)
     out = []
     for v in range(V):
@@ -249,10 +254,12 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         maps[~np.asarray(views.valid, dtype=bool)] = np.nan
         presence = np.asarray(views.presence, dtype=np.float32).astype(np.float64)
         visibility = np.asarray(views.visibility, dtype=np.float32).astype(np.float64)
+        others = views.others
     else:
         maps = np.empty((V, J, H, W), dtype=np.float32)
         presence = np.zeros(V)
         visibility = np.ones((V, J))
+        others = -1  # the most any view says (every view of a frame set carries the same count)
         for i, ((img, _), source) in enumerate(zip(pairs, sources)):
             if source is None:
                 arr = image_array(img)  # (H, W, J + 1 or J + 2), channels interleaved
@@ -260,13 +267,17 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
                 if H * W:
                     presence[i] = arr[0, 0, J]
                 if arr.shape[-1] == J + 2:
-                    visibility[i] = arr[..., J + 1].reshape(-1)[:J]
+                    extra = arr[..., J + 1].reshape(-1)
+                    visibility[i] = extra[:J]
+                    if extra.size > J:
+                        others = max(others, int(extra[J]) - 1)
             else:
                 views, v = source
                 maps[i] = views.maps[v]
                 maps[i][~np.asarray(views.valid[v], dtype=bool)] = np.nan
                 presence[i] = np.float32(views.presence[v])
                 visibility[i] = views.visibility[v].astype(np.float32)
+                others = max(others, views.others)
     # (V, J): an all-NaN channel says nothing; only a channel whose first cell is NaN can be one
     flat = maps.reshape(V * J, H * W)
     valid: np.ndarray = np.full(V * J, H * W > 0)  # an empty map says nothing either
@@ -286,16 +297,19 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         presence=presence,
         stamp_ns=stamp_ns(pairs[0][0]),
         visibility=visibility,
+        others=others,
     )
 
 
 # ------------------------------------------------------------------------------- clouds
 def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | None = None, kind: str = "none",
                    residual_px: np.ndarray | None = None, cameras: np.ndarray | None = None,
-                   frame_id: str = WORLD_FRAME, check: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> dict:
+                   frame_id: str = WORLD_FRAME, check: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                   others: int = -1) -> dict:
     """PointCloud2 of the 25 KEYPOINTS (positions None: an empty cloud, e.g. 'lost'); with
     `residual_px` and `cameras` the virtual markers' layout (MARKERS_DTYPE), with `check` too
-    (confidence, disagree, agree) that of checked markers (CHECKED_DTYPE)."""
+    (confidence, disagree, agree) and `others` (-1: not known) that of checked markers
+    (CHECKED_DTYPE)."""
     markers = residual_px is not None
     checked = markers and check is not None
     dtype, fields = ((CHECKED_DTYPE, _CHECKED_FIELDS) if checked else (MARKERS_DTYPE, _MARKERS_FIELDS) if markers
@@ -317,6 +331,7 @@ def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | N
             pts["confidence"] = np.asarray(check[0], dtype=np.float64)
             pts["disagree"] = np.asarray(check[1], dtype=np.uint32)
             pts["agree"] = np.asarray(check[2], dtype=np.uint32)
+            pts["others"] = max(int(others), -1) + 1
     return {
         "header": header(ns, frame_id),
         "height": 1,
@@ -333,7 +348,7 @@ def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | N
 def _cloud_points(msg: dict) -> np.ndarray:
     n = msg["width"] * msg["height"]
     names = [f["name"] for f in msg["fields"]]
-    for dtype in (CLOUD_DTYPE, MARKERS_DTYPE, CHECKED_DTYPE, CHECKED_V1_DTYPE):
+    for dtype in (CLOUD_DTYPE, MARKERS_DTYPE, CHECKED_DTYPE, CHECKED_V2_DTYPE, CHECKED_V1_DTYPE):
         if names == list(dtype.names) and msg["point_step"] == dtype.itemsize:
             return np.frombuffer(msg["data"], dtype=dtype, count=n)
     raise BagError(f"point cloud fields {names} are not vmocap's keypoint layout")
@@ -374,7 +389,7 @@ def cloud_marker_extras(msg: dict) -> tuple[np.ndarray, np.ndarray]:
     residual, cameras = np.full(len(KEYPOINTS), np.nan), np.zeros(len(KEYPOINTS), np.uint32)
     if msg["width"] * msg["height"]:
         pts = _cloud_points(msg)
-        if pts.dtype in (MARKERS_DTYPE, CHECKED_DTYPE, CHECKED_V1_DTYPE):
+        if pts.dtype in (MARKERS_DTYPE, CHECKED_DTYPE, CHECKED_V2_DTYPE, CHECKED_V1_DTYPE):
             ids = pts["id"].astype(np.intp)
             residual[ids], cameras[ids] = pts["residual_px"], pts["cameras"]
     return residual, cameras
@@ -386,19 +401,28 @@ def cloud_marker_check(msg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray | 
     if msg["width"] * msg["height"] == 0:
         return None
     pts = _cloud_points(msg)
-    if pts.dtype not in (CHECKED_DTYPE, CHECKED_V1_DTYPE):
+    if pts.dtype not in (CHECKED_DTYPE, CHECKED_V2_DTYPE, CHECKED_V1_DTYPE):
         return None
     confidence, disagree = np.full(len(KEYPOINTS), np.nan), np.zeros(len(KEYPOINTS), np.uint32)
     ids = pts["id"].astype(np.intp)
     confidence[ids], disagree[ids] = pts["confidence"], pts["disagree"]
     agree = None
-    if pts.dtype == CHECKED_DTYPE:
+    if pts.dtype != CHECKED_V1_DTYPE:
         agree = np.zeros(len(KEYPOINTS), np.uint32)
         agree[ids] = pts["agree"]
     return confidence, disagree, agree
 
 
 # ------------------------------------------------------------------------------- outputs
+def cloud_marker_others(msg: dict) -> int:
+    """The others in view checked markers carry; -1 (not known) for other clouds and for
+    recordings made before the field."""
+    if msg["width"] * msg["height"] == 0:
+        return -1
+    pts = _cloud_points(msg)
+    return int(pts["others"][0]) - 1 if pts.dtype == CHECKED_DTYPE else -1
+
+
 def joint_state_msg(ns: int, names: Sequence[str], q: np.ndarray) -> dict:
     return {"header": header(ns, ""), "name": list(names), "position": np.asarray(q, dtype=np.float64)}
 

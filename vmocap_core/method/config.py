@@ -186,7 +186,8 @@ class SkeletonConfig(_Stage):
     # A track back from "uncertain" whose hip centre lies horizontally farther than
     # `check_resume_max_m` from where the confirmed track was heading (its velocity carried for
     # at most `check_resume_horizon_s`) has slid onto another body: lost, and the detector
-    # looks for the subject at the expected place (path_gate.py; 0: off).
+    # looks for the subject at the expected place (path_gate.py; 0: off). Not while the
+    # detector's census counts nobody else in view (Markers.others 0): then it is the subject.
     check_resume_max_m: float = 0.3
     check_resume_horizon_s: float = 0.4
 

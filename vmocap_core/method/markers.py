@@ -80,6 +80,7 @@ class MarkerStage:
         else:
             out = self._lattice(pcm)  # the lattice search sanitizes the values it reads
         out.check = check if out.kind == "lattice" else None
+        out.others = pcm.others
         self.timings = {"lattice": time.perf_counter() - t0}
         return out
 

@@ -35,6 +35,8 @@ class Markers:
     presence: dict[str, float] | None = None  # CNN presence per camera (not in messages)
     # the previous frame set's skeleton checked against its PCMs (consistency.py; None: no skeleton was fed back)
     check: ViewCheck | None = None
+    # people besides the subject the detector's census last saw (PcmViews.others; -1: not known)
+    others: int = -1
 
 
     @property

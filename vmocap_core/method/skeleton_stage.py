@@ -195,9 +195,11 @@ class SkeletonStage:
 
     def _confirmed(self, markers: Markers, result: TrackResult, resumed: bool) -> TrackResult:
         """A frame set the images agree with: on the subject's path, or, back from doubt far
-        from it, another body (path_gate.py): lost, with where to look for the subject."""
+        from it, another body (path_gate.py): lost, with where to look for the subject. When
+        the detector's census saw nobody else in view, the body the images agree with is the
+        subject, off its path by its own motion (a flip, a dive): the track goes on."""
         pelvis = result.raw_keypoints[INDEX["pelvis"]]
-        seed = self.path.strayed(markers.stamp_ns, pelvis) if resumed else None
+        seed = self.path.strayed(markers.stamp_ns, pelvis) if resumed and markers.others != 0 else None
         if seed is not None:
             self.strayed = (float(np.linalg.norm((pelvis - seed)[:2])), self.path.bound(markers.stamp_ns))
             self.reset()

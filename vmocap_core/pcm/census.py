@@ -23,12 +23,17 @@ from .choice import others_near
 from .detector import Detection, PoseDetector
 
 LOWEST_PRIORITY = 19  # nice of the background look's thread: CPU the frame sets leave over
+EVERY = 15  # frame sets between looks (the graph's census_every): each of 4 cameras about once a second at 60 Hz
+# A count is as old as its camera's last look: with a look at some camera older than this
+# (a camera without frames, a saturated CPU, census off) the census does not know who is in view.
+STALE_S = 3.0
 
 Find = Callable[[Sequence[np.ndarray | None]], list[list[Detection]]]
 
 
 class Census:
-    """others (C,): per camera, the people besides the subject at the last look at it.
+    """others (C,): per camera, the people besides the subject at the last look at it;
+    `count(stamp_ns)`: the most in any camera, -1 when a camera's look is stale.
 
     every: a look is offered every that many `offer` calls (0: never), the cameras in turn.
     background: looks run in a low-priority thread with a detector of their own (`make_detector`);
@@ -42,25 +47,36 @@ class Census:
         self.every = int(every)
         self.others = np.zeros(len(rig), dtype=int)
         self._previous = np.zeros(len(rig), dtype=int)  # per camera, what the look before the last saw
+        self._looked_ns = np.full(len(rig), np.iinfo(np.int64).min // 2, dtype=np.int64)  # capture stamp of each camera's last look
         self.looks = 0  # looks finished
         self._find = find
         self._background = background
         self._make_detector = make_detector
         self._count = 0
         self._turn = 0
-        self._job: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._job: tuple[int, np.ndarray, np.ndarray, int] | None = None
         self._cv = threading.Condition()
         self._thread: threading.Thread | None = None
         self._closed = False
         self.error = ""  # why the last background look failed ("" none)
 
-    def found(self, others: np.ndarray) -> None:
-        """(C,) counts of a detector run on every camera made elsewhere (initialization)."""
+    def found(self, others: np.ndarray, stamp_ns: int = 0) -> None:
+        """(C,) counts of a detector run on every camera made elsewhere (initialization) on the
+        frame set captured at stamp_ns."""
         self.others[:] = others
         self._previous[:] = others
+        self._looked_ns[:] = stamp_ns
 
-    def offer(self, images: Sequence[np.ndarray | None], pelvis: np.ndarray) -> None:
-        """A tracked frame set (images in rig order, None: no frame) with the subject's pelvis (3,)."""
+    def count(self, stamp_ns: int) -> int:
+        """People besides the subject in any camera at the frame set captured at stamp_ns, -1
+        (unknown) when some camera's last look is over STALE_S before it."""
+        if stamp_ns - int(self._looked_ns.min()) > STALE_S * 1e9:
+            return -1
+        return int(self.others.max(initial=0))
+
+    def offer(self, images: Sequence[np.ndarray | None], pelvis: np.ndarray, stamp_ns: int = 0) -> None:
+        """A tracked frame set (images in rig order, None: no frame) with the subject's pelvis (3,),
+        captured at stamp_ns."""
         if self.every <= 0:
             return
         self._count += 1
@@ -70,26 +86,27 @@ class Census:
         c = have[self._turn % len(have)]
         if not self._background:
             self._turn += 1
-            self._look(c, images[c], pelvis, self._find)
+            self._look(c, images[c], pelvis, stamp_ns, self._find)
             return
         with self._cv:
             if self._job is not None or self._closed:
                 return  # the last look still runs: this one is skipped, the camera keeps its turn
             self._turn += 1
             # the frame's buffer may be reused (shared memory) once the frame set is done
-            self._job = (c, np.array(images[c], copy=True), np.array(pelvis, dtype=np.float64))
+            self._job = (c, np.array(images[c], copy=True), np.array(pelvis, dtype=np.float64), int(stamp_ns))
             if self._thread is None:
                 self._thread = threading.Thread(target=self._run, name="vmocap-census", daemon=True)
                 self._thread.start()
             self._cv.notify()
 
-    def _look(self, c: int, image: np.ndarray, pelvis: np.ndarray, find: Find) -> None:
+    def _look(self, c: int, image: np.ndarray, pelvis: np.ndarray, stamp_ns: int, find: Find) -> None:
         # The detector merges two people who stand close (one box): a look at the person beside
         # the subject missed them 4 times in 10. So a camera's count is the larger of its last two
         # looks: someone who left is cleared one look later.
         seen = others_near(self.rig, c, find([image])[0], pelvis)
         self.others[c] = max(seen, self._previous[c])
         self._previous[c] = seen
+        self._looked_ns[c] = stamp_ns
         self.looks += 1
 
     def _run(self) -> None:
@@ -113,9 +130,9 @@ class Census:
                 job = self._job
                 if self._closed or job is None:
                     return
-                c, image, pelvis = job
+                c, image, pelvis, stamp_ns = job
             try:
-                self._look(c, image, pelvis, find)
+                self._look(c, image, pelvis, stamp_ns, find)
                 self.error = ""
             except Exception as exc:  # a diagnostic, never the frame sets' failure
                 self.error = f"{type(exc).__name__}: {exc}"

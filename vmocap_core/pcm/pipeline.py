@@ -18,6 +18,7 @@ from ..cameras.projection import Rig
 from ..errors import ModelError
 from ..keypoints import INDEX, KEYPOINTS
 from .blazepose import DEFAULT_ROTATION, MIN_TILT, BlazePoseLandmark, rotated_crops
+from .census import EVERY as CENSUS_EVERY
 from .census import Census
 from .choice import choose_subject
 from .crops import TURNED_BODY_FRACTION, Crops, crops_from_skeleton
@@ -42,7 +43,8 @@ class BlazePosePcm:
     min_presence: views whose BlazePose presence is below it come out with valid=False.
     parallel: how the threads are used, "views" (default) or "intra" (runner.py).
     census_every: while tracking, the detector looks at one camera every that many frame sets
-        for other people (others_in_view; 0: never, others_in_view then comes from initializations).
+        for other people (others_in_view; 0: never, others_in_view then comes from initializations
+        and the views' `others` is unknown once those are older than census.STALE_S).
     census_background: those looks run in a low-priority thread (census.py; live graph) instead of
         inside the frame set (deterministic; `close` ends the thread).
     """
@@ -60,7 +62,7 @@ class BlazePosePcm:
         min_presence: float = 0.5,
         parallel: str = DEFAULT_PARALLEL,
         precision: str | None = None,
-        census_every: int = 120,
+        census_every: int = CENSUS_EVERY,
         census_background: bool = False,
     ) -> None:
         self.rig = rig
@@ -96,7 +98,8 @@ class BlazePosePcm:
         """PoseDetector.find_people with this pipeline's detector."""
         return self.detector.find_people(images, turned, closer)
 
-    def crops_from_detector(self, images: Sequence[np.ndarray], seed: np.ndarray | None = None) -> Crops:
+    def crops_from_detector(self, images: Sequence[np.ndarray], seed: np.ndarray | None = None,
+                            stamp_ns: int = 0) -> Crops:
         """One person per image with MediaPipe's crop rule (already rotated), the same person in
         every camera when several are in view (choice.choose_subject): with `seed` (3,) (a world
         point on the wanted person, e.g. from another tracker) the person nearest to it, else the
@@ -105,7 +108,7 @@ class BlazePosePcm:
         # The same person in every camera (choice.py): the one nearest the seed, else the one
         # most cameras agree on; a camera where none of its detections is that person gets no crop.
         choice = choose_subject(self.rig, found, seed)
-        self.census.found(choice.others)
+        self.census.found(choice.others, stamp_ns)
         cams = [c for c in range(len(found)) if choice.index[c] >= 0]
         return Crops.from_rectangles(cams, [found[c][choice.index[c]].crop() for c in cams])
 
@@ -146,16 +149,19 @@ class BlazePosePcm:
         if keypoints is None:
             if seed is not None:
                 self.last_subject = np.asarray(seed, dtype=np.float64)
-            crops = self.crops_from_detector(images, self.last_subject)
+            crops = self.crops_from_detector(images, self.last_subject, stamp_ns)
         else:
             pelvis = np.asarray(keypoints, dtype=np.float64)[PELVIS]
             if np.isfinite(pelvis).all():
                 self.last_subject = pelvis
-                self.census.offer(images, pelvis)
+                self.census.offer(images, pelvis, stamp_ns)
             crops = self.crops_from_skeleton(keypoints, tilt)
             crops = crops.select(np.array([images[c] is not None for c in crops.camera], dtype=bool))
         if len(crops) == 0:
-            return PcmViews.empty(len(KEYPOINTS), self.landmark.map_size, stamp_ns)
-        return self.landmark.infer(images, crops, stamp_ns)
+            views = PcmViews.empty(len(KEYPOINTS), self.landmark.map_size, stamp_ns)
+        else:
+            views = self.landmark.infer(images, crops, stamp_ns)
+        views.others = self.census.count(stamp_ns)
+        return views
 
     __call__ = infer

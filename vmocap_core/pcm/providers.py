@@ -15,6 +15,7 @@ from ..errors import BagError
 from ..graph_config import Topics
 from ..method.results import seed_of, skeleton_of
 from .assembly import PcmAssembler, pcm_topics
+from .census import EVERY as CENSUS_EVERY
 from .views import PcmViews
 
 
@@ -88,7 +89,7 @@ class ModelPcmProvider:
     are returned for full-resolution pixels, so everything downstream keeps the rig as it is."""
 
     def __init__(self, rig: Rig, model: str = "", rotation: str = "all", threads: int = 2, binning: int = 1,
-                 crop_prediction: str = "rigid", census_every: int = 120, census_background: bool = False) -> None:
+                 crop_prediction: str = "rigid", census_every: int = CENSUS_EVERY, census_background: bool = False) -> None:
         from ..cameras.projection import binning_affine
         from .pipeline import BlazePosePcm
 
@@ -130,6 +131,6 @@ class ModelPcmProvider:
 
 
 def make_model_provider(model: str, rig: Rig, rotation: str = "all", threads: int = 2, binning: int = 1,
-                        crop_prediction: str = "rigid", census_every: int = 120,
+                        crop_prediction: str = "rigid", census_every: int = CENSUS_EVERY,
                         census_background: bool = False) -> ModelPcmProvider:
     return ModelPcmProvider(rig, model, rotation, threads, binning, crop_prediction, census_every, census_background)

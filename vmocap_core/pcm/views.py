@@ -56,6 +56,8 @@ class PcmViews:
     # (V, J) float in [0, 1]: the factor each map was weighed by, the CNN's probability that the
     # keypoint is in view and not occluded (pcm/model.py); empty (default): ones, the model does not say
     visibility: np.ndarray = field(default_factory=lambda: np.empty(0))
+    # people besides the subject the detector's census last saw in any camera (census.py); -1: not known
+    others: int = -1
     # peaks() of every channel, kept: the consistency check reads them twice per frame set
     _all_peaks: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
 
@@ -85,7 +87,8 @@ class PcmViews:
         """The views where `keep` (V,) is True (stamped `stamp_ns` when given)."""
         keep = np.asarray(keep, dtype=bool).reshape(self.n_views)
         return PcmViews(self.maps[keep], self.image_to_map[keep], self.camera[keep], self.keypoints, self.valid[keep],
-                        self.presence[keep], self.stamp_ns if stamp_ns is None else stamp_ns, self.visibility[keep])
+                        self.presence[keep], self.stamp_ns if stamp_ns is None else stamp_ns, self.visibility[keep],
+                        self.others)
 
     @property
     def n_views(self) -> int:
@@ -114,6 +117,7 @@ class PcmViews:
             presence=self.presence,
             stamp_ns=self.stamp_ns,
             visibility=self.visibility,
+            others=self.others,
         )
 
     def corrupted(self) -> dict[int, int]:
@@ -216,4 +220,4 @@ def blank_views(pcm: PcmViews, cameras: list[int]) -> PcmViews:
                     np.concatenate([pcm.image_to_map, np.tile(np.eye(2, 3), (n, 1, 1))]),
                     np.concatenate([pcm.camera, cams]), pcm.keypoints,
                     np.concatenate([pcm.valid, np.zeros((n, J), bool)]), np.concatenate([pcm.presence, np.zeros(n)]),
-                    pcm.stamp_ns, np.concatenate([pcm.visibility, np.ones((n, J))]))
+                    pcm.stamp_ns, np.concatenate([pcm.visibility, np.ones((n, J))]), pcm.others)
