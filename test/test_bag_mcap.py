@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from vmocap_core.bag import BagReader, BagWriter, cdr
+from vmocap_core.bag import heatmaps as H
 from vmocap_core.bag import messages as M
 from vmocap_core.errors import BagError
 from vmocap_core.keypoints import KEYPOINTS
@@ -180,9 +181,9 @@ def test_pcm_message_roundtrip_exact() -> None:
                      valid=[[True, False, True], [True, True, True]], presence=[0.5, 1.0], stamp_ns=42)
     pairs = [(cdr.decode("sensor_msgs/msg/Image", cdr.encode("sensor_msgs/msg/Image", i)),
               cdr.decode("sensor_msgs/msg/CameraInfo", cdr.encode("sensor_msgs/msg/CameraInfo", c)))
-             for i, c in M.pcm_msgs(views, rig)]
+             for i, c in H.pcm_msgs(views, rig)]
     assert pairs[0][0]["encoding"] == "32FC4"  # no visibility: the maps as they were, presence last
-    back = M.pcm_views(pairs, rig, np.array([0, 1, 7]))
+    back = H.pcm_views(pairs, rig, np.array([0, 1, 7]))
     assert np.array_equal(back.visibility, np.ones((2, 3)))
     assert np.allclose(back.image_to_map, A, atol=1e-12)
     assert np.array_equal(back.camera, [2, 0]) and np.array_equal(back.valid, views.valid)
@@ -217,18 +218,18 @@ def test_pcm_messages_without_data_decode_like_the_data() -> None:
                      valid=[[True, False, True, True], [True, True, True, True], [False, True, True, True]],
                      presence=[0.1, 1.0, 1 / 3], stamp_ns=7, visibility=rng.random((3, 4)))
     kp = np.array([0, 1, 7, 9])
-    with_data = M.pcm_views(M.pcm_msgs(views, rig), rig, kp)
-    pairs = M.pcm_msgs(views, rig, data=False)
-    assert all("data" not in img and M.PCM_VIEW in img for img, _ in pairs)
-    without = M.pcm_views(pairs, rig, kp)
+    with_data = H.pcm_views(H.pcm_msgs(views, rig), rig, kp)
+    pairs = H.pcm_msgs(views, rig, data=False)
+    assert all("data" not in img and H.PCM_VIEW in img for img, _ in pairs)
+    without = H.pcm_views(pairs, rig, kp)
     assert np.allclose(with_data.visibility, views.visibility, atol=1e-7)  # float32 on the wire
     for field in ("maps", "image_to_map", "camera", "keypoints", "valid", "presence", "visibility"):
         a, b = getattr(with_data, field), getattr(without, field)
         assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), field
     assert not without.valid[2, 3] and without.stamp_ns == 7
     # a mixed frame set (one view decoded from bytes) is the same too
-    full = M.pcm_msgs(views, rig)
-    mixed = M.pcm_views([full[0], pairs[1], pairs[2]], rig, kp)
+    full = H.pcm_msgs(views, rig)
+    mixed = H.pcm_views([full[0], pairs[1], pairs[2]], rig, kp)
     assert np.array_equal(mixed.maps, with_data.maps, equal_nan=True) and np.array_equal(mixed.presence, with_data.presence)
     assert np.array_equal(mixed.visibility, with_data.visibility)
 
@@ -247,14 +248,14 @@ def test_the_others_in_view_travel_with_the_pcm_and_the_markers() -> None:
     kp = np.array([0, 1, 7])
     views = PcmViews(maps=np.random.default_rng(4).random((2, 3, 12, 16)), image_to_map=np.stack([stride_affine(16)] * 2),
                      camera=[0, 1], keypoints=kp, valid=np.ones((2, 3), bool), presence=[1.0, 1.0], stamp_ns=5)
-    assert M.pcm_msgs(views, rig)[0][0]["encoding"] == "32FC4" and M.pcm_views(M.pcm_msgs(views, rig), rig, kp).others == -1
+    assert H.pcm_msgs(views, rig)[0][0]["encoding"] == "32FC4" and H.pcm_views(H.pcm_msgs(views, rig), rig, kp).others == -1
     for others in (0, 3):
         views.others = others
         wire = [(cdr.decode("sensor_msgs/msg/Image", cdr.encode("sensor_msgs/msg/Image", i)), c)
-                for i, c in M.pcm_msgs(views, rig)]
-        back = M.pcm_views(wire, rig, kp)
+                for i, c in H.pcm_msgs(views, rig)]
+        back = H.pcm_views(wire, rig, kp)
         assert back.others == others and np.array_equal(back.visibility, np.ones((2, 3)))
-        assert M.pcm_views(M.pcm_msgs(views, rig, data=False), rig, kp).others == others
+        assert H.pcm_views(H.pcm_msgs(views, rig, data=False), rig, kp).others == others
     n = len(KEYPOINTS)
     check = ViewCheck(np.ones(n), np.zeros(n, np.uint32), np.ones(n, np.uint32))
     markers = Markers(5, np.zeros((n, 3)), np.ones(n), "lattice", check=check, others=2)

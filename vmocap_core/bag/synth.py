@@ -14,6 +14,7 @@ import numpy as np
 
 from ..cameras.projection import Rig
 from ..graph_config import Topics
+from . import heatmaps
 from . import messages as M
 from .writer import BagWriter
 
@@ -56,7 +57,7 @@ def write_synthetic_bag(
                     w.write(topics.image(cam.name), "sensor_msgs/msg/Image", M.image_msg(img, t, cam.name), t)
             if views is not None:
                 views.stamp_ns = t
-                for (pcm_img, info), v in zip(M.pcm_msgs(views, rig), range(views.n_views)):
+                for (pcm_img, info), v in zip(heatmaps.pcm_msgs(views, rig), range(views.n_views)):
                     name = rig[int(views.camera[v])].name
                     w.write(topics.pcm(name), "sensor_msgs/msg/Image", pcm_img, t)
                     w.write(topics.pcm_info(name), "sensor_msgs/msg/CameraInfo", info, t)

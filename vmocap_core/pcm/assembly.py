@@ -7,6 +7,7 @@ from typing import Iterable
 
 import numpy as np
 
+from ..bag import heatmaps
 from ..bag import messages as M
 from ..cameras.projection import Rig
 from ..cameras.sync import ApproximateSync
@@ -67,7 +68,7 @@ class PcmAssembler:
         for fs in sets:
             pairs = [fs.items[v] for v in self.views if v in fs.items]
             try:
-                pcm = M.pcm_views(pairs, self.rig, self.keypoints)
+                pcm = heatmaps.pcm_views(pairs, self.rig, self.keypoints)
             except (HeatmapError, BagError) as exc:
                 self.bad_views += 1
                 self.last_error = str(exc)

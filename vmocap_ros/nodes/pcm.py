@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from vmocap_core import graph_config
+from vmocap_core.bag import heatmaps
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.bag import check_binning
 from vmocap_core.cameras.flow import CnnPace
@@ -189,7 +190,7 @@ class PcmNode(VmocapNode):
         unused = [self.rig.names.index(n) for n in fs.items if n not in cams]
         if unused and pcm.n_views:
             pcm = blank_views(pcm, unused)
-        return pcm, M.pcm_msgs(pcm, self.rig, data=data), time.perf_counter() - t0
+        return pcm, heatmaps.pcm_msgs(pcm, self.rig, data=data), time.perf_counter() - t0
 
     def _infer_in_thread(self, fs: Any, cams: list[str], fb: np.ndarray | None, data: bool) -> None:
         try:
