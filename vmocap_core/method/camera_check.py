@@ -168,7 +168,8 @@ class BlindCameras:
 
     def update(self, pcm: PcmViews, tracking: bool, now: float) -> dict[int, float]:
         """Camera index -> seconds blind, for the cameras blind for at least warn_after_s (a
-        camera that sees again, or a frame set without tracking, resets its clock)."""
+        camera that sees again, or a frame set without tracking, resets its clock); `now`: the
+        frame set's capture time, seconds."""
         blind = blind_cameras(pcm) if tracking else set()
         self.since = {c: self.since.get(c, now) for c in blind}
         return {c: now - t for c, t in sorted(self.since.items()) if now - t >= self.warn_after_s}

@@ -91,8 +91,13 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
 
     others: list[tuple[bool, int]] = []  # per vmocap_pcm /diagnostics report: tracking yet, others in view
 
+    warnings: dict[str, None] = {}  # "node: message" of every WARN/ERROR report, in order, once each
+
     def on_diagnostics(data: bytes) -> None:
         for st in cdr.decode(DIAG, data)["status"]:
+            level = st["level"] if isinstance(st["level"], int) else int.from_bytes(st["level"], "little")
+            if level >= 1:
+                warnings.setdefault(f"{st['name']}: {st['message']}")
             if st["name"].startswith("vmocap_pcm"):
                 v = {kv["key"]: kv["value"] for kv in st["values"]}.get("others_in_view", "0")
                 others.append((bool(got), int(v) if v.isdigit() else 0))
@@ -139,6 +144,7 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     counts: dict = {"frame_sets_out": len(got), "frame_sets_in": len(stamps), "rate": rate, "others_in_view_max": max((n for _, n in others), default=0)}
     said = [n > 0 for out, n in others if out]  # once keypoints came out: did a report say someone else is there
     counts["others_in_view_pct"] = 100.0 * float(np.mean(said)) if said else None
+    counts["warnings"] = list(warnings)
     if max_people > 1:
         counts["bodies"] = {}
         for i, store in bodies.items():

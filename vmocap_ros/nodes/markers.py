@@ -126,7 +126,8 @@ class MarkersNode(VmocapNode):
         """WARN naming a camera that has given no heatmap for BLIND_WARN_S while the others
         track the person (a covered or turned camera, or a CNN failing for it, which the
         tracker otherwise survives silently on the remaining views)."""
-        long_blind = self.blind.update(pcm, tracking, time.monotonic())
+        # capture time, not wall time: a recording replayed slower or faster is judged by the scene's seconds
+        long_blind = self.blind.update(pcm, tracking, pcm.stamp_ns * 1e-9)
         if long_blind:
             names = ", ".join(f"{self.rig[c].name} ({s:.1f} s)" for c, s in long_blind.items())
             self.warn_for("blind", f"no heatmap from {names} while the other cameras track the person: covered, "

@@ -33,7 +33,7 @@ from ...method.skeleton import BONES
 from ..metrics import acceleration_error, table_one
 from . import add_tracker_arguments, tracker_settings
 from .accuracy import BUNDLED, RATE_HZ, default_motions
-from .blackout import blacked_out, reacquisition_s
+from .blackout import blacked_out, covered, reacquisition_s, window_figures
 from .clouds import read_clouds
 from .motion_groups import GROUPS, motion_group
 
@@ -172,6 +172,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--blackout", type=float, nargs=2, metavar=("FROM_S", "TO_S"),
                         help="every camera black from FROM_S to TO_S seconds into the clip: the JSON's reacquire_s "
                              "is the time from TO_S to the first frame set output as tracked again")
+    parser.add_argument("--cover", nargs=3, metavar=("CAMERA", "FROM_S", "TO_S"),
+                        help="a grey panel hides the body from one camera from FROM_S to TO_S seconds into the clip (a "
+                             "person covered in one view): the JSON's `covered` gives tracked %%, MPJPE and frames over 100 mm then")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="rendered recordings (by content hash)")
     parser.add_argument("--out", type=Path, default=REPO / "out" / "image_bench", help="report, overlays, graph outputs")
@@ -271,6 +274,12 @@ def run_clip(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> dic
     blackout = getattr(args, "blackout", None)
     if blackout:  # the benchmark's own product in its --out folder
         rec = blacked_out(rec, args.out / f"{label}_blackout.mcap", stamps, tuple(blackout))
+    cover = getattr(args, "cover", None)
+    if cover:
+        if cover[0] not in rig.names:
+            raise VmocapError(f"--cover {cover[0]}: not a camera of the rig ({', '.join(rig.names)})")
+        covered_s = (float(cover[1]), float(cover[2]))
+        rec = covered(rec, args.out / f"{label}_covered.mcap", stamps, truth, rig, cover[0], covered_s)
     row: dict[str, Any] = {"clip": label, "motion": path.stem, "recording": str(rec), "shape": spec.shape(),
                            "frames": len(stamps), "group": motion_group(motion.positions),
                            "inverted": motion.is_inverted(), "landmarks": args.tracker.get("landmarks", "auto")}
@@ -285,6 +294,8 @@ def run_clip(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> dic
         row[name] = score(est, truth)
         if blackout:
             row[name]["reacquire_s"] = reacquisition_s(est[:, np.isfinite(truth).all(axis=(0, 2))], stamps, blackout[1])
+        if cover:
+            row[name]["covered"] = {"camera": cover[0], **window_figures(est, truth, stamps, covered_s, FALSE_TRACKING_MM)}
         curves[name] = frame_mpjpe(est, truth)
         if name == args.configs[0]:
             overlay(rec, rig, truth, est, len(stamps) // 2, args.out / f"{label}.png")
@@ -295,6 +306,9 @@ def run_clip(path: Path, rig, args: argparse.Namespace, variant: int = 0) -> dic
             est_g, counts = g.run_graph(rec, args.rig_file, stamps, rotation, precision, args.tracker, args.graph_rate,
                                         args.out, crop_prediction=args.crop_prediction)
             row[f"graph:{name}"] = {**score(est_g, truth), **counts}
+            if cover:
+                row[f"graph:{name}"]["covered"] = {"camera": cover[0], **window_figures(est_g, truth, stamps, covered_s,
+                                                                                        FALSE_TRACKING_MM)}
             curves[f"graph:{name}"] = frame_mpjpe(est_g, truth)
     if not args.no_synthetic and variant == 0:  # no body in the synthetic benchmark: once per clip
         row["synthetic_mpjpe_mm"] = synthetic_figure(path, args.seed)
