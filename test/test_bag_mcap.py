@@ -258,9 +258,10 @@ def test_the_others_in_view_travel_with_the_pcm_and_the_markers() -> None:
         assert H.pcm_views(H.pcm_msgs(views, rig, data=False), rig, kp).others == others
     n = len(KEYPOINTS)
     check = ViewCheck(np.ones(n), np.zeros(n, np.uint32), np.ones(n, np.uint32))
-    markers = Markers(5, np.zeros((n, 3)), np.ones(n), "lattice", check=check, others=2)
+    inside = np.full(n, 0b0111, np.uint32)
+    markers = Markers(5, np.zeros((n, 3)), np.ones(n), "lattice", check=check, others=2, inside=inside)
     msg = markers_message(markers)
-    assert markers_from_message(msg).others == 2
+    assert markers_from_message(msg).others == 2 and np.array_equal(markers_from_message(msg).inside, inside)
     markers.others = -1
     assert markers_from_message(markers_message(markers)).others == -1
     # the layout before the field: the same points without `others`
@@ -272,6 +273,15 @@ def test_the_others_in_view_travel_with_the_pcm_and_the_markers() -> None:
                   row_step=M.CHECKED_V2_DTYPE.itemsize * len(old), data=old.tobytes())
     back = markers_from_message(msg_v2)
     assert back.others == -1 and back.check is not None and np.array_equal(back.check.agree, check.agree)
+    assert back.inside is None
+    # ... and before `inside`
+    old = np.zeros(len(pts), dtype=M.CHECKED_V3_DTYPE)
+    for name in M.CHECKED_V3_DTYPE.names:
+        old[name] = pts[name]
+    msg_v3 = dict(msg, fields=msg["fields"][:len(M.CHECKED_V3_DTYPE.names)], point_step=M.CHECKED_V3_DTYPE.itemsize,
+                  row_step=M.CHECKED_V3_DTYPE.itemsize * len(old), data=old.tobytes())
+    back = markers_from_message(msg_v3)
+    assert back.others == 2 and back.inside is None and np.array_equal(back.check.agree, check.agree)
 
 
 def test_camera_info_mismatch_is_reported() -> None:

@@ -266,6 +266,32 @@ def test_fading_maps_are_not_output_and_a_stopped_camera_is_not_fading():
     assert trend.ratio(np.ones(25), None) is None  # no check: not judged
 
 
+def test_a_body_walking_out_of_two_images_is_not_fading():
+    """The weights sum the views (eq. 3): a body leaving cameras 2 and 3's images halves them
+    while the maps of cameras 0 and 1 are as strong as before. Judged per view that can see
+    each keypoint (Markers.inside), that is no fading; the same weights with every camera still
+    looking are (0.5 of the track's, below check_min_weight_ratio), as are maps fading in the
+    views left."""
+    from vmocap_core.method.config import SkeletonConfig
+    from vmocap_core.method.consistency import WeightTrend
+
+    check = ViewCheck(np.ones(25), np.zeros(25, np.uint32), np.full(25, 0b1111, np.uint32))
+    every, two = np.full(25, 0b1111, np.uint32), np.full(25, 0b0011, np.uint32)
+    ratios = {}
+    for name, inside, weights in (("left", two, 1.6), ("fading", every, 1.6), ("left, fading", two, 0.6),
+                                  ("legacy", None, 1.6)):
+        trend = WeightTrend(30)
+        for _ in range(20):
+            assert trend.ratio(np.full(25, 3.2), check, None if inside is None else every) in (None, 1.0)
+        ratios[name] = trend.ratio(np.full(25, weights), check, inside)
+    limit = SkeletonConfig().check_min_weight_ratio
+    assert np.isclose(ratios["left"], 1.0) and np.isclose(ratios["fading"], 0.5) and np.isclose(ratios["legacy"], 0.5), ratios
+    assert ratios["left, fading"] < limit < ratios["left"], ratios
+    outside = np.zeros(25, np.uint32)  # no view can see a keypoint: not judged by it
+    trend = WeightTrend(30)
+    assert trend.ratio(np.zeros(25), check, outside) is None
+
+
 def test_a_view_says_nothing_of_keypoints_predicted_outside_its_image():
     """Camera 0's image is cut at the middle of the body: the keypoints right of the cut are
     outside it, and its maps place them 15 cm aside (the landmark model's guess from the rest of
@@ -291,7 +317,8 @@ def test_a_view_says_nothing_of_keypoints_predicted_outside_its_image():
         return mk, stage.step(pcm).check
 
     mk, check = run(narrowed)
-    assert check is not None and mk.cameras is not None
+    assert check is not None and mk.cameras is not None and mk.inside is not None
+    assert not (mk.inside[outside] & 1).any() and (mk.inside[m.present & ~outside] == 0b1111).all()
     assert not (mk.cameras[outside] & 1).any() and not (check.disagree[outside] & 1).any()
     assert np.all(np.linalg.norm(mk.positions[outside] - body[outside], axis=1) < 0.02)
     assert (check.disagree[m.present & ~outside] & 1).all()  # inside its image camera 0 still counts

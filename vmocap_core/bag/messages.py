@@ -41,17 +41,21 @@ _MARKERS_FIELDS = _CLOUD_FIELDS + [
 ]
 # Lattice markers that follow a fed-back skeleton carry that skeleton's check against the images
 # (method/consistency.py): per keypoint the fraction of agreeing views and the cameras that
-# disagree and agree, and in every point the others in view the census counted + 1 (0: not
-# known); recordings made before the `agree` or `others` field still read, without it.
+# disagree and agree, in every point the others in view the census counted + 1 (0: not
+# known), and per keypoint the cameras in whose image the lattice centre lay (`inside`);
+# recordings made before the `agree`, `others` or `inside` field still read, without it.
 CHECKED_V1_DTYPE = np.dtype(MARKERS_DTYPE.descr + [("confidence", "<f8"), ("disagree", "<u4")])
 CHECKED_V2_DTYPE = np.dtype(CHECKED_V1_DTYPE.descr + [("agree", "<u4")])
-CHECKED_DTYPE = np.dtype(CHECKED_V2_DTYPE.descr + [("others", "<u4")])
+CHECKED_V3_DTYPE = np.dtype(CHECKED_V2_DTYPE.descr + [("others", "<u4")])
+CHECKED_DTYPE = np.dtype(CHECKED_V3_DTYPE.descr + [("inside", "<u4")])
 _CHECKED_FIELDS = _MARKERS_FIELDS + [
     {"name": "confidence", "offset": 52, "datatype": 8, "count": 1},
     {"name": "disagree", "offset": 60, "datatype": 6, "count": 1},
     {"name": "agree", "offset": 64, "datatype": 6, "count": 1},
     {"name": "others", "offset": 68, "datatype": 6, "count": 1},
+    {"name": "inside", "offset": 72, "datatype": 6, "count": 1},
 ]
+_CHECKED_ANY = (CHECKED_DTYPE, CHECKED_V3_DTYPE, CHECKED_V2_DTYPE, CHECKED_V1_DTYPE)
 
 
 # ------------------------------------------------------------------------------- stamps
@@ -169,11 +173,11 @@ def camera_info_mismatch(msg: dict, camera: Camera, rtol: float = 1e-6, binning:
 def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | None = None, kind: str = "none",
                    residual_px: np.ndarray | None = None, cameras: np.ndarray | None = None,
                    frame_id: str = WORLD_FRAME, check: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                   others: int = -1) -> dict:
+                   others: int = -1, inside: np.ndarray | None = None) -> dict:
     """PointCloud2 of the 25 KEYPOINTS (positions None: an empty cloud, e.g. 'lost'); with
     `residual_px` and `cameras` the virtual markers' layout (MARKERS_DTYPE), with `check` too
-    (confidence, disagree, agree) and `others` (-1: not known) that of checked markers
-    (CHECKED_DTYPE)."""
+    (confidence, disagree, agree), `others` (-1: not known) and `inside` (camera bit masks; None:
+    not known, written as 0) that of checked markers (CHECKED_DTYPE)."""
     markers = residual_px is not None
     checked = markers and check is not None
     dtype, fields = ((CHECKED_DTYPE, _CHECKED_FIELDS) if checked else (MARKERS_DTYPE, _MARKERS_FIELDS) if markers
@@ -196,6 +200,7 @@ def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | N
             pts["disagree"] = np.asarray(check[1], dtype=np.uint32)
             pts["agree"] = np.asarray(check[2], dtype=np.uint32)
             pts["others"] = max(int(others), -1) + 1
+            pts["inside"] = 0 if inside is None else np.asarray(inside, dtype=np.uint32)
     return {
         "header": header(ns, frame_id),
         "height": 1,
@@ -212,7 +217,7 @@ def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | N
 def _cloud_points(msg: dict) -> np.ndarray:
     n = msg["width"] * msg["height"]
     names = [f["name"] for f in msg["fields"]]
-    for dtype in (CLOUD_DTYPE, MARKERS_DTYPE, CHECKED_DTYPE, CHECKED_V2_DTYPE, CHECKED_V1_DTYPE):
+    for dtype in (CLOUD_DTYPE, MARKERS_DTYPE, *_CHECKED_ANY):
         if names == list(dtype.names) and msg["point_step"] == dtype.itemsize:
             return np.frombuffer(msg["data"], dtype=dtype, count=n)
     raise BagError(f"point cloud fields {names} are not vmocap's keypoint layout")
@@ -253,7 +258,7 @@ def cloud_marker_extras(msg: dict) -> tuple[np.ndarray, np.ndarray]:
     residual, cameras = np.full(len(KEYPOINTS), np.nan), np.zeros(len(KEYPOINTS), np.uint32)
     if msg["width"] * msg["height"]:
         pts = _cloud_points(msg)
-        if pts.dtype in (MARKERS_DTYPE, CHECKED_DTYPE, CHECKED_V2_DTYPE, CHECKED_V1_DTYPE):
+        if pts.dtype in (MARKERS_DTYPE, *_CHECKED_ANY):
             ids = pts["id"].astype(np.intp)
             residual[ids], cameras[ids] = pts["residual_px"], pts["cameras"]
     return residual, cameras
@@ -265,7 +270,7 @@ def cloud_marker_check(msg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray | 
     if msg["width"] * msg["height"] == 0:
         return None
     pts = _cloud_points(msg)
-    if pts.dtype not in (CHECKED_DTYPE, CHECKED_V2_DTYPE, CHECKED_V1_DTYPE):
+    if pts.dtype not in _CHECKED_ANY:
         return None
     confidence, disagree = np.full(len(KEYPOINTS), np.nan), np.zeros(len(KEYPOINTS), np.uint32)
     ids = pts["id"].astype(np.intp)
@@ -283,7 +288,20 @@ def cloud_marker_others(msg: dict) -> int:
     if msg["width"] * msg["height"] == 0:
         return -1
     pts = _cloud_points(msg)
-    return int(pts["others"][0]) - 1 if pts.dtype == CHECKED_DTYPE else -1
+    return int(pts["others"][0]) - 1 if pts.dtype in (CHECKED_DTYPE, CHECKED_V3_DTYPE) else -1
+
+
+def cloud_marker_inside(msg: dict) -> np.ndarray | None:
+    """The per-keypoint camera bit masks (25,) checked markers carry as `inside`; None for other
+    clouds, recordings made before the field, and markers written without it (all 0)."""
+    if msg["width"] * msg["height"] == 0:
+        return None
+    pts = _cloud_points(msg)
+    if pts.dtype != CHECKED_DTYPE or not pts["inside"].any():
+        return None
+    inside = np.zeros(len(KEYPOINTS), np.uint32)
+    inside[pts["id"].astype(np.intp)] = pts["inside"]
+    return inside
 
 
 

@@ -149,13 +149,19 @@ class WeightTrend:
     def reset(self) -> None:
         self._history.clear()
 
-    def ratio(self, weights: np.ndarray, check: ViewCheck | None) -> float | None:
+    def ratio(self, weights: np.ndarray, check: ViewCheck | None, inside: np.ndarray | None = None) -> float | None:
         """This frame set's weight level (weights (25,) of its lattice markers) over the track's
         median (None: not judged: too little history, or no keypoint seen: the check's); the
-        level joins the history."""
+        level joins the history. With `inside` (Markers.inside) the level is per view that can
+        see the keypoint: a body walking out of two cameras' images at once halves the summed
+        weights (eq. 3) while the maps of the views left are as strong as before."""
         if check is None:
             return None
         seen = np.isfinite(check.confidence)
+        if inside is not None:
+            views = np.bitwise_count(np.asarray(inside, dtype=np.uint32))
+            seen &= views > 0
+            weights = weights / np.maximum(views, 1)
         if not seen.any():
             return None
         level = float(np.mean(weights[seen]))

@@ -20,6 +20,7 @@ from ..pcm.views import PcmViews
 from .config import MarkersConfig
 from .consistency import ViewCheck, check_views
 from .init import triangulated_markers
+from .init_report import camera_mask
 from .lattice import PcmSampler, lattice_search
 from .lattice import warm_up as warm_up_lattice
 from .occlusion import outside_images, without_hidden
@@ -92,7 +93,8 @@ class MarkerStage:
             centres = centres + self.velocity
         # A keypoint predicted outside a camera's image: that view's map holds the landmark
         # model's guess from the rest of the body, not a sighting; the views that see it decide.
-        pcm = without_hidden(pcm, outside_images(self.rig, centres[None])[0])
+        outside = outside_images(self.rig, centres[None])[0]
+        pcm = without_hidden(pcm, outside)
         sampler = PcmSampler(self.rig, pcm)  # one per frame: the lattice search, the refinement, the check
         self._last = (pcm, sampler)
         res = lattice_search(
@@ -125,6 +127,10 @@ class MarkerStage:
         out.weights[pcm.keypoints] = np.where(seen, weights, 0.0)
         # the cameras whose maps confirm each marker: this frame set's own evidence (Markers.support)
         out.cameras = check_views(self.rig, pcm, out.positions, sampler).agree
+        # the views that can weigh each marker, whatever the CNN made of them (WeightTrend)
+        viewed = np.zeros(len(self.rig), dtype=bool)
+        viewed[np.asarray(pcm.camera, dtype=np.intp)] = True
+        out.inside = camera_mask(viewed[:, None] & ~outside)
         n_cam = max(len(np.unique(pcm.camera[pcm.valid.any(axis=1)])), 1)
         observed = max(int(pcm.valid.any(axis=0).sum()), 1)
         out.score = float(out.weights.sum() / (n_cam * observed))

@@ -37,6 +37,9 @@ class Markers:
     check: ViewCheck | None = None
     # people besides the subject the detector's census last saw (PcmViews.others; -1: not known)
     others: int = -1
+    # lattice markers: (25,) bit masks of the cameras with a view in whose image the lattice
+    # centre lies, i.e. the views that can weigh each marker (None: not known)
+    inside: np.ndarray | None = None
 
 
     @property

@@ -145,7 +145,7 @@ class SkeletonStage:
             # this frame set's own markers, most of them seen by one camera only: the skeleton
             # fitted to them is not output, the track goes on (the next check decides)
             unsupported = judged and support is not None and support < self.config.check_min_support
-            ratio = self.weights.ratio(markers.weights, markers.check)
+            ratio = self.weights.ratio(markers.weights, markers.check, markers.inside)
             faded = judged and ratio is not None and ratio < self.config.check_min_weight_ratio
             if verdict == "ok" and unsupported:
                 verdict, self.unsupported = "uncertain", support

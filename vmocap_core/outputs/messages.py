@@ -34,7 +34,7 @@ def markers_message(markers: Markers) -> dict:
         c = markers.check
         check = (c.confidence, c.disagree, np.zeros(len(KEYPOINTS), np.uint32) if c.agree is None else c.agree)
     return M.keypoint_cloud(markers.stamp_ns, markers.positions, markers.weights, markers.kind, residual, markers.cameras,
-                            check=check, others=markers.others)
+                            check=check, others=markers.others, inside=markers.inside)
 
 
 def markers_from_message(msg: dict) -> Markers:
@@ -45,7 +45,8 @@ def markers_from_message(msg: dict) -> Markers:
     residual, cameras = M.cloud_marker_extras(msg)
     check = M.cloud_marker_check(msg)
     return Markers(M.stamp_ns(msg), P, S, kind, residual_px=residual, cameras=cameras,
-                   check=None if check is None else ViewCheck(*check), others=M.cloud_marker_others(msg))
+                   check=None if check is None else ViewCheck(*check), others=M.cloud_marker_others(msg),
+                   inside=M.cloud_marker_inside(msg))
 
 
 def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] | None = None,
