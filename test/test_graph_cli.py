@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from graph_helpers import REPO, domain_env, stop, synthetic_bag, vmocap, wait_for, write_config
+from graph_helpers import REPO, domain_env, stop, synthetic_bag, vmocap, wait_for, wait_ready, write_config
 
 from vmocap_core.bag import BagReader
 from vmocap_core.bag import messages as M
@@ -56,11 +56,11 @@ def test_camera_node_replays_bag_and_launcher_sigterm_flushes(tmp_path: Path) ->
     env = domain_env(12)
     launch = vmocap(["launch", str(cfg)], env)
     try:
-        # the camera node starts publishing at once; the recorder discovers within 0.5 s,
-        # so wait for the whole recording (12 frames at 4x = 0.1 s) plus margin
-        import time
-
-        time.sleep(6.0)
+        # the camera plays once the recorder subscribes (12 frames at 4x = 0.1 s): wait for the
+        # nodes (tens of seconds on one loaded core), the play, then a margin
+        assert wait_ready(launch, ["vmocap_camera", "vmocap_recorder"], 90), "".join(launch._lines)
+        assert wait_for(lambda: "playing" in "".join(launch._lines), 30), "".join(launch._lines)
+        time.sleep(2.0)
     finally:
         log = stop(launch, signal.SIGTERM)
     assert launch.returncode == 0, log
