@@ -264,23 +264,20 @@ def test_the_others_in_view_travel_with_the_pcm_and_the_markers() -> None:
     assert markers_from_message(msg).others == 2 and np.array_equal(markers_from_message(msg).inside, inside)
     markers.others = -1
     assert markers_from_message(markers_message(markers)).others == -1
-    # the layout before the field: the same points without `others`
-    pts = np.frombuffer(msg["data"], dtype=M.CHECKED_DTYPE)
-    old = np.zeros(len(pts), dtype=M.CHECKED_V2_DTYPE)
-    for name in M.CHECKED_V2_DTYPE.names:
-        old[name] = pts[name]
-    msg_v2 = dict(msg, fields=msg["fields"][:len(M.CHECKED_V2_DTYPE.names)], point_step=M.CHECKED_V2_DTYPE.itemsize,
-                  row_step=M.CHECKED_V2_DTYPE.itemsize * len(old), data=old.tobytes())
-    back = markers_from_message(msg_v2)
+    # the layouts before the fields: the same points without `others` and `inside`, or `inside`
+    def older(dtype: np.dtype) -> dict:
+        pts = np.frombuffer(msg["data"], dtype=M.CHECKED_DTYPE)
+        old = np.zeros(len(pts), dtype=dtype)
+        for name in dtype.names:
+            old[name] = pts[name]
+        return dict(msg, fields=msg["fields"][:len(dtype.names)], point_step=dtype.itemsize,
+                    row_step=dtype.itemsize * len(old), data=old.tobytes())
+
+    back = markers_from_message(older(M.CHECKED_V2_DTYPE))
     assert back.others == -1 and back.check is not None and np.array_equal(back.check.agree, check.agree)
     assert back.inside is None
-    # ... and before `inside`
-    old = np.zeros(len(pts), dtype=M.CHECKED_V3_DTYPE)
-    for name in M.CHECKED_V3_DTYPE.names:
-        old[name] = pts[name]
-    msg_v3 = dict(msg, fields=msg["fields"][:len(M.CHECKED_V3_DTYPE.names)], point_step=M.CHECKED_V3_DTYPE.itemsize,
-                  row_step=M.CHECKED_V3_DTYPE.itemsize * len(old), data=old.tobytes())
-    back = markers_from_message(msg_v3)
+    back = markers_from_message(older(M.CHECKED_V3_DTYPE))
+    assert back.check is not None
     assert back.others == 2 and back.inside is None and np.array_equal(back.check.agree, check.agree)
 
 
