@@ -23,8 +23,6 @@ from typing import Any
 import numpy as np
 
 from ... import paths
-from ...bag import BagReader
-from ...bag import messages as M
 from ...errors import VmocapError
 from ...graph_config import Topics
 from ...keypoints import INDEX, KEYPOINTS
@@ -35,6 +33,7 @@ from . import add_tracker_arguments, tracker_settings
 from .accuracy import BUNDLED, RATE_HZ, default_motions
 from .blackout import blacked_out, covered, reacquisition_s, window_figures
 from .clouds import read_clouds
+from .image_figures import overlay, plot_curves
 from .motion_groups import GROUPS, motion_group
 
 REPO = paths.REPO
@@ -120,33 +119,6 @@ def synthetic_figure(path: Path, seed: int) -> float | None:
 
     r: Any = score_run(run_motion(prepare(path), seed))
     return float(r["method"]["mpjpe_mm"])
-
-
-def overlay(rec: Path, rig, truth: np.ndarray, est: np.ndarray, frame: int, out: Path) -> None:
-    """One frame per camera with the projected truth (green) and estimate (red)."""
-    import cv2
-
-    topics = Topics()
-    want = {topics.image(c.name): i for i, c in enumerate(rig)}
-    imgs: dict[int, np.ndarray] = {}
-    with BagReader(rec) as r:
-        for k, m in enumerate(r.messages(list(want))):
-            if k // len(rig) == frame:
-                imgs[want[m.topic]] = M.image_array(m.decode()).copy()
-            elif k // len(rig) > frame:
-                break
-    for P, col in ((truth[frame], (0, 200, 0)), (est[frame], (0, 0, 255))):
-        ok = np.isfinite(P).all(axis=1)
-        if ok.any():
-            uv, _ = rig.project(P[ok])
-            for i, img in imgs.items():
-                for u, v in uv[i]:
-                    cv2.circle(img, (int(round(u)), int(round(v))), max(2, img.shape[1] // 200), col, -1)
-    tiles = [imgs[i] for i in sorted(imgs)]
-    if len(tiles) % 2:
-        tiles.append(np.zeros_like(tiles[0]))
-    grid = np.vstack([np.hstack(tiles[i:i + 2]) for i in range(0, len(tiles), 2)])
-    cv2.imwrite(str(out), grid)
 
 
 SCENES = ("cross", "beside", "facing")  # --people: where person 1 walks (people.walker_paths)
@@ -320,24 +292,6 @@ def frame_mpjpe(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """(T,) mean error (mm) over the clip's keypoints per frame (NaN while not tracking)."""
     present = np.isfinite(truth).all(axis=(0, 2))
     return np.linalg.norm(est[:, present] - truth[:, present], axis=-1).mean(axis=1) * 1000
-
-
-def plot_curves(name: str, row: dict[str, Any], curves: dict[str, np.ndarray], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 3.2))
-    for k, v in curves.items():
-        ax.plot(np.arange(len(v)) / RATE_HZ, v, label=f"{k} ({row[k]['mpjpe_mm'] or float('nan'):.1f} mm)", lw=1)
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("MPJPE (mm)")
-    ax.set_title(f"{name} ({row['group']}): rendered images, {row['shape']} body")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def _pool(rows: list[dict[str, Any]], name: str, key: str) -> float | None:
