@@ -115,6 +115,12 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
             if launch.poll() is not None or (player is not None and player.poll() is not None):
                 raise RuntimeError("graph or player exited early:\n" + (launch.communicate()[0] if launch.poll() is not None else player.communicate()[0]))
         probe.spin_for(args.warmup)
+        if player is None:
+            # the input rate is read from the camera node's once-a-second reports, from the last
+            # one before the window: on a loaded core the first may come late
+            deadline = time.monotonic() + 10.0
+            while not probe.diag.get("vmocap_camera") and time.monotonic() < deadline:
+                probe.spin_for(0.1)
         probe.clear()
         t0 = time.monotonic_ns()
         cpu0 = {n: _proc_cpu_s(p) for n, p in pids.items()}
@@ -133,7 +139,7 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         if player is None:
             # the input rate is read between two of the camera node's once-a-second reports; on a
             # loaded core a short window may hold one or none, so wait for the first one after it
-            deadline = time.monotonic() + 5.0
+            deadline = time.monotonic() + 10.0
             while not any(t > t1 for t, _ in probe.diag.get("vmocap_camera", [])) and time.monotonic() < deadline:
                 probe.spin_for(0.1)
     finally:
@@ -157,6 +163,7 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         considered = {st for st in sets_in if st <= horizon}
         missing, expected = len(considered - sets_out), len(considered)
         input_rate = len(sets_in) / seconds
+        input_from = f"{len(sets_in)} frame sets at the probe"
         transport = latency(s["transport"])  # the player's camera_info at the probe
     else:
         # the camera node stamps frame set k at epoch + k periods: a gap in the output stamps is
@@ -172,6 +179,7 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         cam = [(t, ast.literal_eval(v["published"]), ast.literal_eval(v.get("flow", "{}")).get("skipped", 0))
                for t, v in reports]
         input_rate = float("nan")
+        input_from = f"{len(cam)} camera node reports around the window (2 needed)"
         if len(cam) >= 2:
             (ta, a, sa), (tb, b, sb) = cam[0], cam[-1]
             input_rate = (float(np.mean([b[c] - a[c] for c in a])) + sb - sa) / ((tb - ta) / 1e9)
@@ -181,6 +189,7 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
     return {
         "rate_hz": round(len(sets_out) / seconds, 2),
         "input_rate_hz": round(input_rate, 2),
+        "input_rate_from": input_from,
         "dropped_pct": round(dropped, 2),
         "latency_ms": latency(s["joint_states"]),
         # age after each stage: the nodes' own figures; joint_states as a controller receives it
@@ -280,6 +289,8 @@ def _run(args: argparse.Namespace, work: Path) -> int:
         print(f"{mode:15s} rate {r['rate_hz']:6.2f} Hz (input {r['input_rate_hz']:.2f})  dropped {r['dropped_pct']:5.2f} %  "
               f"end-to-end p50 {r['latency_ms']['p50']:.1f} ms p95 {r['latency_ms']['p95']:.1f} ms  pcm: {r['pcm']}  feed: {r['feed']}"
               + (f"  graph adds {r['graph_overhead_ms_p50']:.1f} ms p50" if r["graph_overhead_ms_p50"] is not None else ""))
+        if r["input_rate_hz"] != r["input_rate_hz"]:  # nan: say why
+            print(f"   input rate unknown: {r['input_rate_from']}")
         print(f"   tracking {r['tracking_pct']:.1f} % of the frame sets out; CNN precision: {r['precision']}")
         print("   age after stage (p50/p95 ms): " + ", ".join(f"{k} {v['p50']}/{v['p95']}" for k, v in st.items()))
         print("   process CPU % of one core: " + ", ".join(f"{k} {v}" for k, v in r["process_cpu_pct"].items()))
