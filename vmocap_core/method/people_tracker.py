@@ -193,7 +193,11 @@ class PeopleTracker:
         cfg = config or PipelineConfig()
         self.people_config = people or PeopleConfig()
         confirm = max(cfg.skeleton.check_confirm_frames, int(self.people_config.confirm_frames))
-        self.config = cfg.replace(landmarks=resolve(cfg.skeleton.landmarks, landmarks), check_confirm_frames=confirm)
+        # no re-acquisition of a weak keypoint at its maps' strongest peaks (MarkerStage._reacquire):
+        # with others in the room those peaks are as likely theirs, and a triangulation of two
+        # bodies' peaks lands on neither; a lost person is found again by the detector instead
+        self.config = cfg.replace(landmarks=resolve(cfg.skeleton.landmarks, landmarks), check_confirm_frames=confirm,
+                                  reacquire_weight=0.0)
         self.crop_prediction = crop_prediction
         self.people: list[Person] = []
         self._next = 0
