@@ -133,9 +133,11 @@ def test_device_stamps_mapped_to_ros_time():
     truth = np.array(cap.exposures, dtype=np.int64)
     err_ms = (stamps - truth) / 1e6
     # the device clock is 7 s off the host's; mapped stamps land on the exposures plus the
-    # smallest latency seen (>= 2 ms readout), constant, not the 3 ms jitter of arrivals
+    # smallest latency seen so far (>= 2 ms readout): constant but for a few steps down when a
+    # smaller one arrives (more of them on a loaded host), never the 3 ms jitter of arrivals
     assert np.all((err_ms[5:] > 1.5) & (err_ms[5:] < 8.0)), err_ms
-    assert np.std(err_ms[10:]) < 0.5, err_ms
+    steps = np.diff(err_ms[10:])
+    assert steps.max() < 0.05 and (steps < -0.05).sum() <= 4, err_ms
     assert np.std(np.diff(stamps[10:])) < 0.5e6
     assert src.stats()["frames"] == 30 and src.stats()["host_stamps"] == 0
 
