@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import ast
 import json
+import math
 import os
 import signal
 import subprocess
@@ -39,7 +40,8 @@ import numpy as np
 from .graph_setup import NODES, graph_config, graph_env, people_bag, pose2sim_bag, synthetic_bag
 from .probe import Probe, callback_cpu, in_window, latency, missing_periods, node_age
 
-STAGE_NODES = [*NODES, "vmocap_people"]  # the nodes whose diagnostics are read (several people: vmocap_people)
+STAGE_NODES = [*NODES, "vmocap_people"]
+REPORT_WAIT_S = 10.0  # how long to wait for a camera node report around the window (they come once a second)  # the nodes whose diagnostics are read (several people: vmocap_people)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -118,9 +120,7 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         if player is None:
             # the input rate is read from the camera node's once-a-second reports, from the last
             # one before the window: on a loaded core the first may come late
-            deadline = time.monotonic() + 10.0
-            while not probe.diag.get("vmocap_camera") and time.monotonic() < deadline:
-                probe.spin_for(0.1)
+            probe.spin_until(lambda: bool(probe.diag.get("vmocap_camera")), REPORT_WAIT_S)
         probe.clear()
         t0 = time.monotonic_ns()
         cpu0 = {n: _proc_cpu_s(p) for n, p in pids.items()}
@@ -139,9 +139,7 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         if player is None:
             # the input rate is read between two of the camera node's once-a-second reports; on a
             # loaded core a short window may hold one or none, so wait for the first one after it
-            deadline = time.monotonic() + 10.0
-            while not any(t > t1 for t, _ in probe.diag.get("vmocap_camera", [])) and time.monotonic() < deadline:
-                probe.spin_for(0.1)
+            probe.spin_until(lambda: any(t > t1 for t, _ in probe.diag.get("vmocap_camera", [])), REPORT_WAIT_S)
     finally:
         procs = [p for p in (player, launch) if p is not None]
         for p in procs:
@@ -289,7 +287,7 @@ def _run(args: argparse.Namespace, work: Path) -> int:
         print(f"{mode:15s} rate {r['rate_hz']:6.2f} Hz (input {r['input_rate_hz']:.2f})  dropped {r['dropped_pct']:5.2f} %  "
               f"end-to-end p50 {r['latency_ms']['p50']:.1f} ms p95 {r['latency_ms']['p95']:.1f} ms  pcm: {r['pcm']}  feed: {r['feed']}"
               + (f"  graph adds {r['graph_overhead_ms_p50']:.1f} ms p50" if r["graph_overhead_ms_p50"] is not None else ""))
-        if r["input_rate_hz"] != r["input_rate_hz"]:  # nan: say why
+        if math.isnan(r["input_rate_hz"]):  # say why
             print(f"   input rate unknown: {r['input_rate_from']}")
         print(f"   tracking {r['tracking_pct']:.1f} % of the frame sets out; CNN precision: {r['precision']}")
         print("   age after stage (p50/p95 ms): " + ", ".join(f"{k} {v['p50']}/{v['p95']}" for k, v in st.items()))

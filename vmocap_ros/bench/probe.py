@@ -77,6 +77,15 @@ class Probe:
         while time.monotonic() < end:
             self.executor.spin_once(timeout_sec=0.05)
 
+    def spin_until(self, done, timeout_s: float) -> bool:
+        """Spin until `done()` is true or `timeout_s` passed; whether it came true."""
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            if time.monotonic() >= deadline:
+                return False
+            self.spin_for(0.1)
+        return True
+
     def clear(self, all_: bool = False) -> None:
         for v in self.samples.values():
             v.clear()
