@@ -3,7 +3,7 @@ person, one CNN call per frame set.
 
 Each tracked person's crops follow their own skeleton (the paper's feedback, III-B), so each
 lattice search reads maps of its own person. The detector runs on images with the tracked
-bodies greyed out (`hidden`): every frame set while someone found is not initialized yet (their
+bodies' silhouettes greyed (`hidden`): every frame set while someone found is not initialized yet (their
 crops come from it), every wait_search_s while someone lost waits (their last crops held in
 between), and every `detect_every_s` while fewer than `max_people` are tracked, to find people
 who walked in (`_search`: cheap whole-image looks, a closer look where needed). A detection
@@ -47,7 +47,6 @@ from .skeleton import Skeleton
 
 PELVIS = INDEX["pelvis"]
 SearchKind = Literal["waiting", "newcomers", "counting"]  # what a detector search is for (_search)
-HIDE_MARGIN = 0.15  # a tracked body's box grown by this share of its size before it is hidden from the detector
 
 
 class PeopleError(VmocapError):
@@ -145,36 +144,16 @@ def explained(rig: Rig, found: Sequence[Sequence[Detection]], pelvises: np.ndarr
     return out
 
 
-def hidden(rig: Rig, images: Sequence[np.ndarray | None], skeletons: np.ndarray, margin: float = HIDE_MARGIN) -> list:
-    """The images with each skeleton's ((P, 25, 3) keypoints) projected bounding box, grown by
-    `margin` of its larger side, filled grey: the person detector finds the most prominent
-    people of an image and misses a smaller one beside them (the BlazePose detector is a
-    one-person model), so the people already tracked are taken out of the search for others."""
-    out = list(images)
+def hidden(rig: Rig, images: Sequence[np.ndarray | None], skeletons: np.ndarray) -> list:
+    """The images with each skeleton's ((P, 25, 3) keypoints) silhouette greyed
+    (occlusion.others_greyed): the person detector finds the most prominent people of an image
+    and misses a smaller one beside them (the BlazePose detector is a one-person model), so the
+    people already tracked are taken out of the search for others. Their silhouettes, not their
+    boxes: from most cameras a person standing beside a tracked one lies inside that one's box."""
     if len(skeletons) == 0:
-        return out
-    uv, front = rig.project(np.asarray(skeletons, dtype=np.float64))  # (C, P, 25, 2), (C, P, 25)
-    for c, im in enumerate(images):
-        if im is None:
-            continue
-        copy = None
-        h, w = im.shape[:2]
-        for p in range(uv.shape[1]):
-            ok = front[c, p] & np.isfinite(uv[c, p]).all(axis=1)
-            if not ok.any():
-                continue
-            lo, hi = uv[c, p, ok].min(axis=0), uv[c, p, ok].max(axis=0)
-            grow = margin * float(max(hi - lo))
-            x0, y0 = np.clip(np.floor(lo - grow), 0, [w, h]).astype(int)
-            x1, y1 = np.clip(np.ceil(hi + grow), 0, [w, h]).astype(int)
-            if x1 <= x0 or y1 <= y0:
-                continue
-            if copy is None:
-                copy = im.copy()
-            copy[y0:y1, x0:x1] = 127
-        if copy is not None:
-            out[c] = copy
-    return out
+        return list(images)
+    greyed = others_greyed(rig, images, skeletons, [None])
+    return [greyed.get((0, c), im) for c, im in enumerate(images)]
 
 
 class PeopleTracker:
