@@ -404,31 +404,3 @@ def test_a_body_off_its_path_is_the_subject_when_nobody_else_is_in_view():
             assert "lost" not in statuses[100:] and statuses[125:] == ["tracking"] * 25, statuses[95:]
         else:
             assert "lost" in statuses[112:125], (others, statuses[95:])
-
-
-def test_beside_another_body_a_disagreeing_frame_set_is_not_output():
-    """Alone, one frame set the views disagree with is noise the hysteresis forgives (the
-    output goes on); while the census counts someone else in view it is as likely the first
-    frame of a slide onto them: that frame set is held (uncertain, the diagnostics name the
-    disagreement) and the output resumes after check_resume_frames agreeing ones. Off with
-    check_strict_near_others."""
-    m, rig, _ = _walk_maps(seed=4)
-    runs = {}
-    for others, strict in ((0, True), (1, True), (1, False), (-1, True)):
-        run = Pipeline(rig, PipelineConfig.of(fps=60.0, check_strict_near_others=strict))
-        source = _walk_maps(seed=4)[2]
-        assert [run.step(source.render(t)).status for t in range(100)][-20:] == ["tracking"] * 20
-        statuses = []
-        for t in range(100, 106):
-            markers = _slid(run, t, m.positions[t], agree=True)
-            if t == 101:  # half the views agree: below check_min_agreement, above check_fail_agreement
-                markers.check.confidence[np.isfinite(markers.check.confidence)] = 0.5
-            markers.others = others
-            statuses.append(run.skeleton.step(markers).status)
-            if t == 101:
-                runs[(others, strict)] = run.skeleton.warning(statuses[-1], rig.names)
-        if others > 0 and strict:
-            assert statuses == ["tracking", "uncertain", "uncertain", "tracking", "tracking", "tracking"], statuses
-            assert "agree" in runs[(others, strict)], runs[(others, strict)]
-        else:
-            assert statuses == ["tracking"] * 6, (others, strict, statuses)

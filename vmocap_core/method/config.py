@@ -173,11 +173,6 @@ class SkeletonConfig(_Stage):
     # frame sets agreed with its skeleton (the first check of a new skeleton is the next frame
     # set's); 0: output from its first frame set.
     check_confirm_frames: int = 1
-    # While the detector's census counts others in view (Markers.others > 0), a frame set the
-    # images disagree with is not output even when the hysteresis above would forgive it: alone,
-    # a bad check is noise; beside another body it is as likely the first frame of a slide onto
-    # it. The output resumes by check_resume_frames, and back far off the path is lost (below).
-    check_strict_near_others: bool = True
     # After a frame set held back (uncertain, for whatever reason), the output resumes on the
     # `check_resume_frames`-th frame set in a row that passes every rule: a track that flickers
     # between held and passing lies on the edge of another body or of the maps (1: at once).

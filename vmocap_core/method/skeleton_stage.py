@@ -138,12 +138,9 @@ class SkeletonStage:
             if resumed and verdict == "ok" and self.verdict.min_agreement > 0 and self.config.check_confirm_frames > 0:
                 self.verdict.doubt(self.config.check_confirm_frames)
                 verdict = "uncertain"
-            judged = self.verdict.min_agreement > 0
-            if (verdict == "ok" and judged and self.verdict.disagreed and markers.others > 0
-                    and self.config.check_strict_near_others):
-                verdict = "uncertain"  # no forgiving beside another body (SkeletonConfig)
             if verdict != "ok":  # what the diagnostics name: the keypoints and views that disagree
                 self.disagreement = self.verdict.last
+            judged = self.verdict.min_agreement > 0
             support = markers.support
             # this frame set's own markers, most of them seen by one camera only: the skeleton
             # fitted to them is not output, the track goes on (the next check decides)
