@@ -137,8 +137,21 @@ def test_models_check_command_prints_cpu_precision_and_times(cache) -> None:
         assert word in out.stdout, out.stdout
 
 
-def test_non_vnni_x86_kernels_saturate_and_the_check_catches_it(cache) -> None:
-    """Runs where qemu-x86_64 can emulate an AVX2-only x86 CPU (x86 hosts, qemu-user installed)."""
+def _linked_cache(src: Path, dst: Path) -> Path:
+    """A model cache of links to src's model files and manifest, without its kept verdicts: a
+    check run on it keeps its verdict there."""
+    dst.mkdir()
+    for f in src.iterdir():
+        if f.is_file() and not f.name.startswith("selfcheck_"):
+            (dst / f.name).symlink_to(f)
+    return dst
+
+
+def test_non_vnni_x86_kernels_saturate_and_the_check_catches_it(cache, tmp_path) -> None:
+    """Runs where qemu-x86_64 can emulate an AVX2-only x86 CPU (x86 hosts, qemu-user installed).
+    On an AVX2-only host the emulated CPU has the host's flags and model name, so the
+    emulation's verdict (crops 150x slower) would replace the host's own: it is kept in a cache of
+    its own, and the host's verdicts stay as they were."""
     qemu = shutil.which("qemu-x86_64")
     if platform.machine() != "x86_64":
         pytest.skip("the emulated-Haswell check runs on x86_64 hosts")
@@ -147,10 +160,14 @@ def test_non_vnni_x86_kernels_saturate_and_the_check_catches_it(cache) -> None:
             pytest.fail("qemu-x86_64 missing: scripts/setup.sh installs qemu-user (needed for the non-VNNI check)")
         pytest.skip("qemu-x86_64 not installed (apt-get install qemu-user)")
     # the ROS wheels' start-up hook re-executes Python, which would leave the emulator: skip it
-    env = all_kernels_env(_ROS_WHEELS_BOOTSTRAP_COMPLETE="1", PYTHONPATH=str(REPO))
+    models = _linked_cache(cache, tmp_path / "models")
+    env = all_kernels_env(_ROS_WHEELS_BOOTSTRAP_COMPLETE="1", PYTHONPATH=str(REPO), VMOCAP_MODELS=str(models))
+    kept = {f.name: f.read_bytes() for f in cache.glob("selfcheck_*.json")}
     cmd = [qemu, "-cpu", "Haswell-noTSX", sys.executable, "-m", "vmocap_core.cli", "models", "check", "--repeats", "1", "--json"]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
+    assert {f.name: f.read_bytes() for f in cache.glob("selfcheck_*.json")} == kept, "the host's verdicts changed"
+    assert list(models.glob("selfcheck_*.json")), "the emulated check kept no verdict in its own cache"
     result = json.loads(out.stdout)
     print(json.dumps({k: result[k] for k in ("cpu", "tried", "precision", "reason")}))
     assert "avx2" in result["cpu"]["flags"] and "avx512f" not in result["cpu"]["flags"], "emulated AVX2-only CPU"

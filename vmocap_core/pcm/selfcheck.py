@@ -35,6 +35,9 @@ CROP = 256
 MEDIAN_CELLS, P95_CELLS, PRESENCE = 0.12, 0.75, 0.25
 MIN_SPEEDUP = 1.1  # int8 must take <= 1/1.1 of the float time to be worth its small error
 TIMING_REPEATS = 5
+# part of the kept verdict's key: a new value has every machine check again once (2: verdicts
+# kept before it may hold an emulated CPU's timings, see test_pcm_selfcheck.py's qemu test)
+VERDICT_VERSION = 2
 # the instruction sets that decide which integer kernels onnxruntime runs
 # int8 choices in the order tried: name -> (int8 build, i.e. the model file's suffix; session
 # config entries for onnxruntime). "u8s8-w7": the build with 7-bit weights (quantize.WEIGHT_GRIDS),
@@ -304,7 +307,8 @@ def verdict_path(variant: str = "full") -> Path:
     cpu = cpu_info()
     files = fetch.read_manifest(fetch.model_dir()).get("files", {})
     models = sorted((k, str(v)) for k, v in files.items() if str(k).startswith(f"pose_landmark_{variant}"))
-    key = json.dumps([cpu.arch, cpu.model, list(cpu.flags), ort.__version__, models, list(allowed_kernels())])
+    key = json.dumps([cpu.arch, cpu.model, list(cpu.flags), ort.__version__, models, list(allowed_kernels()),
+                      VERDICT_VERSION])
     return fetch.model_dir() / f"selfcheck_{variant}_{hashlib.sha256(key.encode()).hexdigest()[:16]}.json"
 
 

@@ -82,6 +82,7 @@ def run_pipeline(bag: Path, rig: Rig, out_bag: Path, n_frames: int, threads: int
 CPU_SHARE = 0.6
 DECODE_SAMPLE = 5  # frame sets decoded to time the JPEG decoding
 TRACKER_MS = 5.0  # markers, skeleton, transport and recorder per frame set (CPU ms; bench graph: ~3-5)
+MIN_RATE = 0.01  # the slowest playback: 100 frame sets in under 3 minutes (a rate rounded to 0 would never end)
 
 
 def live_rate(bag: Path, rig: Rig, views: int = 4, binning: int = 1) -> tuple[float, str]:
@@ -102,8 +103,8 @@ def live_rate(bag: Path, rig: Rig, views: int = 4, binning: int = 1) -> tuple[fl
     decode = (time.process_time() - t0) * 1e3 / max(n, 1)
     need = decode + cnn + TRACKER_MS
     cores = len(os.sched_getaffinity(0))
-    rate = min(1.0, CPU_SHARE * cores * 1e3 / FPS / need)
-    return round(rate, 2), (f"{need:.0f} ms of CPU per frame set: JPEG decoding {decode:.0f}, CNN {cnn:.0f} "
+    rate = max(MIN_RATE, round(min(1.0, CPU_SHARE * cores * 1e3 / FPS / need), 2))
+    return rate, (f"{need:.0f} ms of CPU per frame set: JPEG decoding {decode:.0f}, CNN {cnn:.0f} "
                             f"({check.precision}), tracker ~{TRACKER_MS:.0f}; {cores} cores")
 
 
@@ -128,6 +129,9 @@ def run_graph(bag: Path, rig_yaml: Path, rig: Rig, out_dir: Path, n_frames: int,
     from tqdm import tqdm
 
     from ...graph_config import Topics, stage_sections
+
+    if not rate > 0:
+        raise VmocapError(f"playback rate {rate}: must be above 0 (1 = live speed)")
 
     topics = Topics()
     record = [topics.keypoints, topics.feedback, topics.joint_states, topics.root_pose, topics.robot_description,
