@@ -154,6 +154,23 @@ def test_time_from_each_entry_to_a_body():
     assert entry_delays(np.zeros(5, bool), body[:5], 2) == []
 
 
+def test_a_new_id_after_a_re_entry_is_no_identity_switch():
+    """REP-155: a person who left is ended and comes back under a new id; the benchmark counts
+    that apart (`reentry_new_ids`), and an id change while they stay in view as a switch."""
+    from vmocap_core.apps.bench.people import entries, identity_switches
+
+    present = np.zeros(300, bool)
+    present[10:100] = present[103:150] = present[200:260] = True  # a flicker, then out 50 frames
+    starts = entries(present, 15)
+    assert starts.tolist() == [10, 200]
+    frames = np.r_[40:150, 230:260]
+    ids = np.where(frames < 200, 0, 1)
+    assert identity_switches(ids, frames, starts) == (0, 1)
+    ids[frames >= 120] += 2  # another id in view (frame 120), then the new one after the re-entry
+    assert identity_switches(ids, frames, starts) == (1, 1)
+    assert identity_switches(np.zeros(0, int), np.zeros(0, int), starts) == (0, 0)
+
+
 def test_the_walkers_paths_of_each_scene():
     """`--scene cross`: person 1 crosses the room at y = 0.9; `--scene beside`: it walks in
     and stops beside the subject's line, BESIDE_M away, until the end; `--scene facing`: it

@@ -120,12 +120,28 @@ def body_tracks(path: Path, stamps: np.ndarray, namespace: str = "/vmocap") -> d
     return {t.split("/")[-2]: read_clouds(path, stamps, t) for t in sorted(topics)}
 
 
-def entry_delays(present: np.ndarray, matched: np.ndarray, absent_frames: int) -> list[float | None]:
-    """Per entry of one person (present (T,): seen by >= 2 cameras; the first presence, and
-    each one after an absence of at least absent_frames), the seconds from it to their first
-    body (matched (T,)) before they leave again; None: no body in that stretch."""
+def entries(present: np.ndarray, absent_frames: int) -> np.ndarray:
+    """The frames one person (present (T,): seen by >= 2 cameras) enters view: their first
+    presence, and each one after an absence of at least absent_frames."""
     seen = np.flatnonzero(present)
-    starts = seen[np.r_[True, np.diff(seen) > absent_frames]] if seen.size else seen
+    return seen[np.r_[True, np.diff(seen) > absent_frames]] if seen.size else seen
+
+
+def identity_switches(ids: np.ndarray, frames: np.ndarray, starts: np.ndarray) -> tuple[int, int]:
+    """(switches, new ids at a re-entry) of one person's matched body ids (ids (M,) at frames
+    (M,), increasing): a change of id is a switch unless the person entered view again in
+    between (starts, `entries`): someone who left is ended and comes back under a new id
+    (people_tracker.py, REP-155)."""
+    changed = np.flatnonzero(np.diff(ids) != 0)
+    after_entry = np.searchsorted(starts, frames[changed], side="right") < np.searchsorted(starts, frames[changed + 1],
+                                                                                             side="right")
+    return int((~after_entry).sum()), int(after_entry.sum())
+
+
+def entry_delays(present: np.ndarray, matched: np.ndarray, absent_frames: int) -> list[float | None]:
+    """Per entry of one person (`entries`), the seconds from it to their first body (matched
+    (T,)) before they leave again; None: no body in that stretch."""
+    starts = entries(present, absent_frames)
     out: list[float | None] = []
     for i, s in enumerate(starts):
         end = starts[i + 1] if i + 1 < len(starts) else len(present)
@@ -140,7 +156,8 @@ def people_figures(bodies: dict[str, np.ndarray], truths: np.ndarray, present: n
     one (least summed MPJPE, pairs over FALSE_TRACKING_MM apart are no match). Per person, from
     their first match on: MPJPE and PCK@50 over their matched frames, the share of the frames
     they are present without a body (missed), identity switches (their matched body's id
-    changes), and per entry into view the time to their first body (entry_delays; the first
+    changes while they stay in view; a new id after they left and came back is counted apart,
+    `reentry_new_ids`), and per entry into view the time to their first body (entry_delays; the first
     entry too). Frames with a body matched to nobody are ghosts."""
     from scipy.optimize import linear_sum_assignment
 
@@ -162,22 +179,24 @@ def people_figures(bodies: dict[str, np.ndarray], truths: np.ndarray, present: n
         match[cols[ok], t] = shown[rows[ok]]
         ghosts += int(shown.size - ok.sum())
     persons: list[dict[str, Any]] = []
+    absent = int(round(ABSENT_S * RATE_HZ))
     for k in range(P):
         m = np.flatnonzero(match[k] >= 0)
-        entries = entry_delays(present[k], match[k] >= 0, int(round(ABSENT_S * RATE_HZ)))
-        timing = {"entry_to_body_s": entries, "reentry_s": max(entries[1:], key=lambda v: np.inf if v is None else v)
-                  if len(entries) > 1 else None}
+        delays = entry_delays(present[k], match[k] >= 0, absent)
+        timing = {"entry_to_body_s": delays, "reentry_s": max(delays[1:], key=lambda v: np.inf if v is None else v)
+                  if len(delays) > 1 else None}
         if m.size == 0:
-            persons.append({"mpjpe_mm": None, "pck50": None, "missed_pct": None, "identity_switches": 0, "first_s": None,
-                            **timing})
+            persons.append({"mpjpe_mm": None, "pck50": None, "missed_pct": None, "identity_switches": 0,
+                            "reentry_new_ids": 0, "first_s": None, **timing})
             continue
         f = np.arange(m[0], T)
         kp = np.linalg.norm(np.stack([bodies[ids[match[k, t]]][t] for t in m]) - truths[k, m], axis=-1) * 1000
         kp = kp[:, np.isfinite(truths[k]).all(axis=(0, 2))]
         seen = present[k, f]
+        switches, reentry_ids = identity_switches(match[k, m], m, entries(present[k], absent))
         persons.append({"mpjpe_mm": float(kp.mean()), "pck50": float(100 * (kp < 50).mean()),
                         "missed_pct": float(100 * (seen & (match[k, f] < 0)).sum() / max(seen.sum(), 1)),
-                        "identity_switches": int(np.count_nonzero(np.diff(match[k, m]))),
+                        "identity_switches": switches, "reentry_new_ids": reentry_ids,
                         "first_s": float(m[0] / RATE_HZ), "ids": sorted({ids[b] for b in match[k, m]}), **timing})
     return {"persons": persons, "ghost_frames": ghosts, "bodies": len(ids)}
 
@@ -311,5 +330,5 @@ def print_people(result: dict[str, Any]) -> None:
             for k, r in enumerate(every["persons"]):
                 entries = ", ".join("never" if v is None else f"{v:.2f} s" for v in r["entry_to_body_s"])
                 print(f"  person {k}: MPJPE {f(r['mpjpe_mm'])} mm, PCK50 {f(r['pck50'])}, missed {f(r['missed_pct'])} %, "
-                      f"switches {r['identity_switches']}, first body at {f(r['first_s'], '.2f')} s, "
-                      f"entry -> body {entries or '-'}")
+                      f"switches {r['identity_switches']} (new ids on re-entry {r['reentry_new_ids']}), "
+                      f"first body at {f(r['first_s'], '.2f')} s, entry -> body {entries or '-'}")
