@@ -132,9 +132,9 @@ def identity_switches(ids: np.ndarray, frames: np.ndarray, starts: np.ndarray) -
     (M,), increasing): a change of id is a switch unless the person entered view again in
     between (starts, `entries`): someone who left is ended and comes back under a new id
     (people_tracker.py, REP-155)."""
+    stay = np.searchsorted(starts, frames, side="right")  # which stay in view each frame is in
     changed = np.flatnonzero(np.diff(ids) != 0)
-    after_entry = np.searchsorted(starts, frames[changed], side="right") < np.searchsorted(starts, frames[changed + 1],
-                                                                                             side="right")
+    after_entry = stay[changed] < stay[changed + 1]
     return int((~after_entry).sum()), int(after_entry.sum())
 
 

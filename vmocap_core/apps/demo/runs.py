@@ -105,7 +105,7 @@ def live_rate(bag: Path, rig: Rig, views: int = 4, binning: int = 1) -> tuple[fl
     cores = len(os.sched_getaffinity(0))
     rate = max(MIN_RATE, round(min(1.0, CPU_SHARE * cores * 1e3 / FPS / need), 2))
     return rate, (f"{need:.0f} ms of CPU per frame set: JPEG decoding {decode:.0f}, CNN {cnn:.0f} "
-                            f"({check.precision}), tracker ~{TRACKER_MS:.0f}; {cores} cores")
+                  f"({check.precision}), tracker ~{TRACKER_MS:.0f}; {cores} cores")
 
 
 HOT_PATH = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]  # one process, as config/graph.yaml
