@@ -68,7 +68,7 @@ def _detection(rig, camera: int, pelvis: np.ndarray) -> Detection:
 def test_detections_of_tracked_people_are_theirs(rig):
     """A detection whose hip a tracked pelvis projects onto is that person's; one of someone
     standing 1.5 m away is left for a new person."""
-    from vmocap_core.method.people_tracker import explained
+    from vmocap_core.method.people_look import explained
 
     tracked, other = np.array([0.0, 0.0, 1.0]), np.array([1.5, 0.0, 1.0])
     found = [[_detection(rig, c, tracked), _detection(rig, c, other)] for c in range(len(rig))]
@@ -82,7 +82,7 @@ def test_tracked_bodies_are_hidden_from_the_detector(rig):
     """The search for others greys out each tracked body's silhouette and leaves the rest of
     the image, and the input images, as they were: a person standing 0.45 m beside it (in
     its box from most cameras) stays in view for the detector."""
-    from vmocap_core.method.people_tracker import hidden
+    from vmocap_core.method.people_look import hidden
 
     images = [np.full((c.height, c.width, 3), 30, np.uint8) for c in rig]
     body = np.full((25, 3), np.nan)
@@ -371,7 +371,8 @@ def test_a_camera_stops_while_two_are_tracked(rig, scene):
     no body (not a ghost, not a guess), and nobody else appears."""
     from vmocap_core.apps.bench import images
     from vmocap_core.method.config import PipelineConfig
-    from vmocap_core.method.people_tracker import PeopleConfig, PeopleTracker
+    from vmocap_core.method.people_config import PeopleConfig
+    from vmocap_core.method.people_tracker import PeopleTracker
 
     rec, stamps, truths = scene
     stop_at = 140
@@ -500,7 +501,8 @@ def test_more_people_than_max_people_are_counted_not_tracked(rig, scene):
     the detector; near the room's edge, small in two views, the detector misses them)."""
     from vmocap_core.apps.bench import images
     from vmocap_core.method.config import PipelineConfig
-    from vmocap_core.method.people_tracker import PeopleConfig, PeopleTracker
+    from vmocap_core.method.people_config import PeopleConfig
+    from vmocap_core.method.people_tracker import PeopleTracker
 
     rec, stamps, truths = scene
     tracker = PeopleTracker(rig, images._Provider(rig, "all", _precision()).pcm, PipelineConfig.from_dict({"fps": 60.0}),
@@ -534,7 +536,8 @@ def test_two_people_from_binned_images(rig, scene):
     from vmocap_core.apps.bench import images
     from vmocap_core.cameras.projection import Camera, Rig, binning_affine
     from vmocap_core.method.config import PipelineConfig
-    from vmocap_core.method.people_tracker import PeopleConfig, PeopleTracker
+    from vmocap_core.method.people_config import PeopleConfig
+    from vmocap_core.method.people_tracker import PeopleTracker
 
     rec, stamps, truths = scene
     unbin = np.linalg.inv(binning_affine(2))
@@ -544,7 +547,7 @@ def test_two_people_from_binned_images(rig, scene):
         assert (a.width, a.height) == (b.width, b.height)
     tracker = PeopleTracker(full, images._Provider(rig, "all", _precision()).pcm, PipelineConfig.from_dict({"fps": 60.0}),
                             PeopleConfig(max_people=2), binning=2)
-    assert tracker.people == [] and tracker.seen[0].width == rig[0].width
+    assert not tracker.people and tracker.seen[0].width == rig[0].width
     est = np.full((2, len(stamps), 25, 3), np.nan)
     for f, frame in _frame_sets(rec, rig):
         for p in tracker.step(frame, int(stamps[f])).people:

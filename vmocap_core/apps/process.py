@@ -159,7 +159,9 @@ def process_bag(
             else:
                 followed = tracked_any or (offline and any(r.status in FEEDBACK_STATUSES for r in kept))
             if stamps and pipe.last is not None and not followed:
-                stats["not_tracked_because"] = why_not_tracked(pipe, rig)
+                assert pipe.last is not None  # after at least one frame set
+                stats["not_tracked_because"] = why_not_tracked(pipe.last, rig, pipe.markers.config.init_max_reprojection_px,
+                                                               pipe.skeleton.init_problem)
                 if offline:
                     raise OfflineError(f"{in_path}: no frame set of {len(kept)} tracked, nothing to reconstruct: "
                                        f"{stats['not_tracked_because']}")
@@ -206,18 +208,16 @@ def process_bag(
     return stats
 
 
-def why_not_tracked(pipe: Pipeline, rig: Rig) -> str:
-    """Why no frame set was tracked, as the graph's WARN says it (init_report.py), or that the
-    recording ended before the tracker's first output."""
+def why_not_tracked(last: FrameResult, rig: Rig, init_max_reprojection_px: float, init_problem: Any) -> str:
+    """Why no frame set was tracked, as the graph's WARN says it (init_report.py), from the last
+    frame set's result and the skeleton stage's `init_problem`, or that the recording ended
+    before the tracker's first output."""
     from ..method.init_report import not_initialized_reason
 
-    last = pipe.last
-    assert last is not None  # called after at least one frame set
     ended = {"identifying": "identified (identify_seconds)", "smoothing": "smoothed (smoothing_lag_frames)"}
     if last.status in ended:
         return f"the recording ended while the subject was still being {ended[last.status]}"
-    return not_initialized_reason(last.markers, rig.names, pipe.markers.config.init_max_reprojection_px,
-                                  pipe.skeleton.init_problem)
+    return not_initialized_reason(last.markers, rig.names, init_max_reprojection_px, init_problem)
 
 
 def _pcm_frame_sets(reader: BagReader, rig: Rig, topics: Topics, views: list[str], keypoints: np.ndarray,

@@ -36,7 +36,8 @@ class PeopleSteps:
     def over(cls, pipe: Pipeline, rig: Rig, config: PipelineConfig, max_people: int, namespace: str,
              offline: bool = False) -> "PeopleSteps":
         """Over the pipeline's CNN (BlazePose's detector and landmark model)."""
-        from ..method.people_tracker import PeopleConfig, PeopleTracker
+        from ..method.people_config import PeopleConfig
+        from ..method.people_tracker import PeopleTracker
         from ..outputs.people import PeopleOutputs
 
         source: Any = pipe.pcm

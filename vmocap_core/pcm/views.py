@@ -58,6 +58,8 @@ class PcmViews:
     visibility: np.ndarray = field(default_factory=lambda: np.empty(0))
     # people besides the subject the detector's census last saw in any camera (census.py); -1: not known
     others: int = -1
+    # several people (method/people_look.py): the number of the person these are the crops of; -1: the one subject
+    person: int = -1
     # peaks() of every channel, kept: the consistency check reads them twice per frame set
     _all_peaks: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
 
@@ -88,7 +90,7 @@ class PcmViews:
         keep = np.asarray(keep, dtype=bool).reshape(self.n_views)
         return PcmViews(self.maps[keep], self.image_to_map[keep], self.camera[keep], self.keypoints, self.valid[keep],
                         self.presence[keep], self.stamp_ns if stamp_ns is None else stamp_ns, self.visibility[keep],
-                        self.others)
+                        self.others, self.person)
 
     @property
     def n_views(self) -> int:
@@ -118,6 +120,7 @@ class PcmViews:
             stamp_ns=self.stamp_ns,
             visibility=self.visibility,
             others=self.others,
+            person=self.person,
         )
 
     def corrupted(self) -> dict[int, int]:
@@ -220,4 +223,4 @@ def blank_views(pcm: PcmViews, cameras: list[int]) -> PcmViews:
                     np.concatenate([pcm.image_to_map, np.tile(np.eye(2, 3), (n, 1, 1))]),
                     np.concatenate([pcm.camera, cams]), pcm.keypoints,
                     np.concatenate([pcm.valid, np.zeros((n, J), bool)]), np.concatenate([pcm.presence, np.zeros(n)]),
-                    pcm.stamp_ns, np.concatenate([pcm.visibility, np.ones((n, J))]), pcm.others)
+                    pcm.stamp_ns, np.concatenate([pcm.visibility, np.ones((n, J))]), pcm.others, pcm.person)

@@ -31,7 +31,8 @@ class PeopleNode(VmocapNode):
     def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
                  transport: Transport | None = None, name: str = "vmocap_people") -> None:
         super().__init__(name, config, overrides, transport)
-        from vmocap_core.method.people_tracker import PeopleConfig, PeopleTracker
+        from vmocap_core.method.people_config import PeopleConfig
+        from vmocap_core.method.people_tracker import PeopleTracker
         from vmocap_core.outputs.people import PeopleOutputs
         from vmocap_core.pcm.providers import make_model_provider
 
@@ -133,7 +134,7 @@ class PeopleNode(VmocapNode):
                                                    and pubs[tp].wanted()):
                 if topic in pubs:
                     pubs[topic](out)
-        feedback = None if first is None else first.pipeline.feedback
+        feedback = None if first is None else first.feedback
         pubs[self.topics.feedback](M.keypoint_cloud(stamp_ns, feedback))
         if self.hri is not None:
             self.hri(frame)

@@ -53,7 +53,7 @@ def reprojection_px(rig: Any, person: Any) -> float | None:
     from ...method.results import skeleton_of
     from ...pcm.peaks import camera_keypoints
 
-    fb, pcm = skeleton_of(person.pipeline.feedback), None if person.last is None else person.last.pcm
+    fb, pcm = skeleton_of(person.feedback), None if person.last is None else person.last.pcm
     if fb is None or pcm is None or pcm.n_views == 0:
         return None
     uv, w = camera_keypoints(pcm, len(rig))
@@ -62,13 +62,14 @@ def reprojection_px(rig: Any, person: Any) -> float | None:
     return float(np.median(np.linalg.norm(proj - uv, axis=-1)[ok])) if ok.any() else None
 
 
-def why(rig: Any, person: Any) -> str:
+def why(tracker: Any, person: Any) -> str:
     """A person's status and, before their first skeleton, why (the graph's words, init_report.py)."""
     from ..process import why_not_tracked
 
-    if person.status != "initializing" or person.pipeline.last is None:
+    if person.status != "initializing" or person.last is None:
         return person.status
-    return why_not_tracked(person.pipeline, rig)
+    return why_not_tracked(person.last, tracker.rig, tracker.config.markers.init_max_reprojection_px,
+                           tracker.skeletons.stages[person.number].init_problem)
 
 
 def evaluate(data: Path, max_people: int, frame_sets: int, only: list[str] | None = None) -> dict[str, Any]:
@@ -77,7 +78,8 @@ def evaluate(data: Path, max_people: int, frame_sets: int, only: list[str] | Non
 
     from ...cameras.rig_file import load_panoptic_cameras
     from ...method.config import MarkersConfig, PipelineConfig
-    from ...method.people_tracker import PeopleConfig, PeopleTracker
+    from ...method.people_config import PeopleConfig
+    from ...method.people_tracker import PeopleTracker
     from ...pcm.pipeline import BlazePosePcm
 
     rig = load_panoptic_cameras(data / "camera_parameters.json", VIEWS)
@@ -101,7 +103,7 @@ def evaluate(data: Path, max_people: int, frame_sets: int, only: list[str] | Non
         tracked = [p for p in frame.people if p.status == "tracking"]
         rows.append({"instant": name, "tracked": len(tracked),
                      "reprojection_px": [reprojection_px(rig, p) for p in tracked],
-                     "not_tracked": {str(p.number): why(rig, p) for p in frame.people if p.status != "tracking"}})
+                     "not_tracked": {str(p.number): why(tracker, p) for p in frame.people if p.status != "tracking"}})
     return {"people_in_view": PEOPLE, "max_people": max_people, "frame_sets": frame_sets, "instants": rows,
             "init_max_reprojection_px": bound,
             "all_found": sum(r["tracked"] >= min(PEOPLE, max_people) for r in rows)}

@@ -1,0 +1,313 @@
+"""Several people, the CNN's side (vmocap_pcm with max_people > 1, and the offline
+people_tracker.py): who is in view, and each tracked person's heatmaps, one CNN call per frame set.
+
+Each tracked person's crops follow their own fed-back skeleton (the paper's feedback, III-B), so
+each lattice search reads maps of its own person. The detector runs on images with the tracked
+bodies' silhouettes greyed (`hidden`): every frame set while someone found is not initialized yet
+(their crops come from it), every wait_search_s while someone lost waits (their last crops held in
+between), and every `detect_every_s` while fewer than `max_people` are tracked, to find people who
+walked in (`_search`: cheap whole-image looks, a closer look where needed). A detection that a
+tracked person's pelvis projects onto is theirs; the others are grouped across cameras
+(pcm/choice.py: hip centres triangulated from two cameras that project onto a detection in both)
+into new people, the one seen by the most cameras first. The crops of everyone go through the
+landmark model together. A view says nothing of a person's keypoints that another tracked body
+covers there (occlusion.py).
+
+Every person sits in a slot (0 .. max_people - 1) while tracked: in the node graph each slot has
+its own heatmap, markers and feedback topics, and the marker and skeleton nodes run one stage per
+slot. Nothing here reads ground truth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal, Sequence
+
+import numpy as np
+
+from ..cameras.projection import Rig, binning_affine
+from ..keypoints import INDEX, KEYPOINTS
+from ..pcm.choice import AGREE_FRACTION, choose_subject, detection_arrays
+from ..pcm.crops import BODY_FRACTION, Crops
+from ..pcm.detector import Detection
+from ..pcm.views import PcmViews
+from .occlusion import hidden_keypoints, others_greyed, without_hidden
+from .people_config import PeopleConfig, ended_people
+from .prediction import BodyPredictor
+from .results import seed_of, skeleton_of
+
+PELVIS = INDEX["pelvis"]
+SearchKind = Literal["waiting", "newcomers", "counting"]  # what a detector search is for (_search)
+
+
+@dataclass
+class Seat:
+    """A person as the CNN's side knows them: `number` counts people in order of appearance
+    (0, 1, ...; the outputs give them REP-155 ids), `slot` is theirs while they are tracked."""
+
+    number: int
+    slot: int
+    predictor: BodyPredictor  # their fed-back skeleton, extrapolated to the frame set (their crops)
+    seed: np.ndarray  # (3,) their hip centre when last seen: where to look for them when lost
+    seen_ns: int  # stamp of their last frame set with a skeleton (or of their detection)
+    born_ns: int = 0  # stamp of the frame set they were found in (seen_ns stays it until their first skeleton)
+    body: np.ndarray | None = None  # their last fed-back skeleton (None: none, or a seed)
+    held: dict[int, tuple[int, Any]] = field(default_factory=dict)  # camera -> (stamp, detector crop) before a skeleton
+
+
+@dataclass
+class Look:
+    """One frame set's look: every seated person's heatmaps (no views: nothing to crop them
+    from), in the order they were found, and the people the detector saw but nobody tracks."""
+
+    stamp_ns: int
+    views: dict[int, PcmViews]  # person number -> their heatmaps (PcmViews.person is the number)
+    slots: dict[int, int]  # person number -> slot
+    untracked: np.ndarray  # (C,) detections per camera nobody's skeleton explains, at the last look (-1: none yet)
+    left_out: int = 0  # people two cameras see whom nobody tracks for want of a slot, at the last look
+
+
+def _concat(crops: Sequence[Crops]) -> Crops:
+    return Crops(np.concatenate([c.camera for c in crops]), np.concatenate([c.center for c in crops]),
+                 np.concatenate([c.side for c in crops]), np.concatenate([c.rotation for c in crops]),
+                 np.concatenate([c.valid for c in crops if c.valid is not None]))
+
+
+def explained(rig: Rig, found: Sequence[Sequence[Detection]], pelvises: np.ndarray) -> list[list[Detection]]:
+    """Per camera, the detections no tracked person (pelvises (P, 3)) projects onto: the
+    detection's hip within AGREE_FRACTION of its hip-to-head length of a projected pelvis
+    (pcm/choice.py's rule for one person's detections in two cameras)."""
+    if len(pelvises) == 0:
+        return [list(d) for d in found]
+    uv, front = rig.project(np.asarray(pelvises, dtype=np.float64))  # (C, P, 2), (C, P)
+    out: list[list[Detection]] = []
+    for c, (dets, hips, reach) in enumerate(zip(found, *detection_arrays(found)[:2])):
+        if not dets:
+            out.append([])
+            continue
+        dist = np.linalg.norm(hips[:, None] - uv[c][None], axis=-1)  # (n, P)
+        taken = (front[c][None] & (dist < AGREE_FRACTION * np.maximum(reach[:, None], 1e-6))).any(axis=1)
+        out.append([d for d, t in zip(dets, taken) if not t])
+    return out
+
+
+def hidden(rig: Rig, images: Sequence[np.ndarray | None], skeletons: np.ndarray) -> list:
+    """The images with each skeleton's ((P, 25, 3) keypoints) silhouette greyed
+    (occlusion.others_greyed): the person detector finds the most prominent people of an image
+    and misses a smaller one beside them (the BlazePose detector is a one-person model), so the
+    people already tracked are taken out of the search for others. Their silhouettes, not their
+    boxes: from most cameras a person standing beside a tracked one lies inside that one's box."""
+    if len(skeletons) == 0:
+        return list(images)
+    greyed = others_greyed(rig, images, skeletons, [None])
+    return [greyed.get((0, c), im) for c, im in enumerate(images)]
+
+
+class PeopleLook:
+    """Up to `people.max_people` people through one BlazePose PCM source (pcm.pipeline.BlazePosePcm:
+    `detect_people`, `crops_from_skeleton`, `landmark`): `step(images, stamp_ns)` per frame set,
+    then each person's `feedback`, and `end` for the people who ended (module doc)."""
+
+    def __init__(self, rig: Rig, pcm: Any, people: PeopleConfig | None = None, crop_prediction: str = "rigid",
+                 binning: int = 1) -> None:
+        self.rig, self.pcm = rig, pcm
+        # binning > 1: the images come reduced that many times (REP 104) and `pcm` works on the
+        # rig as they show it; the detections are read with that rig, and the views' affines
+        # are returned for full-resolution pixels, so the stages keep the rig and its bounds
+        self.seen = rig.binned(binning) if binning > 1 else rig
+        self._to_binned = binning_affine(binning) if binning > 1 else None
+        self.config = people or PeopleConfig()
+        self.crop_prediction = crop_prediction
+        self.seats: list[Seat] = []
+        self._next = 0
+        self._last_detection_ns: int | None = None
+        self._searches = 0  # searches for newcomers so far
+        self._untracked = np.full(len(rig), -1)  # per camera, the detections nobody tracks at the last look
+        self._left_out = 0  # people (seen by two cameras) not tracked for want of a slot, at the last look
+
+    def feedback(self, number: int, stamp_ns: int, feedback: np.ndarray | None) -> None:
+        """A person's fed-back skeleton of the frame set stamped `stamp_ns` (results.feedback_of):
+        their next crops follow it; a seed (their track slid onto another body) is where to look."""
+        seat = next((s for s in self.seats if s.number == number), None)
+        if seat is None:
+            return
+        seat.predictor.update(stamp_ns, feedback)
+        seat.body, seed = skeleton_of(feedback), seed_of(feedback)
+        if seat.body is not None:
+            seat.seed, seat.seen_ns = seat.body[PELVIS].copy(), stamp_ns
+            seat.held.clear()
+        elif seed is not None:
+            seat.seed = seed
+
+    def ended(self, stamp_ns: int) -> set[int]:
+        """The people who end at `stamp_ns` by what was fed back (people_config.ended_people)."""
+        gone, merged = ended_people(stamp_ns, {s.number: s.seen_ns for s in self.seats},
+                                    {s.number: s.body for s in self.seats}, self.config)
+        return gone | merged
+
+    def end(self, numbers: Sequence[int] | set[int]) -> None:
+        """These people are no longer looked for: their slots are free."""
+        self.seats = [s for s in self.seats if s.number not in numbers]
+
+    def _new_seat(self, seed: np.ndarray, stamp_ns: int) -> Seat:
+        taken = {s.slot for s in self.seats}
+        slot = next(k for k in range(self.config.max_people) if k not in taken)
+        s = Seat(self._next, slot, BodyPredictor(enabled=self.crop_prediction == "rigid"),
+                 np.asarray(seed, dtype=np.float64), stamp_ns, stamp_ns)
+        self._next += 1
+        self.seats.append(s)
+        return s
+
+    def _search_due(self, stamp_ns: int, waiting: list[Seat]) -> SearchKind | None:
+        """Which search this frame set runs (_search), if any: "waiting" every frame set while
+        someone found is not initialized yet, every wait_search_s while someone lost waits (their
+        last detector crops are held in between: a full search costs several frame periods);
+        "newcomers" every detect_every_s while fewer than max_people are tracked; "counting"
+        every count_every_s while max_people are (who is left out)."""
+        cfg = self.config
+        kind: SearchKind
+        if waiting:
+            # a person found and not yet initialized gets fresh detections every frame set: the
+            # initialization triangulates consecutive frame sets of a body that may walk fast
+            kind, every = "waiting", 0.0 if any(s.seen_ns == s.born_ns for s in waiting) else cfg.wait_search_s
+        elif len(self.seats) < cfg.max_people:
+            kind, every = "newcomers", cfg.detect_every_s
+        elif cfg.count_every_s > 0:
+            kind, every = "counting", cfg.count_every_s
+        else:
+            return None
+        last = self._last_detection_ns
+        return kind if last is None or not 0 <= stamp_ns - last < every * 1e9 else None
+
+    def _crops(self, s: Seat, index: np.ndarray, found: Sequence[Sequence[Detection]], have: np.ndarray,
+               stamp_ns: int) -> Crops:
+        """A person's detector crops (MediaPipe's rule, rotated already): this frame set's
+        detection per camera (index (C,), -1: none), else the camera's last one for hold_s. In
+        one camera a person crossing another is often not found, or found as one with them,
+        for a few frame sets, and the initialization needs consecutive ones."""
+        for c in range(len(found)):
+            if index[c] >= 0:
+                s.held[c] = (stamp_ns, found[c][index[c]].crop())
+        hold = self.config.hold_s * 1e9
+        cams = [c for c, (t, _) in sorted(s.held.items()) if have[c] and 0 <= stamp_ns - t <= hold]
+        return Crops.from_rectangles(cams, [s.held[c][1] for c in cams])
+
+    def step(self, images: Sequence[np.ndarray | None], stamp_ns: int) -> Look:
+        cfg = self.config
+        have = np.array([im is not None for im in images], dtype=bool)
+        crops: dict[int, Crops] = {}
+        tracked: dict[int, np.ndarray] = {}
+        for s in self.seats:
+            kp = skeleton_of(s.predictor.predict(stamp_ns))
+            if kp is not None:
+                tracked[s.number] = kp
+                c = self.pcm.crops_from_skeleton(kp, turned_fraction=BODY_FRACTION)
+                crops[s.number] = c.select(have[c.camera])
+        waiting = [s for s in self.seats if s.number not in tracked]
+        search = self._search_due(stamp_ns, waiting)
+        if search is not None:
+            self._last_detection_ns = stamp_ns
+            skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
+            pelvises = skeletons[:, PELVIS]
+            pelvises = pelvises[np.isfinite(pelvises).all(axis=1)]
+            left = self._search(images, skeletons, pelvises, search)
+            # the lost first (near where they were), then newcomers, the best seen first
+            for s in waiting:
+                choice = choose_subject(self.seen, left, s.seed)
+                point = choice.point
+                near = point is not None and np.linalg.norm(point - s.seed) <= cfg.reacquire_m
+                crops[s.number] = self._crops(s, choice.index if near else np.full(len(self.rig), -1), left, have,
+                                              stamp_ns)
+                if near and point is not None:
+                    left = explained(self.seen, left, point[None])
+                    if s.seen_ns == s.born_ns:  # not initialized yet: follow their detections
+                        s.seed = point
+            while len(self.seats) < cfg.max_people:
+                choice = choose_subject(self.seen, left, None)
+                if choice.point is None:
+                    break
+                s = self._new_seat(choice.point, stamp_ns)
+                crops[s.number] = self._crops(s, choice.index, left, have, stamp_ns)
+                left = explained(self.seen, left, choice.point[None])
+            self._untracked = np.array([len(d) for d in left])
+            self._left_out = self._people_in(left)
+        for s in waiting:  # between searches: their held detector crops
+            if s.number not in crops:
+                crops[s.number] = self._crops(s, np.full(len(self.rig), -1), [[] for _ in self.rig], have, stamp_ns)
+        pcm = self._infer(images, crops, tracked, stamp_ns)
+        order = [n for n in tracked if n in pcm]
+        if len(order) > 1:  # a view says nothing of a person's keypoints another body covers
+            covered = hidden_keypoints(self.rig, np.stack([tracked[n] for n in order]))
+            pcm.update({n: without_hidden(pcm[n], h) for n, h in zip(order, covered)})
+        views = {}
+        for s in self.seats:
+            own = pcm.get(s.number)
+            if own is None:
+                own = PcmViews.empty(len(KEYPOINTS), self.pcm.landmark.map_size, stamp_ns)
+            views[s.number] = dataclasses.replace(own, person=s.number)
+        return Look(stamp_ns, views, {s.number: s.slot for s in self.seats}, self._untracked.copy(), self._left_out)
+
+    def _people_in(self, found: list[list[Detection]]) -> int:
+        """How many people the detections make, grouped across cameras as newcomers are."""
+        n = 0
+        for _ in range(sum(len(d) for d in found)):  # each person takes at least one detection
+            point = choose_subject(self.seen, found, None).point
+            if point is None:
+                break
+            n += 1
+            found = explained(self.seen, found, point[None])
+        return n
+
+    def _search(self, images: Sequence[np.ndarray | None], skeletons: np.ndarray, pelvises: np.ndarray,
+                kind: SearchKind) -> list[list[Detection]]:
+        """Per camera, the detections no tracked person explains, with the tracked bodies hidden.
+        For someone "waiting": every look of detect_people. For "newcomers": the
+        whole images, and the closer look only in the cameras that found nobody while another
+        one found someone (a newcomer in the room is seen whole by some camera; the closer look
+        in every camera of an empty room costs 110 ms against 4 x 4 ms), and in every camera on
+        every closer_every-th search (a person small in every view: far, or a low-resolution
+        rig); no turned look (a lying newcomer is found when they get up). "counting" the people
+        left out (every slot taken): as for newcomers, but never every camera's closer look,
+        which costs more than a frame period."""
+        shown = hidden(self.seen, images, skeletons)
+        if kind == "waiting":
+            return explained(self.seen, self.pcm.detect_people(shown), pelvises)
+        thorough = kind == "newcomers" and self._searches % self.config.closer_every == 0  # the first search too
+        if kind == "newcomers":
+            self._searches += 1
+        left = explained(self.seen, self.pcm.detect_people(shown, turned=thorough, closer=thorough), pelvises)
+        empty = [c for c, d in enumerate(left) if not d and shown[c] is not None]
+        if not thorough and empty and len(empty) < sum(im is not None for im in shown):
+            again = self.pcm.detect_people([shown[c] if c in empty else None for c in range(len(shown))], turned=False)
+            closer = explained(self.seen, again, pelvises)
+            left = [closer[c] if c in empty else d for c, d in enumerate(left)]
+        return left
+
+    def _infer(self, images: Sequence[np.ndarray | None], crops: dict[int, Crops], tracked: dict[int, np.ndarray],
+               stamp_ns: int) -> dict[int, PcmViews]:
+        """Everyone's crops through the landmark model at once, split back per person. Where
+        other tracked bodies overlap a person's in a view, that person's crop is cut from a copy
+        of the image with the others greyed (occlusion.others_greyed): the landmark model reads
+        one body per crop."""
+        order = [n for n, c in crops.items() if len(c)]
+        if not order:
+            return {}
+        shown, parts = list(images), []
+        if tracked:
+            numbers = list(tracked)
+            greyed = others_greyed(self.seen, images, np.stack([tracked[n] for n in numbers]),
+                                   [numbers.index(n) if n in tracked else None for n in order])
+            at = {key: len(shown) + k for k, key in enumerate(greyed)}
+            shown += list(greyed.values())
+            for i, n in enumerate(order):  # the greyed copies as extra images, then the rig's cameras again
+                cam = crops[n].camera
+                parts.append(dataclasses.replace(crops[n], camera=np.array([at.get((i, int(c)), int(c)) for c in cam])))
+        else:
+            parts = [crops[n] for n in order]
+        views = self.pcm.landmark.infer(shown, _concat(parts), stamp_ns)
+        views = dataclasses.replace(views, camera=np.concatenate([crops[n].camera for n in order]))
+        if self._to_binned is not None:  # binned pixel -> map, composed with full pixel -> binned pixel
+            views.image_to_map = views.image_to_map @ self._to_binned
+        owner = np.concatenate([np.full(len(crops[n]), n) for n in order])
+        return {n: views.select(owner == n) for n in order}

@@ -1,0 +1,93 @@
+"""Several people, the stages after the CNN: one marker stage and one skeleton stage per person
+(the paper's lattice search, first IK, filter and second IK, each on its own person's heatmaps).
+
+`PeopleMarkers` is what vmocap_markers runs with max_people > 1, `PeopleSkeletons` what
+vmocap_skeleton runs; people_tracker.py composes both with people_look.py offline. The skeleton
+side ends people by the rule the CNN's side applies too (people_config.ended_people), and keeps
+the skeletons identified for people who ended for `remember_s`: a newcomer whose first fit has
+one's link lengths is that person come back and is tracked at once (skeleton_stage.py,
+REMEMBERED_LENGTHS), without the identification phase; they get a new id.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable
+
+import numpy as np
+
+from ..cameras.projection import Rig
+from ..pcm.views import PcmViews
+from .config import MarkersConfig, SkeletonConfig
+from .markers import MarkerStage
+from .people_config import PeopleConfig, ended_people
+from .results import Markers, TrackResult, feedback_of, skeleton_of
+from .skeleton import Skeleton
+from .skeleton_stage import SkeletonStage
+
+
+class PeopleMarkers:
+    """One marker stage per person (PcmViews.person), made when their first heatmaps come."""
+
+    def __init__(self, rig: Rig, config: MarkersConfig | None = None) -> None:
+        self.rig, self.config = rig, config or MarkersConfig()
+        self.stages: dict[int, MarkerStage] = {}
+
+    def step(self, pcm: PcmViews) -> Markers:
+        stage = self.stages.get(pcm.person)
+        if stage is None:
+            stage = self.stages[pcm.person] = MarkerStage(self.rig, self.config)
+        return stage.step(pcm)
+
+    def feedback(self, number: int, keypoints: np.ndarray | None) -> None:
+        stage = self.stages.get(number)
+        if stage is not None:
+            stage.feedback(keypoints)
+
+    def end(self, numbers: Iterable[int]) -> None:
+        for n in numbers:
+            self.stages.pop(n, None)
+
+
+class PeopleSkeletons:
+    """One skeleton stage per person; `step(stamp_ns, markers)` with every tracked person's
+    markers of a frame set -> their results and the people who ended in it (module doc)."""
+
+    def __init__(self, config: SkeletonConfig | None = None, people: PeopleConfig | None = None) -> None:
+        self.config, self.people = config or SkeletonConfig(), people or PeopleConfig()
+        self.stages: dict[int, SkeletonStage] = {}
+        self.seen_ns: dict[int, int] = {}  # person -> stamp of their last frame set with a skeleton (first: found)
+        self.bodies: dict[int, np.ndarray | None] = {}  # person -> their last fed-back skeleton
+        self._remembered: list[tuple[int, Skeleton]] = []  # (stamp ended, identified skeleton) of people who left
+
+    def _stage(self, number: int, stamp_ns: int) -> SkeletonStage:
+        stage = self.stages.get(number)
+        if stage is None:
+            stage = self.stages[number] = SkeletonStage(self.config)
+            keep = self.people.remember_s * 1e9
+            self._remembered = [(t, sk) for t, sk in self._remembered if 0 <= stamp_ns - t <= keep]
+            stage.known = [sk for _, sk in self._remembered]
+            self.seen_ns[number] = stamp_ns
+        return stage
+
+    def step(self, stamp_ns: int, markers: dict[int, Markers]) -> tuple[dict[int, TrackResult], list[int]]:
+        """Each person's result (in the order of `markers`) and the numbers of those ended now:
+        by the end rule, or gone from `markers` (the CNN's side ended them first)."""
+        results = {}
+        for n, m in markers.items():
+            results[n] = r = self._stage(n, stamp_ns).step(m)
+            self.bodies[n] = body = skeleton_of(feedback_of(r))
+            if body is not None:
+                self.seen_ns[n] = stamp_ns
+        gone, merged = ended_people(stamp_ns, {n: self.seen_ns[n] for n in markers},
+                                    {n: self.bodies[n] for n in markers}, self.people)
+        gone |= set(self.stages) - set(markers)
+        for n in sorted(gone):
+            identified = self.stages[n].identified
+            if identified is not None:
+                self._remembered.append((stamp_ns, identified))
+        ended = sorted(gone | merged)
+        for n in ended:
+            self.stages.pop(n)
+            self.seen_ns.pop(n, None)
+            self.bodies.pop(n, None)
+        return results, ended
