@@ -205,7 +205,8 @@ def test_pcm_message_roundtrip_exact() -> None:
 
 def test_pcm_messages_without_data_decode_like_the_data() -> None:
     """In one process vmocap_pcm hands its PcmViews to vmocap_markers inside data-less Image
-    dicts: the decoded frame set equals, bit for bit, the one decoded from the data."""
+    dicts: the decoded frame set equals, bit for bit, the one decoded from the data, but for
+    the affine, which is the sender's own (the data's comes back through K = A K_cam)."""
     from vmocap_core.pcm.synthetic import benchmark_rig
     from vmocap_core.pcm.views import PcmViews, stride_affine
 
@@ -223,9 +224,11 @@ def test_pcm_messages_without_data_decode_like_the_data() -> None:
     assert all("data" not in img and H.PCM_VIEW in img for img, _ in pairs)
     without = H.pcm_views(pairs, rig, kp)
     assert np.allclose(with_data.visibility, views.visibility, atol=1e-7)  # float32 on the wire
-    for field in ("maps", "image_to_map", "camera", "keypoints", "valid", "presence", "visibility"):
+    for field in ("maps", "camera", "keypoints", "valid", "presence", "visibility"):
         a, b = getattr(with_data, field), getattr(without, field)
         assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), field
+    assert np.array_equal(without.image_to_map, views.image_to_map)
+    assert np.allclose(with_data.image_to_map, views.image_to_map, rtol=1e-12, atol=1e-12)
     assert not without.valid[2, 3] and without.stamp_ns == 7
     # a mixed frame set (one view decoded from bytes) is the same too
     full = H.pcm_msgs(views, rig)

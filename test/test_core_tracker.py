@@ -346,10 +346,10 @@ def test_several_people_do_not_reacquire_a_keypoint_at_another_bodys_peaks():
     """A keypoint whose maps peak on another person 0.4 m away (a hand reaching past, two
     people face to face): the lattice around it finds nothing, and one person's re-acquisition
     at the maps' strongest peaks (MarkerStage._reacquire) takes the other body's wrist. The
-    people tracker's pipelines do without it: the marker stays weak where it was."""
+    marker stage of each of several people does without it: the marker stays weak where it was."""
     from vmocap_core.keypoints import INDEX
     from vmocap_core.method.markers import MarkerStage
-    from vmocap_core.method.people_tracker import PeopleTracker
+    from vmocap_core.method.people_stages import MarkerSlot
 
     m = punch()
     rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
@@ -371,5 +371,5 @@ def test_several_people_do_not_reacquire_a_keypoint_at_another_bodys_peaks():
 
     one = PipelineConfig.of(fps=60.0).markers
     assert np.linalg.norm(wrist_after(one) - other[wrist]) < 0.1  # one person: re-acquired on the other body
-    several = PeopleTracker(rig, None, PipelineConfig.of(fps=60.0)).config.markers
+    several = MarkerSlot(rig, PipelineConfig.of(fps=60.0).markers).config  # a person's stage among several
     assert np.linalg.norm(wrist_after(several) - other[wrist]) > 0.3

@@ -36,8 +36,8 @@ def test_bench_graph_json(tmp_path):
 
 
 def test_bench_graph_people_json(tmp_path):
-    """`--people 1`: a rendered person through vmocap_camera -> vmocap_people (max_people 2) with
-    the real CNN; the people node's figures are reported."""
+    """`--people 1`: a rendered person through the graph with max_people 2 and the real CNN;
+    every stage node's figures are reported."""
     import ctypes.util
     import importlib.util
 
@@ -52,5 +52,6 @@ def test_bench_graph_people_json(tmp_path):
     out = json.loads(r.stdout.strip().splitlines()[-1])
     m = out["modes"]["default"]
     assert out["people"] == 1 and m["rate_hz"] > 1.0, m
-    assert set(m["cpu_pct"]) == {"vmocap_people"} and m["stages_ms"]["people"]["p50"] > 0.0, m
+    assert set(m["cpu_pct"]) == {"vmocap_pcm", "vmocap_markers", "vmocap_skeleton"}, m
+    assert all(m["stages_ms"][s]["p50"] > 0.0 for s in ("pcm", "markers", "skeleton")), m
     assert not list(tmp_path.glob("vmocap_bench_graph_*"))

@@ -119,7 +119,8 @@ def test_skeleton_landmarks_follow_the_graphs_pcm_source(tmp_path):
 
 
 def test_people_config_checks(tmp_path):
-    """config/people.yaml: vmocap_people in the camera's process, the stages' sections read by it."""
+    """config/people.yaml: the stage nodes in the camera's process, max_people and end_after_s
+    shared, each node's people settings in its section."""
     import subprocess
     import sys
 
@@ -130,8 +131,10 @@ def test_people_config_checks(tmp_path):
     people = tmp_path / "people.yaml"
     people.write_text((REPO / "config" / "people.yaml").read_text())
     cfg = graph_config.load(people)
-    assert cfg.process_groups() == [["vmocap_camera", "vmocap_people"], ["vmocap_recorder"]]
-    assert cfg.node_params("vmocap_people")["max_people"] == 2 and cfg.pipeline_config().markers.lattice_k == 5
+    assert cfg.process_groups() == [["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"], ["vmocap_recorder"]]
+    assert all(cfg.node_params(n)["max_people"] == 2 for n in ("vmocap_pcm", "vmocap_markers", "vmocap_skeleton"))
+    assert cfg.node_params("vmocap_pcm")["detect_every_s"] == 0.5 and cfg.node_params("vmocap_skeleton")["remember_s"] == 60.0
+    assert cfg.pipeline_config().markers.lattice_k == 5
     ok = subprocess.run([sys.executable, "-m", "vmocap_core.cli", "config", "check", str(people)],
                         capture_output=True, text=True, timeout=60)
     assert ok.returncode == 0, ok.stderr

@@ -129,7 +129,7 @@ def test_damaged_chunk_refused_by_process_export_and_play(work) -> None:
 def _config(tmp_path: Path, rig: Path, **sections: dict) -> Path:
     raw = {"/**": {"ros__parameters": {"rig": str(rig)}}}
     for name, params in sections.items():
-        raw[name] = {"ros__parameters": params}
+        raw.setdefault(name, {"ros__parameters": {}})["ros__parameters"].update(params)
     path = tmp_path / "c.yaml"
     path.write_text(yaml.safe_dump(raw))
     return path
@@ -144,8 +144,9 @@ def _config(tmp_path: Path, rig: Path, **sections: dict) -> Path:
     ({"vmocap_camera": {"source": "video", "uri": "cam7=a.mp4"}}, ["vmocap_camera.uri", "cam7"]),
     ({"vmocap_markers": {"fps": 0.0}}, ["fps", "outside"]),
     ({"vmocap_recorder": {"output": "EXISTING"}}, ["vmocap_recorder.output", "exists", "--overwrite"]),
-    ({"vmocap_markers": {"max_people": 2}}, ["max_people", "vmocap_people"]),  # several people: not these nodes
-    ({"vmocap_people": {}, "vmocap_skeleton": {}}, ["vmocap_people", "vmocap_skeleton", "same subject topics"]),
+    ({"vmocap_pcm": {}, "vmocap_markers": {"max_people": 2}, "vmocap_skeleton": {}}, ["max_people", "disagree", "/**"]),
+    ({"/**": {"max_people": 2}, "vmocap_pcm": {}}, ["vmocap_pcm.model", "blazepose"]),  # several people: found by BlazePose's detector
+    ({"vmocap_people": {}}, ["vmocap_people", "max_people", "config/people.yaml"]),  # the node of earlier versions
 ])
 def test_config_values_that_cannot_work_are_refused(work, tmp_path: Path, sections: dict, words: list[str]) -> None:
     existing = tmp_path / "old.mcap"

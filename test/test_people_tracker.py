@@ -194,19 +194,28 @@ def test_the_walkers_paths_of_each_scene():
         walker_paths(2, 4.0, "hug")
 
 
+@pytest.fixture(scope="module")
+def offline(rig, scene, tmp_path_factory):
+    """`vmocap process --max-people 2` of the two-person recording with the real CNN: (the
+    output bag, its stats)."""
+    from vmocap_core.apps.bench import images
+    from vmocap_core.apps.process import process_bag
+
+    out = tmp_path_factory.mktemp("people_offline") / "out.mcap"
+    stats = process_bag(scene[0], out, rig, config={"fps": 60.0}, progress=False, overwrite=True, max_people=2,
+                        provider=images._Provider(rig, "all", _precision()))
+    return out, stats
+
+
 @rendering
-def test_two_people_each_tracked_with_their_own_id(rig, scene, tmp_path):
+def test_two_people_each_tracked_with_their_own_id(rig, scene, offline):
     """Two people rendered with exact truth, `vmocap process --max-people 2` with the real CNN:
     each person gets a body of their own, matched to them with no identity switch and no
     ghost, within 40 mm of their truth; the subject topics follow the first one."""
     from vmocap_core.apps.bench import images, people
-    from vmocap_core.apps.process import process_bag
 
     rec, stamps, truths = scene
-    precision = _precision()
-    out = tmp_path / "out.mcap"
-    stats = process_bag(rec, out, rig, config={"fps": 60.0}, progress=False, overwrite=True, max_people=2,
-                        provider=images._Provider(rig, "all", precision))
+    out, stats = offline
     assert stats["people_max"] == 2, stats
     bodies = people.body_tracks(out, stamps)
     f = people.people_figures(bodies, truths, people.seen_by(rig, truths) >= 2)
@@ -271,13 +280,15 @@ def test_two_people_offline_each_from_their_own_whole_recording(rig, scene, tmp_
 
 @rendering
 @pytest.mark.graph_replay
-def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, scene, tmp_path):
-    """vmocap_camera plays the two-person recording in lockstep into vmocap_people (max_people 2).
-    A client that behaves like libhri's HRIListener (default QoS on /humans/bodies/tracked, a
-    body's urdf, joint_states and keypoints opened when its id appears) sees two bodies at once
-    with different ids, each URDF's movable joints equal to its JointState names suffixed with
-    its id, each body's TF frame at its hips' mid-point (the last /tf_static holding both bodies'
-    fixed frames), and each body's keypoints on a different person's truth."""
+def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, scene, offline, tmp_path):
+    """vmocap_camera plays the two-person recording in lockstep into the graph with max_people 2
+    (vmocap_pcm crops both, vmocap_markers and vmocap_skeleton run a stage per person on their
+    slots' topics). A client that behaves like libhri's HRIListener (default QoS on
+    /humans/bodies/tracked, a body's urdf, joint_states and keypoints opened when its id
+    appears) sees two bodies at once with different ids, each URDF's movable joints equal to
+    its JointState names suffixed with its id, each body's TF frame at its hips' mid-point (the
+    last /tf_static holding both bodies' fixed frames), and each body's keypoints on a different
+    person's truth: the same keypoints as `vmocap process --max-people 2` gives that body."""
     pytest.importorskip("hri_msgs.msg", reason="hri_msgs not built (bash scripts/build_ros_msgs.sh)")
     pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (bash scripts/build_ros_msgs.sh)")
     import os
@@ -326,7 +337,7 @@ def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, scene, tmp_pat
     executor.add_node(hri.node)
     launch = vmocap(["launch", str(cfg)], env)
     try:
-        assert wait_ready(launch, ["vmocap_camera", "vmocap_people"], 120.0), stop(launch)
+        assert wait_ready(launch, ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"], 120.0), stop(launch)
         assert wait_for(lambda: (executor.spin_once(timeout_sec=0.1), hri.tracked and hri.tracked[-1][0])[1]
                         == int(stamps[-1]), 600.0, 0.0), f"the last frame set never came out ({len(hri.tracked)} did)"
     finally:
@@ -361,6 +372,17 @@ def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, scene, tmp_pat
         assert r["mpjpe_mm"] is not None and r["mpjpe_mm"] < bound and r["identity_switches"] == 0, f
     assert set(f["persons"][0]["ids"]).isdisjoint(f["persons"][1]["ids"])
     assert images.frame_mpjpe(bodies[f["persons"][0]["ids"][0]], truths[0]).size == len(stamps)
+    # the graph's bodies are the offline ones, in the order they were found (their ids are drawn
+    # anew each run): every keypoint the client got is the offline one of that frame set
+    off = people.body_tracks(offline[0], stamps)
+    tracked = {i: np.isfinite(v).all(axis=(1, 2)) for i, v in (bodies | off).items()}
+    first = {i: int(np.argmax(t)) for i, t in tracked.items()}
+    pairs = list(zip(sorted(bodies, key=first.get), sorted(off, key=first.get)))
+    assert len(pairs) == len(bodies) == len(off) == 2, (list(bodies), list(off))
+    for g, o in pairs:
+        # the client opens a body's keypoints when its id appears: it may miss the first few
+        assert tracked[g].sum() >= tracked[o].sum() - 5 and not (tracked[g] & ~tracked[o]).any(), (g, o)
+        assert np.abs(bodies[g][tracked[g]] - off[o][tracked[g]]).max() <= 1e-6, (g, o)
 
 
 @rendering
@@ -515,7 +537,7 @@ def test_more_people_than_max_people_are_counted_not_tracked(rig, scene):
         assert len(out.people) <= 1 and all(p.number == 0 for p in out.people), [p.number for p in out.people]
         if out.people and out.people[0].status == "tracking":
             est[f] = out.people[0].last.skeleton.keypoints
-            if tracker._last_detection_ns == int(stamps[f]):  # a look while the slot is taken
+            if tracker.look._last_detection_ns == int(stamps[f]):  # a look while the slot is taken
                 looks += 1
                 counted.append((int(seen[f]), f, out.left_out))
     e = images.frame_mpjpe(est, truths[0])
@@ -554,7 +576,7 @@ def test_two_people_from_binned_images(rig, scene):
             assert p.number < 2, "a third person appeared"
             if p.status == "tracking":
                 est[p.number, f] = p.last.skeleton.keypoints
-                assert p.pipeline.rig is full
+                assert tracker.slots[tracker.look.seats[0].slot].rig is full  # the stages keep the full rig
     e = np.array([[np.nanmean(images.frame_mpjpe(est[n], truths[k])) for k in range(2)] for n in range(2)])
     print(f"MPJPE (number x person): {e.round(1).tolist()}")
     assert np.isfinite(e).all()

@@ -49,18 +49,26 @@ def check_graph(cfg: GraphConfig, nodes: list[str] | None = None, overrides: dic
 
 
 def _people(cfg: GraphConfig, params: dict[str, dict[str, Any]]) -> None:
-    """Several people run in vmocap_people, one person in vmocap_pcm/markers/skeleton: not both
-    (they would publish the same subject topics), and max_people > 1 only with vmocap_people."""
-    kinds = {node_type(n): n for n in params}
-    single = [kinds[k] for k in ("vmocap_pcm", "vmocap_markers", "vmocap_skeleton") if k in kinds]
-    if "vmocap_people" in kinds and single:
-        raise GraphConfigError(cfg.path, "vmocap_launch.nodes", f"vmocap_people tracks everyone itself: not with "
-                               f"{', '.join(single)} (they publish the same subject topics)")
-    many = [n for n, p in params.items() if p.get("max_people", 1) > 1 and node_type(n) != "vmocap_people"]
-    if many and "vmocap_people" not in kinds and single:
-        raise GraphConfigError(cfg.path, "max_people", f"{params[many[0]]['max_people']}: several people are tracked by "
-                               "vmocap_people (config/people.yaml), which this graph does not run; "
-                               "vmocap_pcm/markers/skeleton follow one subject")
+    """Several people (max_people > 1): one vmocap_pcm finds everyone with BlazePose's person
+    detector and crops each of them, so it needs that CNN and every camera's images."""
+    stages = {n: p for n, p in params.items() if node_type(n) in ("vmocap_pcm", "vmocap_markers", "vmocap_skeleton")}
+    for key in ("max_people", "end_after_s"):  # each side applies them: they must agree
+        values = {p[key] for p in stages.values()}
+        if len(values) > 1:
+            raise GraphConfigError(cfg.path, key, f"the stage nodes disagree ({', '.join(f'{n}: {p[key]}' for n, p in stages.items())}): "
+                                   "set it once, under /**")
+    pcms = [n for n in params if node_type(n) == "vmocap_pcm"]
+    for node in pcms:
+        p = params[node]
+        if p["max_people"] <= 1:
+            continue
+        if p["source"] != "model" or p["model"] not in ("blazepose", "blazepose-lite"):
+            raise GraphConfigError(cfg.path, f"{node}.model", f"{p['model'] or p['source']!r}: max_people "
+                                   f"{p['max_people']} needs 'blazepose' or 'blazepose-lite' (its person detector finds "
+                                   "the people)")
+        if len(pcms) > 1 or p["cameras"]:
+            raise GraphConfigError(cfg.path, f"{node}.cameras", f"max_people {p['max_people']}: one vmocap_pcm for "
+                                   "every camera (it finds the people across all of them), not a worker per camera")
 
 
 def _existing(cfg: GraphConfig, key: str, path: str, what: str) -> str:

@@ -67,9 +67,12 @@ COMMON = [
           "through shared memory (NS/CAM/image_raw/shm carries references, cameras/shm.py) instead of sending the "
           "pixels over DDS, while flow control applies; a PCM node that cannot reach the memory (another machine) "
           "stops taking the references and gets the images over DDS"),
-    Param("max_people", 1, "people tracked at once. 1: the subject (vmocap_pcm, vmocap_markers, vmocap_skeleton); "
-          "more: vmocap_people tracks everyone in view up to this many, each a REP-155 body (method/people_tracker.py)",
-          1, 32),
+    Param("max_people", 1, "people tracked at once. 1: the subject; more: everyone in view up to this many, each a "
+          "REP-155 body: vmocap_pcm finds them (BlazePose's detector) and crops each one, vmocap_markers and "
+          "vmocap_skeleton run one stage per person on the topics of their slot, NS/people/slotK/... "
+          "(method/people_look.py, people_stages.py)", 1, 32),
+    Param("end_after_s", 1.0, "several people: a person without a skeleton this long (s) is ended (vmocap_pcm stops "
+          "cropping them, vmocap_skeleton takes their body id off /humans/bodies/tracked)", 0.05, 600.0),
     Param("lockstep_timeout_ms", 10000.0, "lockstep: a frame set nobody answers (no person in any view, a node down) "
           "releases the next one after this long; the PCM and markers nodes wait for feedback at least this long", 1.0, 1e6),
 ]
@@ -125,8 +128,12 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "others_in_view; with nobody else counted, vmocap_skeleton's path gate lets a track far off the "
               "subject's path go on) on one camera every this many frame sets, in a thread at the lowest CPU priority "
               "(frame sets never wait for it; skipped while the last look runs); 0: only at initialization", 0, 1000000),
+        Param("detect_every_s", 0.5, "several people: while fewer than max_people are tracked, the detector looks for "
+              "newcomers this often (s, capture time); it runs on every frame set while someone is being found or was "
+              "lost", 0.0, 60.0),
+        Param("count_every_s", 2.0, "several people: while max_people are tracked, the detector counts the people left "
+              "out this often (s, capture time; /diagnostics says how many; 0: never)", 0.0, 600.0),
     ],
-    "vmocap_people": [],  # filled below: the CNN's parameters of vmocap_pcm and its own
     "vmocap_markers": [
         Param("sync_tolerance_ms", 1.0, "max stamp difference of PCM views of one frame set", 0.0, 1000.0),
         Param("min_cameras", 2, "fewest views a frame set needs", 1, 64),
@@ -143,8 +150,14 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "raise it to process every frame of a bag played faster than the pipeline)", 1, 1000),
         Param("init_warn_s", 2.0, "diagnostics turn WARN, saying why, when no subject is initialized for this long "
               "(capture time)", 0.0, 1e6),
-        Param("hri", True, "publish the subject the ROS4HRI way (REP-155): /humans/bodies/tracked, "
-              "/humans/bodies/<id>/{joint_states,urdf}, TF body_<id> (needs hri_msgs: bash scripts/build_ros_msgs.sh)"),
+        Param("hri", True, "publish the subject (several people: every person) the ROS4HRI way (REP-155): "
+              "/humans/bodies/tracked, /humans/bodies/<id>/{joint_states,urdf}, TF body_<id>; several people also "
+              "NS/bodies/<id>/keypoints (needs hri_msgs: bash scripts/build_ros_msgs.sh)"),
+        Param("remember_s", 60.0, "several people: an ended person's identified skeleton is kept this long (s): a "
+              "newcomer with its link lengths is tracked at once, without a new identification phase (0: forget at "
+              "once)", 0.0, 86400.0),
+        Param("confirm_frames", 3, "several people: a person's track (new, or found again) is published once this "
+              "many frame sets agreed with its skeleton (check_confirm_frames if larger)", 0, 600),
     ],
     "vmocap_recorder": [
         Param("output", "", "MCAP file to write (renamed from .partial when closed)", path=True),
@@ -155,24 +168,6 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "(the graph's outputs fill 256 KiB in about a second; images much faster)", 16, 65536),
     ],
 }
-NODE_PARAMS["vmocap_people"] = [p for p in NODE_PARAMS["vmocap_pcm"] if p.name in (
-    "rotation", "crop_prediction", "threads", "sync_tolerance_ms", "min_cameras", "silent_after_ms", "queue_depth",
-    "inference_thread")] + [
-    Param("model", "blazepose", "the CNN: 'blazepose' / 'blazepose-lite' (its person detector finds the people)",
-          choices=("blazepose", "blazepose-lite")),
-    Param("detect_every_s", 0.5, "while fewer than max_people are tracked, the detector looks for newcomers this often "
-          "(s, capture time); it runs on every frame set while someone is being found or was lost", 0.0, 60.0),
-    Param("count_every_s", 2.0, "while max_people are tracked, the detector counts the people left out this often "
-          "(s, capture time; /diagnostics says how many; 0: never)", 0.0, 600.0),
-    Param("end_after_s", 1.0, "a person without a skeleton this long (s) is ended; their body id leaves "
-          "/humans/bodies/tracked", 0.05, 600.0),
-    Param("remember_s", 60.0, "an ended person's identified skeleton is kept this long (s): a newcomer with its "
-          "link lengths is tracked at once, without a new identification phase (0: forget at once)", 0.0, 86400.0),
-    Param("confirm_frames", 3, "a person's track (new, or found again) is published once this many frame sets "
-          "agreed with its skeleton (check_confirm_frames of vmocap_skeleton if larger)", 0, 600),
-    Param("hri", True, "publish every person the ROS4HRI way (REP-155): /humans/bodies/tracked, "
-          "/humans/bodies/<id>/{joint_states,urdf} and NS/bodies/<id>/keypoints (needs hri_msgs)"),
-]
 # groups: nodes that share a process in `processes` mode (their messages stay in-process, e.g. a
 # camera's images and the PCM inference); nodes in no group get a process each
 LAUNCH_KEYS: dict[str, Any] = {"mode": "processes", "nodes": None, "groups": None, "env": {}, "fastdds_profile": "fastdds_shm.xml",
@@ -218,7 +213,9 @@ def node_type(name: str) -> str:
     for t in sorted(NODE_PARAMS, key=len, reverse=True):
         if name.startswith(t + "_") and name[len(t) + 1:].replace("_", "").isalnum():
             return t
-    raise KeyError(f"unknown node {name!r}; nodes: {sorted(NODE_PARAMS)} or their instances TYPE_NAME")
+    hint = (" (several people now run in vmocap_pcm, vmocap_markers and vmocap_skeleton, with max_people under /**: "
+            "config/people.yaml)") if name == "vmocap_people" else ""
+    raise KeyError(f"unknown node {name!r}; nodes: {sorted(NODE_PARAMS)} or their instances TYPE_NAME{hint}")
 
 
 def params_of(node: str) -> list[Param]:
@@ -377,9 +374,8 @@ def load(path: str | Path) -> GraphConfig:
             continue
         try:
             node_type(section)
-        except KeyError:
-            raise GraphConfigError(path, section, f"unknown section (nodes: {sorted(NODE_PARAMS)} "
-                                   "or their instances TYPE_NAME)") from None
+        except KeyError as exc:
+            raise GraphConfigError(path, section, f"unknown section: {exc.args[0]}") from None
     cfg = GraphConfig(path=path, raw=raw, launch=launch)
     for node in cfg.node_names():
         try:

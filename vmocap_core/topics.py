@@ -9,6 +9,11 @@ class Topics:
     def __init__(self, namespace: str = "/vmocap") -> None:
         self.ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
 
+    def slot(self, k: int) -> "Topics":
+        """Several people (max_people > 1): the topics of slot k's person between vmocap_pcm,
+        vmocap_markers and vmocap_skeleton, under NS/people/slotK (pcm/VIEW/heatmaps, markers, feedback)."""
+        return Topics(f"{self.ns}/people/slot{k}")
+
     def image(self, cam: str) -> str:
         return f"{self.ns}/{cam}/image_raw"
 

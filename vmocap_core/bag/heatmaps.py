@@ -7,8 +7,13 @@ One pair per view and frame set, with the same header:
   that keypoint" (`PcmViews.valid` False). Channel J is constant: the view's `presence`.
   Channel J + 1, present when the maps were weighed by the CNN's landmark visibility
   (`PcmViews.visibility`, not all ones) or the census counted the others in view
-  (`PcmViews.others` >= 0): its first J cells (row-major) hold the J keypoints' visibility,
-  cell J holds others + 1 (0: not known), the other cells 0.
+  (`PcmViews.others` >= 0) or the maps are one of several people's (`PcmViews.person` >= 0):
+  its first J cells (row-major) hold the J keypoints' visibility, cell J holds others + 1 (0:
+  not known), cell J + 1 the person's number + 1 (0: the one subject), the other cells 0.
+- Several people (`padded`): a view with presence -1 (every keypoint channel NaN) stands for
+  none. The PCM node sends one for each view a slot's person has none of (or every view, for a
+  free slot), so that every slot answers every frame set in every view; it is read back as no
+  view.
   `header.frame_id` is the camera name (as in the rig), `header.stamp` the capture time.
 - `sensor_msgs/CameraInfo` of the heatmap as a camera: width W, height H, the camera's own D
   and distortion model, K = A K_cam with A the 3x3 form of `image_to_map`
@@ -36,15 +41,52 @@ from .messages import camera_info_msg, header, image_array, image_msg, stamp_ns
 PCM_VIEW = "_vmocap_pcm_view"
 
 
+def view_names(views: PcmViews, rig: Rig) -> list[str]:
+    """Each view's name (its topics NS/pcm/VIEW/...): its camera's for the camera's first view,
+    CAM_1, CAM_2 ... for more views of one camera (rotation lower_body)."""
+    seen: dict[int, int] = {}
+    names = []
+    for c in views.camera:
+        k = seen.get(int(c), 0)
+        seen[int(c)] = k + 1
+        names.append(rig[int(c)].name if k == 0 else f"{rig[int(c)].name}_{k}")
+    return names
+
+
+def view_camera(name: str, rig: Rig) -> int:
+    """The rig camera a view name (view_names) belongs to."""
+    if name in rig.names:
+        return rig.names.index(name)
+    base, _, k = name.rpartition("_")
+    if base in rig.names and k.isdigit():
+        return rig.names.index(base)
+    raise HeatmapError(f"view {name!r} is no camera of the rig {rig.names} (nor CAM_k of one)")
+
+
+def padded(views: PcmViews, rig: Rig, names: Sequence[str]) -> PcmViews:
+    """Several people: `views` and, for every name of `names` none of them has (view_names), a
+    view that stands for none (presence -1, module doc), of the same size."""
+    have = set(view_names(views, rig))
+    missing = [n for n in names if n not in have]
+    if not missing:
+        return views
+    n, (_, J, H, W) = len(missing), views.maps.shape
+    return PcmViews(np.concatenate([views.maps, np.zeros((n, J, H, W), np.float32)]),
+                    np.concatenate([views.image_to_map, np.tile(np.eye(2, 3), (n, 1, 1))]),
+                    np.concatenate([views.camera, [view_camera(m, rig) for m in missing]]), views.keypoints,
+                    np.concatenate([views.valid, np.zeros((n, J), bool)]), np.concatenate([views.presence, np.full(n, -1.0)]),
+                    views.stamp_ns, np.concatenate([views.visibility, np.ones((n, J))]), views.others, views.person)
+
+
 def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, dict]]:
     """One (Image, CameraInfo) pair per view (see the module docstring). data=False: the
     Images carry no `data` but refer to `views` (PCM_VIEW), for receivers in this process
     only (`pcm_views` reads them; CDR would encode them empty)."""
     V, J, H, W = views.maps.shape
-    extra = bool(np.any(views.visibility != 1.0)) or views.others >= 0
+    extra = bool(np.any(views.visibility != 1.0)) or views.others >= 0 or views.person >= 0
     N = J + 2 if extra else J + 1
-    if extra and H * W <= J:
-        raise HeatmapError(f"{W}x{H} maps cannot carry {J} keypoints' visibility and the others in view")
+    if extra and H * W <= J + 1:
+        raise HeatmapError(f"{W}x{H} maps cannot carry {J} keypoints' visibility, the others in view and the person")
     if data:
         # all views at once: (V, H, W, N) interleaved, invalid channels NaN, presence (and visibility) last
         stack = np.empty((V, H, W, N), dtype=np.float32)
@@ -57,6 +99,7 @@ def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, d
             plane = np.zeros((V, H * W), dtype=np.float32)
             plane[:, :J] = views.visibility
             plane[:, J] = max(views.others, -1) + 1
+            plane[:, J + 1] = max(views.person, -1) + 1
             stack[..., J + 1] = plane.reshape(V, H, W)
     out = []
     for v in range(V):
@@ -74,7 +117,10 @@ def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, d
 
 def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarray) -> PcmViews:
     """Inverse of `pcm_msgs`: (Image, CameraInfo) pairs of one frame set -> PcmViews. An
-    Image that refers to its PcmViews (PCM_VIEW) gives the same values as its data would."""
+    Image that refers to its PcmViews (PCM_VIEW) gives the same values as its data would, and
+    that PcmViews' own image_to_map, which through the CameraInfo's K = A K_cam comes back
+    with its last bits changed: the graph in one process then computes what the method does
+    offline, bit for bit (several people's tracks diverge from a 1e-16 difference within seconds)."""
     if not pairs:
         raise HeatmapError("no PCM views in the frame set")
     J, V = len(keypoints), len(pairs)
@@ -101,12 +147,13 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         maps[~np.asarray(views.valid, dtype=bool)] = np.nan
         presence = np.asarray(views.presence, dtype=np.float32).astype(np.float64)
         visibility = np.asarray(views.visibility, dtype=np.float32).astype(np.float64)
-        others = views.others
+        others, person = views.others, views.person
     else:
         maps = np.empty((V, J, H, W), dtype=np.float32)
         presence = np.zeros(V)
         visibility = np.ones((V, J))
         others = -1  # the most any view says (every view of a frame set carries the same count)
+        person = -1  # as every view of a frame set says
         for i, ((img, _), source) in enumerate(zip(pairs, sources)):
             if source is None:
                 arr = image_array(img)  # (H, W, J + 1 or J + 2), channels interleaved
@@ -118,6 +165,8 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
                     visibility[i] = extra[:J]
                     if extra.size > J:
                         others = max(others, int(extra[J]) - 1)
+                    if extra.size > J + 1:
+                        person = max(person, int(extra[J + 1]) - 1)
             else:
                 views, v = source
                 maps[i] = views.maps[v]
@@ -125,6 +174,7 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
                 presence[i] = np.float32(views.presence[v])
                 visibility[i] = views.visibility[v].astype(np.float32)
                 others = max(others, views.others)
+                person = max(person, views.person)
     # (V, J): an all-NaN channel says nothing; only a channel whose first cell is NaN can be one
     flat = maps.reshape(V * J, H * W)
     valid: np.ndarray = np.full(V * J, H * W > 0)  # an empty map says nothing either
@@ -135,9 +185,13 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
     maps[~valid] = 0.0
     Kmap = np.stack([np.asarray(info["k"], dtype=np.float64).reshape(3, 3) for _, info in pairs])
     Kcam = np.stack([rig[c].K for c in cams])
-    return PcmViews(
+    affine = (Kmap @ np.linalg.inv(Kcam))[:, :2]
+    for i, source in enumerate(sources):  # in-process: the sender's own affine, not its last bits through K
+        if source is not None:
+            affine[i] = source[0].image_to_map[source[1]]
+    out = PcmViews(
         maps=maps,
-        image_to_map=(Kmap @ np.linalg.inv(Kcam))[:, :2],
+        image_to_map=affine,
         camera=np.array(cams),
         keypoints=np.asarray(keypoints),
         valid=valid,
@@ -145,4 +199,8 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         stamp_ns=stamp_ns(pairs[0][0]),
         visibility=visibility,
         others=others,
+        person=person,
     )
+    if (presence < 0).any():  # a placeholder view stands for none
+        out = out.select(presence >= 0)
+    return out

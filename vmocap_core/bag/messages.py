@@ -55,7 +55,14 @@ _CHECKED_FIELDS = _MARKERS_FIELDS + [
     {"name": "others", "offset": 68, "datatype": 6, "count": 1},
     {"name": "inside", "offset": 72, "datatype": 6, "count": 1},
 ]
-_CHECKED_ANY = (CHECKED_DTYPE, CHECKED_V3_DTYPE, CHECKED_V2_DTYPE, CHECKED_V1_DTYPE)
+# Several people (method/people_stages.py): the markers of one person carry, in every point,
+# that person's number + 1 (`person`) after the fields above.
+MARKERS_PERSON_DTYPE = np.dtype(MARKERS_DTYPE.descr + [("person", "<u4")])
+CHECKED_PERSON_DTYPE = np.dtype(CHECKED_DTYPE.descr + [("person", "<u4")])
+_MARKERS_PERSON_FIELDS = _MARKERS_FIELDS + [{"name": "person", "offset": MARKERS_DTYPE.itemsize, "datatype": 6, "count": 1}]
+_CHECKED_PERSON_FIELDS = _CHECKED_FIELDS + [{"name": "person", "offset": CHECKED_DTYPE.itemsize, "datatype": 6, "count": 1}]
+_CHECKED_ANY = (CHECKED_PERSON_DTYPE, CHECKED_DTYPE, CHECKED_V3_DTYPE, CHECKED_V2_DTYPE, CHECKED_V1_DTYPE)
+_INSIDE = (CHECKED_DTYPE, CHECKED_PERSON_DTYPE)  # the layouts with `inside`
 
 
 # ------------------------------------------------------------------------------- stamps
@@ -173,15 +180,20 @@ def camera_info_mismatch(msg: dict, camera: Camera, rtol: float = 1e-6, binning:
 def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | None = None, kind: str = "none",
                    residual_px: np.ndarray | None = None, cameras: np.ndarray | None = None,
                    frame_id: str = WORLD_FRAME, check: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                   others: int = -1, inside: np.ndarray | None = None) -> dict:
+                   others: int = -1, inside: np.ndarray | None = None, person: int = -1) -> dict:
     """PointCloud2 of the 25 KEYPOINTS (positions None: an empty cloud, e.g. 'lost'); with
     `residual_px` and `cameras` the virtual markers' layout (MARKERS_DTYPE), with `check` too
     (confidence, disagree, agree), `others` (-1: not known) and `inside` (camera bit masks; None:
-    not known, written as 0) that of checked markers (CHECKED_DTYPE)."""
+    not known, written as 0) that of checked markers (CHECKED_DTYPE); markers of one of several
+    people (`person` >= 0) with their number after those fields."""
     markers = residual_px is not None
     checked = markers and check is not None
-    dtype, fields = ((CHECKED_DTYPE, _CHECKED_FIELDS) if checked else (MARKERS_DTYPE, _MARKERS_FIELDS) if markers
-                     else (CLOUD_DTYPE, _CLOUD_FIELDS))
+    if markers and person >= 0:
+        dtype, fields = (CHECKED_PERSON_DTYPE, _CHECKED_PERSON_FIELDS) if checked else (MARKERS_PERSON_DTYPE,
+                                                                                        _MARKERS_PERSON_FIELDS)
+    else:
+        dtype, fields = ((CHECKED_DTYPE, _CHECKED_FIELDS) if checked else (MARKERS_DTYPE, _MARKERS_FIELDS) if markers
+                         else (CLOUD_DTYPE, _CLOUD_FIELDS))
     if positions is None:
         pts = np.zeros(0, dtype=dtype)
     else:
@@ -201,6 +213,8 @@ def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | N
             pts["agree"] = np.asarray(check[2], dtype=np.uint32)
             pts["others"] = max(int(others), -1) + 1
             pts["inside"] = 0 if inside is None else np.asarray(inside, dtype=np.uint32)
+        if markers and person >= 0:
+            pts["person"] = person + 1
     return {
         "header": header(ns, frame_id),
         "height": 1,
@@ -217,7 +231,7 @@ def keypoint_cloud(ns: int, positions: np.ndarray | None, scores: np.ndarray | N
 def _cloud_points(msg: dict) -> np.ndarray:
     n = msg["width"] * msg["height"]
     names = [f["name"] for f in msg["fields"]]
-    for dtype in (CLOUD_DTYPE, MARKERS_DTYPE, *_CHECKED_ANY):
+    for dtype in (CLOUD_DTYPE, MARKERS_DTYPE, MARKERS_PERSON_DTYPE, *_CHECKED_ANY):
         if names == list(dtype.names) and msg["point_step"] == dtype.itemsize:
             return np.frombuffer(msg["data"], dtype=dtype, count=n)
     raise BagError(f"point cloud fields {names} are not vmocap's keypoint layout")
@@ -258,7 +272,7 @@ def cloud_marker_extras(msg: dict) -> tuple[np.ndarray, np.ndarray]:
     residual, cameras = np.full(len(KEYPOINTS), np.nan), np.zeros(len(KEYPOINTS), np.uint32)
     if msg["width"] * msg["height"]:
         pts = _cloud_points(msg)
-        if pts.dtype in (MARKERS_DTYPE, *_CHECKED_ANY):
+        if pts.dtype in (MARKERS_DTYPE, MARKERS_PERSON_DTYPE, *_CHECKED_ANY):
             ids = pts["id"].astype(np.intp)
             residual[ids], cameras[ids] = pts["residual_px"], pts["cameras"]
     return residual, cameras
@@ -288,7 +302,15 @@ def cloud_marker_others(msg: dict) -> int:
     if msg["width"] * msg["height"] == 0:
         return -1
     pts = _cloud_points(msg)
-    return int(pts["others"][0]) - 1 if pts.dtype in (CHECKED_DTYPE, CHECKED_V3_DTYPE) else -1
+    return int(pts["others"][0]) - 1 if pts.dtype in (*_INSIDE, CHECKED_V3_DTYPE) else -1
+
+
+def cloud_marker_person(msg: dict) -> int:
+    """The number of the person whose markers these are; -1 for the one subject's and other clouds."""
+    if msg["width"] * msg["height"] == 0:
+        return -1
+    pts = _cloud_points(msg)
+    return int(pts["person"][0]) - 1 if "person" in (pts.dtype.names or ()) else -1
 
 
 def cloud_marker_inside(msg: dict) -> np.ndarray | None:
@@ -297,7 +319,7 @@ def cloud_marker_inside(msg: dict) -> np.ndarray | None:
     if msg["width"] * msg["height"] == 0:
         return None
     pts = _cloud_points(msg)
-    if pts.dtype != CHECKED_DTYPE or not pts["inside"].any():
+    if pts.dtype not in _INSIDE or not pts["inside"].any():
         return None
     inside = np.zeros(len(KEYPOINTS), np.uint32)
     inside[pts["id"].astype(np.intp)] = pts["inside"]

@@ -81,7 +81,7 @@ class MarkerStage:
         else:
             out = self._lattice(pcm)  # the lattice search sanitizes the values it reads
         out.check = check if out.kind == "lattice" else None
-        out.others = pcm.others
+        out.others, out.person = pcm.others, pcm.person
         self.timings = {"lattice": time.perf_counter() - t0}
         return out
 

@@ -53,6 +53,7 @@ class Seat:
     seen_ns: int  # stamp of their last frame set with a skeleton (or of their detection)
     born_ns: int = 0  # stamp of the frame set they were found in (seen_ns stays it until their first skeleton)
     body: np.ndarray | None = None  # their last fed-back skeleton (None: none, or a seed)
+    fed_ns: int = -1  # stamp of their last feedback (a latched topic may bring an older one again)
     held: dict[int, tuple[int, Any]] = field(default_factory=dict)  # camera -> (stamp, detector crop) before a skeleton
 
 
@@ -130,8 +131,9 @@ class PeopleLook:
         """A person's fed-back skeleton of the frame set stamped `stamp_ns` (results.feedback_of):
         their next crops follow it; a seed (their track slid onto another body) is where to look."""
         seat = next((s for s in self.seats if s.number == number), None)
-        if seat is None:
+        if seat is None or stamp_ns < seat.fed_ns:
             return
+        seat.fed_ns = stamp_ns
         seat.predictor.update(stamp_ns, feedback)
         seat.body, seed = skeleton_of(feedback), seed_of(feedback)
         if seat.body is not None:

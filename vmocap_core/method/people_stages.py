@@ -1,7 +1,7 @@
 """Several people, the stages after the CNN: one marker stage and one skeleton stage per person
 (the paper's lattice search, first IK, filter and second IK, each on its own person's heatmaps).
 
-`PeopleMarkers` is what vmocap_markers runs with max_people > 1, `PeopleSkeletons` what
+`MarkerSlot` is what vmocap_markers runs per slot with max_people > 1, `PeopleSkeletons` what
 vmocap_skeleton runs; people_tracker.py composes both with people_look.py offline. The skeleton
 side ends people by the rule the CNN's side applies too (people_config.ended_people), and keeps
 the skeletons identified for people who ended for `remember_s`: a newcomer whose first fit has
@@ -11,8 +11,6 @@ REMEMBERED_LENGTHS), without the identification phase; they get a new id.
 
 from __future__ import annotations
 
-from typing import Iterable
-
 import numpy as np
 
 from ..cameras.projection import Rig
@@ -20,32 +18,36 @@ from ..pcm.views import PcmViews
 from .config import MarkersConfig, SkeletonConfig
 from .markers import MarkerStage
 from .people_config import PeopleConfig, ended_people
-from .results import Markers, TrackResult, feedback_of, skeleton_of
+from .results import Markers, TrackResult, feedback_of, nan_markers, skeleton_of
 from .skeleton import Skeleton
 from .skeleton_stage import SkeletonStage
 
 
-class PeopleMarkers:
-    """One marker stage per person (PcmViews.person), made when their first heatmaps come."""
+class MarkerSlot:
+    """The marker stage of whoever sits in one slot (PcmViews.person; people_look.py), a new one
+    for each new person; a free slot (person -1) gives no markers. vmocap_markers runs one per
+    slot; offline, people_tracker.py does."""
 
     def __init__(self, rig: Rig, config: MarkersConfig | None = None) -> None:
-        self.rig, self.config = rig, config or MarkersConfig()
-        self.stages: dict[int, MarkerStage] = {}
+        # no re-acquisition of a weak keypoint at its maps' strongest peaks (MarkerStage._reacquire):
+        # with others in the room those peaks are as likely theirs, and a triangulation of two
+        # bodies' peaks lands on neither; a lost person is found again by the detector instead
+        self.rig, self.config = rig, (config or MarkersConfig()).replace(reacquire_weight=0.0)
+        self.person = -1
+        self.stage: MarkerStage | None = None
 
     def step(self, pcm: PcmViews) -> Markers:
-        stage = self.stages.get(pcm.person)
-        if stage is None:
-            stage = self.stages[pcm.person] = MarkerStage(self.rig, self.config)
-        return stage.step(pcm)
+        if pcm.person != self.person:
+            self.person = pcm.person
+            self.stage = MarkerStage(self.rig, self.config) if pcm.person >= 0 else None
+        if self.stage is None:
+            return nan_markers(pcm.stamp_ns)
+        return self.stage.step(pcm)
 
-    def feedback(self, number: int, keypoints: np.ndarray | None) -> None:
-        stage = self.stages.get(number)
-        if stage is not None:
-            stage.feedback(keypoints)
-
-    def end(self, numbers: Iterable[int]) -> None:
-        for n in numbers:
-            self.stages.pop(n, None)
+    def feedback(self, keypoints: np.ndarray | None) -> None:
+        """The first-IK keypoints of this slot's person for the frame set just processed."""
+        if self.stage is not None:
+            self.stage.feedback(keypoints)
 
 
 class PeopleSkeletons:
@@ -53,7 +55,12 @@ class PeopleSkeletons:
     markers of a frame set -> their results and the people who ended in it (module doc)."""
 
     def __init__(self, config: SkeletonConfig | None = None, people: PeopleConfig | None = None) -> None:
-        self.config, self.people = config or SkeletonConfig(), people or PeopleConfig()
+        self.people = people or PeopleConfig()
+        # a track is output once confirm_frames agreed with it (or check_confirm_frames, the larger):
+        # with other bodies about, a first fit may lean on one of them
+        config = config or SkeletonConfig()
+        self.config = config.replace(check_confirm_frames=max(config.check_confirm_frames, int(self.people.confirm_frames)))
+        self._over: set[int] = set()  # people ended here: their markers, should the CNN's side still send some, are nobody's
         self.stages: dict[int, SkeletonStage] = {}
         self.seen_ns: dict[int, int] = {}  # person -> stamp of their last frame set with a skeleton (first: found)
         self.bodies: dict[int, np.ndarray | None] = {}  # person -> their last fed-back skeleton
@@ -73,6 +80,7 @@ class PeopleSkeletons:
         """Each person's result (in the order of `markers`) and the numbers of those ended now:
         by the end rule, or gone from `markers` (the CNN's side ended them first)."""
         results = {}
+        markers = {n: m for n, m in markers.items() if n not in self._over}
         for n, m in markers.items():
             results[n] = r = self._stage(n, stamp_ns).step(m)
             self.bodies[n] = body = skeleton_of(feedback_of(r))
@@ -86,6 +94,7 @@ class PeopleSkeletons:
             if identified is not None:
                 self._remembered.append((stamp_ns, identified))
         ended = sorted(gone | merged)
+        self._over.update(ended)
         for n in ended:
             self.stages.pop(n)
             self.seen_ns.pop(n, None)

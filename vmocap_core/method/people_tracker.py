@@ -4,7 +4,7 @@ and one marker and skeleton stage per person (people_stages.py), composed frame 
 set as the node graph composes them in vmocap_pcm, vmocap_markers and vmocap_skeleton with
 max_people > 1, each person's feedback going back to their own lattice search and crops.
 
-    images --PeopleLook--> {person: PcmViews} --PeopleMarkers--> {person: Markers}
+    images --PeopleLook--> {person: PcmViews} --MarkerSlot each--> {person: Markers}
        ^                                         --PeopleSkeletons--> {person: TrackResult}, ended
        '-------- each person's first-IK keypoints of frame t-1 ------------'
 """
@@ -21,9 +21,9 @@ from .config import PipelineConfig
 from .landmarks import resolve
 from .people_config import PeopleConfig
 from .people_look import PeopleLook
-from .people_stages import PeopleMarkers, PeopleSkeletons
+from .people_stages import MarkerSlot, PeopleSkeletons
 from .pipeline import FrameResult
-from .results import feedback_of
+from .results import TrackResult, feedback_of
 
 
 @dataclass
@@ -37,6 +37,11 @@ class Person:
     @property
     def status(self) -> str:
         return "initializing" if self.last is None else self.last.status
+
+    @property
+    def result(self) -> TrackResult | None:
+        """Their skeleton stage's result of the frame set (None: none yet)."""
+        return None if self.last is None else self.last.skeleton
 
     @property
     def feedback(self) -> np.ndarray | None:
@@ -67,18 +72,6 @@ class PeopleFrame:
         return int(max(self.untracked.max(initial=0), 0))
 
 
-def people_pipeline_config(config: PipelineConfig | None, people: PeopleConfig, landmarks: str) -> PipelineConfig:
-    """Every person's stage settings: the CNN's landmarks, `confirm_frames` (the larger of it and
-    check_confirm_frames) and no re-acquisition of a weak keypoint at its maps' strongest peaks
-    (MarkerStage._reacquire): with others in the room those peaks are as likely theirs, and a
-    triangulation of two bodies' peaks lands on neither; a lost person is found again by the
-    detector instead."""
-    cfg = config or PipelineConfig()
-    confirm = max(cfg.skeleton.check_confirm_frames, int(people.confirm_frames))
-    return cfg.replace(landmarks=resolve(cfg.skeleton.landmarks, landmarks), check_confirm_frames=confirm,
-                       reacquire_weight=0.0)
-
-
 class PeopleTracker:
     """Up to `people.max_people` people through one BlazePose PCM source (pcm.pipeline.BlazePosePcm);
     `step(images, stamp_ns)` per frame set (module doc)."""
@@ -87,9 +80,10 @@ class PeopleTracker:
                  landmarks: str = "blazepose", crop_prediction: str = "rigid", binning: int = 1) -> None:
         self.rig, self.pcm = rig, pcm
         self.people_config = people or PeopleConfig()
-        self.config = people_pipeline_config(config, self.people_config, landmarks)
+        cfg = config or PipelineConfig()  # the CNN's keypoints are its landmarks, not joint centres
+        self.config = cfg.replace(landmarks=resolve(cfg.skeleton.landmarks, landmarks))
         self.look = PeopleLook(rig, pcm, self.people_config, crop_prediction, binning)
-        self.markers = PeopleMarkers(rig, self.config.markers)
+        self.slots = [MarkerSlot(rig, self.config.markers) for _ in range(self.people_config.max_people)]
         self.skeletons = PeopleSkeletons(self.config.skeleton, self.people_config)
         self.people: dict[int, Person] = {}
 
@@ -100,16 +94,15 @@ class PeopleTracker:
 
     def step(self, images: Sequence[np.ndarray | None], stamp_ns: int) -> PeopleFrame:
         look = self.look.step(images, stamp_ns)
-        markers = {n: self.markers.step(views) for n, views in look.views.items()}
+        markers = {n: self.slots[look.slots[n]].step(views) for n, views in look.views.items()}
         results, ended = self.skeletons.step(stamp_ns, markers)
         for n, result in results.items():
             fb = feedback_of(result)
-            self.markers.feedback(n, fb)
+            self.slots[look.slots[n]].feedback(fb)
             self.look.feedback(n, result.feedback_stamp, fb)
             person = self.people.setdefault(n, Person(n))
             person.last = FrameResult(look.views[n], markers[n], result, fb)
         self.look.end(ended)
-        self.markers.end(ended)
         for n in ended:
             self.people.pop(n, None)
         return PeopleFrame(stamp_ns, list(self.people.values()), look.untracked, ended, look.left_out)

@@ -40,6 +40,8 @@ class Markers:
     # lattice markers: (25,) bit masks of the cameras with a view in whose image the lattice
     # centre lies, i.e. the views that can weigh each marker (None: not known)
     inside: np.ndarray | None = None
+    # several people (people_stages.py): the person these are the markers of (PcmViews.person); -1: the one subject
+    person: int = -1
 
 
     @property

@@ -34,7 +34,7 @@ def markers_message(markers: Markers) -> dict:
         c = markers.check
         check = (c.confidence, c.disagree, np.zeros(len(KEYPOINTS), np.uint32) if c.agree is None else c.agree)
     return M.keypoint_cloud(markers.stamp_ns, markers.positions, markers.weights, markers.kind, residual, markers.cameras,
-                            check=check, others=markers.others, inside=markers.inside)
+                            check=check, others=markers.others, inside=markers.inside, person=markers.person)
 
 
 def markers_from_message(msg: dict) -> Markers:
@@ -46,7 +46,7 @@ def markers_from_message(msg: dict) -> Markers:
     check = M.cloud_marker_check(msg)
     return Markers(M.stamp_ns(msg), P, S, kind, residual_px=residual, cameras=cameras,
                    check=None if check is None else ViewCheck(*check), others=M.cloud_marker_others(msg),
-                   inside=M.cloud_marker_inside(msg))
+                   inside=M.cloud_marker_inside(msg), person=M.cloud_marker_person(msg))
 
 
 def result_messages(topics: Topics, result: Any, wanted: Callable[[str], bool] | None = None,

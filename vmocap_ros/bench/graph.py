@@ -40,8 +40,8 @@ import numpy as np
 from .graph_setup import NODES, graph_config, graph_env, people_bag, pose2sim_bag, synthetic_bag
 from .probe import Probe, callback_cpu, in_window, latency, missing_periods, node_age
 
-STAGE_NODES = [*NODES, "vmocap_people"]
-REPORT_WAIT_S = 10.0  # how long to wait for a camera node report around the window (they come once a second)  # the nodes whose diagnostics are read (several people: vmocap_people)
+STAGE_NODES = list(NODES)  # the nodes whose diagnostics are read
+REPORT_WAIT_S = 10.0  # how long to wait for a camera node report around the window (they come once a second)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="", help="PCM model for --pcm model")
     parser.add_argument("--people", type=int, default=0, choices=(0, 1, 2, 3),
                         help="1-3: that many rendered people (benchmark rig, 1024x768; use --frames 240 or more: "
-                             "the scene loops) through vmocap_camera -> vmocap_people (max_people at least 2); "
+                             "the scene loops) through the graph with max_people at least 2; "
                              "needs --pcm model")
     parser.add_argument("--cache", default=None, help="--people: where rendered scenes are kept (default out/render_cache)")
     parser.add_argument("--feed", default="camera", choices=("camera", "player"),
@@ -193,7 +193,6 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         # age after each stage: the nodes' own figures; joint_states as a controller receives it
         "stages_ms": {"transport": transport, "pcm": node_age(status.get("vmocap_pcm")),
                       "markers": node_age(status.get("vmocap_markers")), "skeleton": node_age(status.get("vmocap_skeleton")),
-                      "people": node_age(status.get("vmocap_people")),
                       "joint_states": latency(s["joint_states"])},
         "cpu_pct": {n: callback_cpu(probe.diag.get(n, []), t0, t1) for n in STAGE_NODES if n in diag},  # callbacks only
         "process_cpu_pct": process_cpu,  # whole processes (rclpy executor and DDS threads included)

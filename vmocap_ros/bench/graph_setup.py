@@ -3,7 +3,7 @@ config per launch mode, and the environment the graph and the probe share.
 
 - `synthetic_bag`: benchmark rig, walk clip, random-texture images and the heatmaps recorded in
   the bag (`--pcm bag`); `pose2sim_bag`: the Pose2Sim demo videos (a real person), resized;
-  `people_bag`: several rendered people (`--people`, vmocap_people);
+  `people_bag`: several rendered people (`--people`, max_people >= 2);
 - `graph_config`: the shipped config/graph.yaml for one launch mode, PCM source and feed;
 - `graph_env`: localhost discovery and a DDS domain of the benchmark's own.
 """
@@ -153,10 +153,8 @@ def graph_config(work: Path, mode: str, rig_path: Path, kps: list[str], args: ar
     common["fps"] = float(args.fps)
     nodes = list(NODES)
     people = getattr(args, "people", 0)
-    if people:  # vmocap_people (everyone) instead of the one-subject nodes
-        nodes = ["vmocap_people"]
+    if people:  # everyone in view: the nodes' several-people kinds
         common["max_people"] = max(people, 2)
-        cfg["vmocap_people"] = {"ros__parameters": {"model": args.model or "blazepose"}}
     if args.feed == "camera":
         nodes.insert(0, "vmocap_camera")
         cfg["vmocap_camera"]["ros__parameters"].update(source="bag", uri=str(bag), rate=1.0, loop=True, restamp=True)

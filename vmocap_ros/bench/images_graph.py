@@ -30,7 +30,7 @@ NODES = ["vmocap_camera", "vmocap_pcm", "vmocap_markers", "vmocap_skeleton"]
 def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: dict, rate: float,
                  crop_prediction: str = "rigid", max_people: int = 1) -> Path:
     """tracker: flat tracker settings (PipelineConfig keys, `fps` among them) for the nodes;
-    rate <= 0: lockstep; max_people > 1: vmocap_people instead of the one-subject nodes."""
+    rate <= 0: lockstep; max_people > 1: everyone in view (the nodes' several-people kinds)."""
     from vmocap_core.graph_config import stage_sections
 
     cfg = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
@@ -43,12 +43,8 @@ def graph_config(work: Path, rec: Path, rig_path: Path, rotation: str, tracker: 
                                                  crop_prediction=crop_prediction)
     for section, values in stage_sections(tracker).items():
         cfg.setdefault(section, {}).setdefault("ros__parameters", {}).update(values)
-    nodes = NODES
-    if max_people > 1:
-        nodes = [NODES[0], "vmocap_people"]
-        cfg["/**"]["ros__parameters"]["max_people"] = int(max_people)
-        cfg["vmocap_people"] = {"ros__parameters": {"rotation": rotation, "crop_prediction": crop_prediction}}
-    cfg["vmocap_launch"] = {"mode": "single_process", "nodes": nodes,
+    cfg["/**"]["ros__parameters"]["max_people"] = int(max_people)
+    cfg["vmocap_launch"] = {"mode": "single_process", "nodes": NODES,
                             "fastdds_profile": str(REPO / "config" / "fastdds_shm.xml")}
     path = work / f"graph_{rec.stem}_{rotation}.yaml"
     path.write_text(yaml.safe_dump(cfg))

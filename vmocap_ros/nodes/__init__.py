@@ -1,7 +1,8 @@
 """The vmocap nodes, one file per node, in the method's order: camera ingest -> PCM inference
--> lattice search (markers) -> IK + filter (skeleton) -> recorder; several people: camera ->
-people (all of it per person, method/people_tracker.py) -> recorder. Each is a thin rclpy
-shell: parameters, publishers and subscriptions, one call into vmocap_core per message."""
+-> lattice search (markers) -> IK + filter (skeleton) -> recorder. With max_people > 1 the PCM
+and skeleton nodes are their several-people kinds (pcm_people.py, skeleton_people.py) and the
+markers node runs a stage per person. Each is a thin rclpy shell: parameters, publishers and
+subscriptions, one call into vmocap_core per message."""
 
 from __future__ import annotations
 
@@ -14,16 +15,18 @@ from .base import VmocapNode
 from .camera import CameraNode
 from .markers import MarkersNode
 from .pcm import PcmNode
-from .people import PeopleNode
+from .pcm_people import PeoplePcmNode
 from .recorder import RecorderNode
 from .skeleton import SkeletonNode
+from .skeleton_people import PeopleSkeletonNode
 
+# max_people > 1 (under /**): everyone in view
+PEOPLE_NODES: dict[str, type[VmocapNode]] = {"vmocap_pcm": PeoplePcmNode, "vmocap_skeleton": PeopleSkeletonNode}
 NODES: dict[str, type[VmocapNode]] = {
     "vmocap_camera": CameraNode,
     "vmocap_pcm": PcmNode,
     "vmocap_markers": MarkersNode,
     "vmocap_skeleton": SkeletonNode,
-    "vmocap_people": PeopleNode,
     "vmocap_recorder": RecorderNode,
 }
 
@@ -32,4 +35,6 @@ def create(name: str, config: graph_config.GraphConfig, overrides: dict[str, Any
            transport: Transport | None = None) -> VmocapNode:
     """The node called `name`: a node type's name, or an instance of one (`vmocap_pcm_cam0`:
     graph_config.node_type)."""
-    return NODES[graph_config.node_type(name)](config, overrides, transport, name)
+    kind = graph_config.node_type(name)
+    people = kind in PEOPLE_NODES and config.node_params(name, overrides)["max_people"] > 1
+    return (PEOPLE_NODES if people else NODES)[kind](config, overrides, transport, name)

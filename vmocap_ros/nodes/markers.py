@@ -29,9 +29,24 @@ HEATMAP_WARN_S = 5.0  # a corrupted-heatmap or blind-camera WARN stays this long
 BLIND_WARN_S = 1.0  # a camera without any heatmap this long while the others track: WARN
 
 
+class Stream:
+    """One person's way through the node: their views' heatmaps assembled into frame sets, the
+    frame sets queued while the lattice search waits for the previous one's feedback, the stage
+    and the markers' publisher. One for the subject; with several people one per slot."""
+
+    def __init__(self, asm: PcmAssembler, stage: Any, pub: Any, topics: Any) -> None:
+        self.asm, self.stage, self.pub, self.topics = asm, stage, pub, topics
+        self.queue: deque = deque()
+        self.awaiting: int | None = None
+        self.awaiting_since = 0.0
+        self.last_stamp: int | None = None
+
+
 class MarkersNode(VmocapNode):
     """PCM views -> frame sets -> MarkerStage (lattice search) -> NS/markers. The lattice of
-    frame t waits for the skeleton of frame t-1 (NS/feedback) so results are deterministic."""
+    frame t waits for the skeleton of frame t-1 (NS/feedback) so results are deterministic.
+    With max_people > 1 (under /**): one stage per slot (method/people_stages.MarkerSlot), each
+    on its slot's topics (NS/people/slotK/...), the subject's checks of the cameras left out."""
 
     def __init__(self, config: graph_config.GraphConfig, overrides: dict[str, Any] | None = None,
                  transport: Transport | None = None, name: str = "vmocap_markers") -> None:
@@ -40,78 +55,97 @@ class MarkersNode(VmocapNode):
             raise VmocapError("vmocap_markers needs a rig")
         p = self.p
         views = p["views"] or self.rig.names
-        self.asm = PcmAssembler(self.rig, views, channel_keypoints(p["pcm_keypoints"]),
-                                int(p["sync_tolerance_ms"] * 1e6), p["min_cameras"], int(p["silent_after_ms"] * 1e6))
-        self.stage = MarkerStage(self.rig, config.stage_config(name, p))
-        self.queue: deque = deque()
-        self.awaiting: int | None = None
-        self.awaiting_since = 0.0
+        stage_config = config.stage_config(name, p)
         self.timeout = p["feedback_timeout_ms"] / 1e3
         self.counts = {"frames": 0, "queue_dropped": 0, "missing": 0, "feedback_timeouts": 0}
-        self._last_stamp: int | None = None
-        self.init_watch = InitWatch(p["init_warn_s"], self.stage.config.init_max_reprojection_px, self.rig.names)
+        latched = bool(p["lockstep"])  # as vmocap_pcm publishes them in lockstep
+        # from a vmocap_pcm in another process of this machine the maps come through shared memory
+        self._shm_in = ShmIn(self) if p["shm_images"] and not latched else None
+        self.people = p["max_people"] > 1
+        if self.people:
+            from vmocap_core.method.people_stages import MarkerSlot
+
+            places = [(self.topics.slot(k), MarkerSlot(self.rig, stage_config)) for k in range(p["max_people"])]
+        else:
+            places = [(self.topics, MarkerStage(self.rig, stage_config))]
+        self.streams = []
+        for topics, stage in places:
+            asm = PcmAssembler(self.rig, views, channel_keypoints(p["pcm_keypoints"]), int(p["sync_tolerance_ms"] * 1e6),
+                               p["min_cameras"], int(p["silent_after_ms"] * 1e6))
+            # markers and feedback are transient-local: a frame processed before the other node's
+            # subscription matched (start-up) is still delivered, keeping the chain deterministic
+            pub = self.publisher(CLOUD, topics.markers, depth=p["queue_depth"], latched=True)
+            self.streams.append(Stream(asm, stage, pub, topics))
+        self.subject = self.streams[0]
+        self.stage = self.subject.stage
+        self.asm = self.subject.asm
+        self.init_watch = InitWatch(p["init_warn_s"], stage_config.init_max_reprojection_px, self.rig.names)
         self.presence: dict[str, float] = {}  # CNN presence per camera, last triangulated frame set
         self.cameras = OddCamera()  # per-camera reprojection residuals while tracking
         self.epipolar = EpipolarCheck(self.rig)  # per-pair epipolar offsets while tracking
         self.blind = BlindCameras(BLIND_WARN_S)  # cameras without any heatmap while tracking
         # cameras out of step (a probe a minute while tracking; the epipolar WARN says it too)
         self.timing = TimingCheck(self.rig, p["fps"])
-        # markers and feedback are transient-local: a frame processed before the other node's
-        # subscription matched (start-up) is still delivered, keeping the chain deterministic
-        self.pub = self.publisher(CLOUD, self.topics.markers, depth=p["queue_depth"], latched=True)
-        latched = bool(p["lockstep"])  # as vmocap_pcm publishes them in lockstep
-        # from a vmocap_pcm in another process of this machine the maps come through shared memory
-        self._shm_in = ShmIn(self) if p["shm_images"] and not latched else None
-        for v in views:
-            on_maps = functools.partial(self._on_maps, v)
-            self.subscribe(IMAGE, self.topics.pcm(v), on_maps, depth=p["queue_depth"], latched=latched)
-            if self._shm_in is not None:
-                self._shm_in.subscribe(self.topics.pcm(v), v, on_maps, depth=p["queue_depth"])
-            self.subscribe(INFO, self.topics.pcm_info(v), lambda m, v=v: self._enqueue(self.asm.add_info(v, m)), depth=p["queue_depth"],
-                           latched=latched)
-        self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
+        for st in self.streams:
+            for v in views:
+                on_maps = functools.partial(self._on_maps, st, v)
+                self.subscribe(IMAGE, st.topics.pcm(v), on_maps, depth=p["queue_depth"], latched=latched)
+                if self._shm_in is not None:
+                    self._shm_in.subscribe(st.topics.pcm(v), v, on_maps, depth=p["queue_depth"])
+                self.subscribe(INFO, st.topics.pcm_info(v), functools.partial(self._on_info, st, v), depth=p["queue_depth"],
+                               latched=latched)
+            self.subscribe(CLOUD, st.topics.feedback, functools.partial(self._on_feedback, st), depth=50, latched=True)
         if self.timeout > 0:
             self.create_timer(min(0.02, self.timeout / 2), self._check_timeout)
 
-    def _on_maps(self, view: str, msg: dict) -> None:
-        self._enqueue(self.asm.add_image(view, msg))
+    def _on_maps(self, st: Stream, view: str, msg: dict) -> None:
+        self._enqueue(st, st.asm.add_image(view, msg))
 
-    def _enqueue(self, pcms: list) -> None:
+    def _on_info(self, st: Stream, view: str, msg: dict) -> None:
+        self._enqueue(st, st.asm.add_info(view, msg))
+
+    def _enqueue(self, st: Stream, pcms: list) -> None:
         for pcm in pcms:
-            self.queue.append(pcm)
-            if len(self.queue) > self.p["queue_depth"]:
-                self.queue.popleft()
+            st.queue.append(pcm)
+            if len(st.queue) > self.p["queue_depth"]:
+                st.queue.popleft()
                 self.counts["queue_dropped"] += 1
-        self._pump()
+        self._pump(st)
 
-    def _pump(self) -> None:
-        while self.queue and (self.awaiting is None or self.timeout == 0):
-            pcm = self.queue.popleft()
+    def _pump(self, st: Stream) -> None:
+        while st.queue and (st.awaiting is None or self.timeout == 0):
+            pcm = st.queue.popleft()
             t0 = time.perf_counter()
             # frame sets lost anywhere before the tracker (DDS queues, the PCM node, a camera)
-            self.counts["missing"] += frames_missing(self._last_stamp, pcm.stamp_ns, self.p["fps"])
-            self._last_stamp = pcm.stamp_ns
-            markers = self.stage.step(pcm)
-            self.init_watch.update(self, "tracking" if markers.kind == "lattice" else "initializing", markers)
-            if markers.presence:
-                self.presence = markers.presence
+            self.counts["missing"] += frames_missing(st.last_stamp, pcm.stamp_ns, self.p["fps"])
+            st.last_stamp = pcm.stamp_ns
+            markers = st.stage.step(pcm)
             if self.timeout > 0:  # before publishing: the feedback may come back at once
-                self.awaiting, self.awaiting_since = pcm.stamp_ns, time.monotonic()
-            self.pub(markers_message(markers))
+                st.awaiting, st.awaiting_since = pcm.stamp_ns, time.monotonic()
+            st.pub(markers_message(markers))
             self.counts["frames"] += 1
             self.proc.add(1e3 * (time.perf_counter() - t0))
             self.record_age(pcm.stamp_ns)
+            if not self.people:
+                self._check_subject(pcm, markers)
+
+    def _check_subject(self, pcm: Any, markers: Any) -> None:
+        """The subject's frame set against the cameras: initialization, presence, timing, epipolar
+        geometry, heatmaps, residuals, blind cameras (each a WARN naming what it found)."""
+        self.init_watch.update(self, "tracking" if markers.kind == "lattice" else "initializing", markers)
+        if markers.presence:
+            self.presence = markers.presence
+        if markers.kind == "lattice":
+            self.timing.request(time.monotonic())
+            self.timing.add(pcm)
+        if markers.kind == "lattice" and self.counts["frames"] % EPIPOLAR_EVERY == 0:
+            self._check_epipolar(pcm)
+        if self.counts["frames"] % CAMERA_CHECK_EVERY == 0:
+            self._check_heatmaps(pcm)
             if markers.kind == "lattice":
-                self.timing.request(time.monotonic())
-                self.timing.add(pcm)
-            if markers.kind == "lattice" and self.counts["frames"] % EPIPOLAR_EVERY == 0:
-                self._check_epipolar(pcm)
-            if self.counts["frames"] % CAMERA_CHECK_EVERY == 0:
-                self._check_heatmaps(pcm)
-                if markers.kind == "lattice":
-                    self._check_cameras(pcm, markers.positions)
-                self._check_blind(pcm, markers.kind == "lattice")
-                self._check_timing()
+                self._check_cameras(pcm, markers.positions)
+            self._check_blind(pcm, markers.kind == "lattice")
+            self._check_timing()
 
     def _check_heatmaps(self, pcm: Any) -> None:
         """WARN (for HEATMAP_WARN_S) when heatmaps arrive with values the lattice search has to
@@ -175,30 +209,32 @@ class MarkersNode(VmocapNode):
             self._shm_in.close()
         super().close()
 
-    def _on_feedback(self, msg: dict) -> None:
+    def _on_feedback(self, st: Stream, msg: dict) -> None:
         t = M.stamp_ns(msg)
-        if self.timeout > 0 and t != self.awaiting:
+        if self.timeout > 0 and t != st.awaiting:
             return  # late feedback of a frame we stopped waiting for
-        self.stage.feedback(M.cloud_keypoints(msg)[0])
-        self.awaiting = None
-        self._pump()
+        st.stage.feedback(M.cloud_keypoints(msg)[0])
+        st.awaiting = None
+        self._pump(st)
 
     def _check_timeout(self) -> None:
-        if self.awaiting is not None and time.monotonic() - self.awaiting_since > self.timeout:
-            self.counts["feedback_timeouts"] += 1
-            self.problems["feedback"] = f"no skeleton feedback within {self.timeout * 1e3:.0f} ms ({self.counts['feedback_timeouts']}x)"
-            self.stage.feedback(None)  # re-initialize rather than search around a stale skeleton
-            self.awaiting = None
-            self._pump()
+        for st in self.streams:
+            if st.awaiting is not None and time.monotonic() - st.awaiting_since > self.timeout:
+                self.counts["feedback_timeouts"] += 1
+                self.problems["feedback"] = (f"no skeleton feedback within {self.timeout * 1e3:.0f} ms "
+                                             f"({self.counts['feedback_timeouts']}x)")
+                st.stage.feedback(None)  # re-initialize rather than search around a stale skeleton
+                st.awaiting = None
+                self._pump(st)
 
     def status(self) -> dict[str, Any]:
-        st = self.asm.sync.stats()
+        st = self.asm.sync.stats()  # the subject's (several people: slot 0's) views
         self.watch_late(st.late)
         self.watch_silent(st.silent, "view")
         # `missing` includes the frame sets dropped from our own queue
         self.watch_dropped(self.counts["missing"], f"frame sets dropped or missing (stamps further apart than 1/{self.p['fps']:g} s)")
-        return dict(self.counts, queued=len(self.queue), sync=st.as_dict(), silent=list(st.silent),
-                    rejected_frame_sets=self.asm.bad_views,
+        return dict(self.counts, queued=sum(len(s.queue) for s in self.streams), sync=st.as_dict(), silent=list(st.silent),
+                    rejected_frame_sets=sum(s.asm.bad_views for s in self.streams),
                     shared_memory=self._shm_in.status() if self._shm_in is not None else "off", presence={k: round(v, 3) for k, v in self.presence.items()},
                     **{f"residual_px:{k}": round(v, 1) for k, v in self.cameras.medians().items()})
 

@@ -24,6 +24,7 @@ from vmocap_core.pcm.assembly import channel_keypoints
 from vmocap_core.pcm.peaks import camera_keypoints
 from vmocap_core.pcm.views import blank_views
 
+from ..common import Topics
 from ..shm_link import ShmIn, ShmOut
 from ..transport import Output, Transport
 from .base import VmocapNode
@@ -58,7 +59,7 @@ class PcmNode(VmocapNode):
             for name in names:
                 self._shm_in.subscribe(self.topics.image(name), name, lambda m, n=name: self._on_image(n, m),
                                        depth=max(2, p["queue_depth"]))
-        self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
+        self._subscribe_feedback()
         # one view per camera exists from the start (publishers created late would lose their
         # first messages while discovery matches them); extra views (CAM_1...) come on demand
         # in lockstep the heatmaps are transient-local, as markers and feedback are: a view the
@@ -67,8 +68,9 @@ class PcmNode(VmocapNode):
         # heatmaps for vmocap_markers nodes of this machine through shared memory (not in lockstep:
         # a reference read late by a transient-local reader could find its slot written again)
         self._hm_shm: dict[str, ShmOut] = {}
-        for name in names:
-            self._pubs[name] = self._view_publishers(name)
+        for topics in self._heatmap_topics():
+            for name in names:
+                self._pubs[topics.pcm(name)] = self._view_publishers(topics, name)
         if self._hm_shm:
             self.create_timer(0.5, self._check_shm)
         self._kp_pubs = {name: self.publisher(CLOUD, self.topics.pcm_keypoints(name)) for name in names}
@@ -90,11 +92,18 @@ class PcmNode(VmocapNode):
         for out in self._hm_shm.values():
             out.check()
 
-    def _view_publishers(self, view: str) -> tuple[Output, Output]:
+    def _subscribe_feedback(self) -> None:
+        self.subscribe(CLOUD, self.topics.feedback, self._on_feedback, depth=50, latched=True)
+
+    def _heatmap_topics(self) -> list[Topics]:
+        """Where the heatmaps go: the graph's namespace (several people: one per slot)."""
+        return [self.topics]
+
+    def _view_publishers(self, topics: Topics, view: str) -> tuple[Output, Output]:
         if self.p["shm_images"] and not self._latched:
-            self._hm_shm[view] = ShmOut(self, self.topics.pcm(view))
-        return (self.publisher(IMAGE, self.topics.pcm(view), latched=self._latched),
-                self.publisher(INFO, self.topics.pcm_info(view), latched=self._latched))
+            self._hm_shm[topics.pcm(view)] = ShmOut(self, topics.pcm(view))
+        return (self.publisher(IMAGE, topics.pcm(view), latched=self._latched),
+                self.publisher(INFO, topics.pcm_info(view), latched=self._latched))
 
     def _make_provider(self):
         from vmocap_core.pcm.providers import BagPcmProvider, SyntheticPcmProvider
@@ -172,7 +181,7 @@ class PcmNode(VmocapNode):
             cams = [n for n in self.rig.names if n in fs.items and self._usable(n, fs.items[n])]
             fb = self.predictor.predict(fs.stamp_ns) if self.p["use_feedback"] else None
             if self.wait > 0 and self.p["use_feedback"]:
-                self.awaiting, self.awaiting_since = fs.stamp_ns, time.monotonic()
+                self._await_feedback(fs.stamp_ns)
             # without a DDS reader of the heatmaps (all nodes in one process), our vmocap_markers
             # gets the maps themselves: no interleaving into Image data and back (~1 ms a set)
             data = any(pi.dds_wanted() for pi, _ in self._pubs.values())
@@ -182,15 +191,21 @@ class PcmNode(VmocapNode):
             self.busy = True
             self.worker.submit(self._infer_in_thread, fs, cams, fb, data)
 
+    def _await_feedback(self, stamp_ns: int) -> None:
+        self.awaiting, self.awaiting_since = stamp_ns, time.monotonic()
+
     def _infer(self, fs: Any, cams: list[str], fb: np.ndarray | None, data: bool) -> tuple[Any, list, float]:
-        """The CNN on the usable cameras' images; the others get blank views (see blank_views)."""
+        """The CNN on the usable cameras' images; the others get blank views (see blank_views).
+        The messages: (heatmap topic, Image, CameraInfo) per view."""
         t0 = time.perf_counter()
         idx = np.array([self.rig.names.index(n) for n in cams])
         pcm = self.provider.infer([fs.items[n] for n in cams], idx, fs.stamp_ns, fb)
         unused = [self.rig.names.index(n) for n in fs.items if n not in cams]
         if unused and pcm.n_views:
             pcm = blank_views(pcm, unused)
-        return pcm, heatmaps.pcm_msgs(pcm, self.rig, data=data), time.perf_counter() - t0
+        msgs = heatmaps.pcm_msgs(pcm, self.rig, data=data)
+        names = heatmaps.view_names(pcm, self.rig)
+        return pcm, [(self.topics, v, img, info) for v, (img, info) in zip(names, msgs)], time.perf_counter() - t0
 
     def _infer_in_thread(self, fs: Any, cams: list[str], fb: np.ndarray | None, data: bool) -> None:
         try:
@@ -211,17 +226,13 @@ class PcmNode(VmocapNode):
     def _publish(self, fs: Any, data: bool, pcm: Any, msgs: list, seconds: float) -> None:
         """In the spin loop's thread: the frame set's heatmaps out, then the next frame set in."""
         t0 = time.perf_counter()
-        seen: dict[str, int] = {}
-        for img, info in msgs:
-            cam_name = img["header"]["frame_id"]
-            k = seen.get(cam_name, 0)
-            seen[cam_name] = k + 1
-            view = cam_name if k == 0 else f"{cam_name}_{k}"
-            if view not in self._pubs:
-                self._pubs[view] = self._view_publishers(view)
-            pi, pc = self._pubs[view]
+        for topics, view, img, info in msgs:
+            topic = topics.pcm(view)
+            if topic not in self._pubs:
+                self._pubs[topic] = self._view_publishers(topics, view)
+            pi, pc = self._pubs[topic]
             pc(info)
-            shm = self._hm_shm.get(view)
+            shm = self._hm_shm.get(topic)
             if data and shm is not None and shm.on:  # the maps into shared memory, a reference over DDS
                 shm.send(img)
             elif data:
@@ -230,7 +241,7 @@ class PcmNode(VmocapNode):
                 pi.send((img, None))  # to our nodes only
         self._publish_keypoints(pcm, fs.items, fs.stamp_ns)
         self._done(M.header(fs.stamp_ns, ",".join(fs.items)))
-        if pcm.n_views == 0 and self.awaiting is not None:
+        if not msgs and self.awaiting is not None:
             self.awaiting = None  # nothing published: no skeleton will answer this frame
         self.errors.pop("inference", None)
         self.pace.finished(seconds)
