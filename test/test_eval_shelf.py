@@ -144,36 +144,37 @@ def test_shelf_30_frames_ours_and_baseline() -> None:
 
 @needs_shelf
 def test_person_who_leaves_ends_only_their_tracker() -> None:
-    from vmocap_core.apps.evaluation.shelf import TRACKER_SETTINGS, make_renderer, people_per_view
-    from vmocap_core.method.config import PipelineConfig
-    from vmocap_core.method.multiperson import MultiPersonTracker
-    from vmocap_core.method.pipeline import Pipeline
-    data = shelf_data.load_shelf(SHELF, max_frames=40)
+    """Shelf's two first people tracked by the multi-person tracker with the detections' look;
+    one of them is taken out of every view: the other stays tracked by the same stages, the one
+    who left is ended after end_after_s, and nobody new is started."""
+    from vmocap_core.apps.evaluation.shelf import FPS, make_tracker, people_per_view
+
+    data = shelf_data.load_shelf(SHELF, max_frames=60)
     rig = data.rig
-    cfg = PipelineConfig.from_dict(TRACKER_SETTINGS)
-    mpt = MultiPersonTracker(rig, make_renderer(data), lambda: Pipeline(rig, cfg))
+    tracker = make_tracker(data)
     for f in range(20):
-        tracks = mpt.step(people_per_view(data, f))
-    assert len(tracks) == 2 and all(t.source == "tracker" for t in tracks)
-    leaving, staying = sorted(tracks, key=lambda t: t.track_id)
-    stay_id = staying.track_id
-    for f in range(20, 40):
+        frame = tracker.step(people_per_view(data, f), int(f * 1e9 / FPS))
+    assert len(frame.people) == 2 and all(p.status == "tracking" for p in frame.people)
+    leaving, staying = sorted(frame.people, key=lambda p: p.number)
+    ended = []
+    for f in range(20, 60):
         people = people_per_view(data, f)
-        # Remove from every view the 2D person nearest the leaving track's projection.
-        uv, _ = rig.project(np.nan_to_num(leaving.keypoints))
+        # Remove from every view the 2D person nearest the leaving person's projection.
+        uv, _ = rig.project(np.nan_to_num(leaving.last.skeleton.keypoints))
         for c in range(len(rig)):
             if len(people[c]):
                 d = np.nanmean(np.where(people[c][..., 2:] > 0, np.linalg.norm(people[c][..., :2] - uv[c][None], axis=-1)[..., None], np.nan)[..., 0], axis=1)
                 people[c] = np.delete(people[c], int(np.nanargmin(d)), axis=0)
-        tracks = mpt.step(people)
+        frame = tracker.step(people, int(f * 1e9 / FPS))
+        ended += frame.ended
+        assert [p.number for p in frame.people] == [staying.number], f  # the one who left is not stepped
         gt = data.gt[f]
-        s15 = to_shelf15(staying.output)
-        # The staying person is still tracked, by the same tracker, close to one GT person.
+        s15 = to_shelf15(frame.people[0].last.skeleton.keypoints)
+        # The staying person is still tracked, by the same stages, close to one GT person.
         err = np.nanmean(np.linalg.norm(gt.joints - s15[None], axis=-1), axis=1).min()
-        assert staying.source == "tracker" and err < 0.12
-    assert [t.track_id for t in tracks] == [stay_id]
-    assert any(e[1] == "end" and e[2] == leaving.track_id for e in mpt.events)
-    assert not any(e[1] == "start" and e[0] >= 20 for e in mpt.events)
+        assert frame.people[0].status == "tracking" and err < 0.12
+    assert ended == [leaving.number]
+    assert [s.number for s in tracker.look.seats] == [staying.number]
 
 
 @needs_shelf

@@ -1,13 +1,21 @@
-"""One pipeline per person (our extension; the paper tracks one person): each lattice search
-sees PCMs rendered only from the 2D detections assigned to its own person (people.py), so it
-searches near its own person; new people are started when they appear, trackers whose person
-left all views are ended. Nothing here reads ground truth.
+"""Several people from 2D detections (our extension for the Shelf benchmark; the paper tracks
+one person): the look that people_tracker.py runs instead of the CNN's (people_look.py), with
+the same stages per person after it. Each person's heatmaps are rendered from the 2D detections
+assigned to them alone (people.py), so each lattice search searches near its own person.
+
+Per frame set: the 2D people of each view go to the tracked person whose projected skeleton
+they fit (Hungarian assignment, gated in pixels); the rest are associated across views
+(epipolar consistency, triangulation) into new people. A person seen by fewer than
+`min_views` views is not stepped (their stages keep their state for a return); until their
+skeleton is fed back they are where their own detections triangulate. Nothing here reads
+ground truth.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -15,6 +23,9 @@ from scipy.optimize import linear_sum_assignment
 from ..cameras.projection import Rig
 from ..keypoints import INDEX
 from .people import N_KP, PcmRenderer, associate
+from .people_config import PeopleConfig, ended_people
+from .people_look import Look
+from .results import skeleton_of
 from .triangulation import triangulate_robust
 
 
@@ -26,23 +37,22 @@ class MultiPersonConfig:
     new_min_views: int = 2  # a new person needs this many views ...
     new_min_joints: int = 10  # ... and this many triangulated keypoints, torso included
     new_max_residual_px: float = 15.0  # median reprojection residual of a new person
-    min_views: int = 2  # a track with fewer assigned views this frame is "unseen"
-    max_unseen: int = 8  # frames a track survives unseen before it ends
-    duplicate_m: float = 0.25  # two tracks closer than this (mean keypoint distance) merge
+    min_views: int = 2  # a person with fewer assigned views in a frame set is not stepped
+    duplicate_m: float = 0.25  # a new person this close to a tracked one (mean keypoint distance, x2) is them
     joint_gate_m: float | None = 0.25  # per-keypoint gate around a tracked person (None: off)
 
 
 @dataclass
-class Track:
-    track_id: int
-    filter: Any  # a method.pipeline.Pipeline (anything with .step(PcmViews).skeleton -> TrackResult)
-    keypoints: np.ndarray  # (25, 3) last feedback keypoints (NaN before the first result)
-    born: int
-    unseen: int = 0
-    members: dict[int, list[int]] = field(default_factory=dict)  # camera -> 2D people indices
-    result: object = None  # the filter's last TrackResult (None when not stepped)
-    output: np.ndarray | None = None  # (25, 3) this frame's reconstruction, None when unseen
-    source: str = "none"  # "tracker" | "triangulated" (while initializing) | "unseen"
+class Seat:
+    """A person as the detections' look knows them (people_look.Seat's counterpart)."""
+
+    number: int
+    slot: int
+    keypoints: np.ndarray  # (25, 3): their fed-back skeleton, else the triangulation of their detections
+    seen_ns: int
+    tracked: bool = False  # a skeleton was fed back for the last frame set they were stepped in
+    members: dict[int, list[int]] = field(default_factory=dict)  # camera -> their 2D people in it
+    triangulated: np.ndarray | None = None  # (25, 3) their detections triangulated, this frame set (None: not stepped)
 
 
 _TORSO = np.array([INDEX[n] for n in ("neck", "left_shoulder", "right_shoulder", "left_hip", "right_hip")])
@@ -58,34 +68,36 @@ def _projected_cost(uv_track: np.ndarray, ok_track: np.ndarray, people: np.ndarr
     return np.where(n >= 3, cost, np.inf)
 
 
-class MultiPersonTracker:
-    """One lattice filter per person, fed with PCMs of that person's own detections.
+def _distance(a: np.ndarray, b: np.ndarray) -> float:
+    d = np.linalg.norm(a - b, axis=-1)
+    return float(np.nanmean(d)) if np.isfinite(d).any() else np.inf
 
-    `make_filter()` returns a fresh single-person pipeline (method.pipeline.Pipeline).
-    `step(people, stamp_ns)` takes the 2D people of each view ((P_c, 25, 3): u, v, score) and
-    returns the active tracks after this frame.
-    """
 
-    def __init__(self, rig: Rig, renderer: PcmRenderer, make_filter: Callable[[], object], config: MultiPersonConfig | None = None) -> None:
-        self.rig = rig
-        self.renderer = renderer
-        self.make_filter = make_filter
+class DetectionsLook:
+    """People from the 2D people of each view ((P_c, 25, 3): u, v, score), each person's
+    heatmaps rendered from their own detections (module doc). The interface of
+    people_look.PeopleLook: `step`, `feedback`, `ended`, `end`."""
+
+    own_maps = True  # each person's maps hold their own detections alone (MarkerSlot may re-acquire)
+
+    def __init__(self, rig: Rig, renderer: PcmRenderer, config: MultiPersonConfig | None = None,
+                 people: PeopleConfig | None = None) -> None:
+        self.rig, self.renderer = rig, renderer
         self.cfg = config or MultiPersonConfig()
-        self.tracks: list[Track] = []
-        self._next_id = 0
-        self.frame = 0
-        self.events: list[tuple[int, str, int]] = []  # (frame, "start" | "end", track id)
+        self.config = people or PeopleConfig()
+        self.seats: list[Seat] = []
+        self._next = 0
 
-    # ---- assignment of 2D people to existing tracks
+    # ---- assignment of 2D people to the people tracked
     def _assign(self, people: Sequence[np.ndarray]) -> list[np.ndarray]:
-        """Give each track its 2D people per view; returns per view the mask of used people."""
+        """Give each person their 2D people per view; returns per view the mask of used people."""
         used = [np.zeros(len(p), dtype=bool) for p in people]
-        for t in self.tracks:
-            t.members = {}
-        live = [t for t in self.tracks if np.isfinite(t.keypoints).any()]
+        for s in self.seats:
+            s.members = {}
+        live = [s for s in self.seats if np.isfinite(s.keypoints).any()]
         if not live:
             return used
-        kp = np.array([t.keypoints for t in live])  # (T, 25, 3)
+        kp = np.array([s.keypoints for s in live])  # (T, 25, 3)
         finite = np.isfinite(kp).all(axis=-1)
         uv, front = self.rig.project(np.nan_to_num(kp))  # (C, T, 25, 2)
         ok = finite[None] & front
@@ -103,7 +115,7 @@ class MultiPersonTracker:
                 if np.isfinite(cost[r, q]):
                     live[r].members[c] = [int(q)]
                     used[c][q] = True
-            # Fragments of a person the PAF grouping split: join the track they are near when
+            # Fragments of a person the PAF grouping split: join the person they are near when
             # they add joints it does not have in this view.
             for q in np.nonzero(~used[c])[0]:
                 r = int(np.argmin(cost[:, q]))
@@ -130,7 +142,8 @@ class MultiPersonTracker:
     def _gate_joints(self, keypoints: np.ndarray, uv: np.ndarray, w: np.ndarray) -> np.ndarray:
         """Drop single detections further than `joint_gate_m` (converted to pixels at the
         keypoint's depth) from the tracked person's projected keypoint: a wrist of someone
-        else that the 2D grouping attached to this person must not pull its filter."""
+        else that the 2D grouping attached to this person must not pull their stages."""
+        assert self.cfg.joint_gate_m is not None  # called only with the gate on
         finite = np.isfinite(keypoints).all(axis=-1)
         proj, front = self.rig.project(np.nan_to_num(keypoints))  # (C, 25, 2)
         depth = self.rig.to_camera_frames(np.nan_to_num(keypoints))[..., 2]  # (C, 25)
@@ -140,10 +153,12 @@ class MultiPersonTracker:
         return np.where(far & front & finite[None] & (w > 0), 0.0, w)
 
     # ---- new people
-    def _start_new(self, people: Sequence[np.ndarray], used: list[np.ndarray]) -> None:
+    def _start_new(self, people: Sequence[np.ndarray], used: list[np.ndarray], stamp_ns: int) -> int:
+        """New people from the 2D people nobody took; returns how many were left out for want of a slot."""
         rest = [p[~u] for p, u in zip(people, used)]
         index = [np.nonzero(~u)[0] for u in used]
         cfg = self.cfg
+        left_out = 0
         for person in associate(self.rig, rest, cfg.max_epipolar_px, cfg.new_min_views):
             pts = person.keypoints
             good = np.isfinite(pts).all(axis=1) & (np.nan_to_num(person.residual_px, nan=1e9) < 2 * cfg.new_max_residual_px)
@@ -151,58 +166,53 @@ class MultiPersonTracker:
                 continue
             if np.nanmedian(person.residual_px) > cfg.new_max_residual_px:
                 continue
-            if any(self._distance(pts, t.keypoints) < 2 * cfg.duplicate_m for t in self.tracks):
+            if any(_distance(pts, s.keypoints) < 2 * cfg.duplicate_m for s in self.seats):
                 continue
-            t = Track(self._next_id, self.make_filter(), np.full((N_KP, 3), np.nan), born=self.frame)
-            t.members = {c: [int(index[c][i])] for c, i in person.members.items()}
-            self._next_id += 1
-            self.tracks.append(t)
-            self.events.append((self.frame, "start", t.track_id))
+            taken = {s.slot for s in self.seats}
+            slot = next((k for k in range(self.config.max_people) if k not in taken), None)
+            if slot is None:
+                left_out += 1
+                continue
+            s = Seat(self._next, slot, np.full((N_KP, 3), np.nan), stamp_ns)
+            s.members = {c: [int(index[c][i])] for c, i in person.members.items()}
+            self._next += 1
+            self.seats.append(s)
+        return left_out
 
-    @staticmethod
-    def _distance(a: np.ndarray, b: np.ndarray) -> float:
-        d = np.linalg.norm(a - b, axis=-1)
-        return float(np.nanmean(d)) if np.isfinite(d).any() else np.inf
-
-    def _end(self, t: Track) -> None:
-        self.tracks.remove(t)
-        self.events.append((self.frame, "end", t.track_id))
-
-    def step(self, people: Sequence[np.ndarray], stamp_ns: int = 0) -> list[Track]:
+    def step(self, people: Sequence[np.ndarray], stamp_ns: int) -> Look:
         cfg = self.cfg
         used = self._assign(people)
-        self._start_new(people, used)
-        for t in list(self.tracks):
-            uv, w = self._observations(people, t.members)
-            if cfg.joint_gate_m and t.source == "tracker":
-                w = self._gate_joints(t.keypoints, uv, w)
-            n_views = int((w.max(axis=1) > 0).sum())
-            if n_views < cfg.min_views:
-                t.unseen += 1
-                if t.unseen > cfg.max_unseen:
-                    self._end(t)
-                else:
-                    t.result = None  # not stepped: the filter keeps its state for a return
-                t.output, t.source = None, "unseen"
-                continue
-            t.unseen = 0
-            pcm = self.renderer.render(uv, w, w.max(axis=1) > 0, stamp_ns)
-            res = t.filter.step(pcm).skeleton
-            t.result = res
-            out = np.asarray(getattr(res, "keypoints", np.full((N_KP, 3), np.nan)), dtype=np.float64)
-            raw = np.asarray(getattr(res, "raw_keypoints", out), dtype=np.float64)
-            if getattr(res, "status", "tracking") == "tracking" and np.isfinite(out).all():
-                t.output, t.source, t.keypoints = out.copy(), "tracker", raw.copy()
-            else:
-                # Initializing (the filter needs a few agreeing frames) or re-initializing:
-                # report and gate with the triangulation of the person's own detections.
-                pts, _ = triangulate_robust(self.rig, uv, w)
-                t.output, t.source, t.keypoints = pts, "triangulated", pts.copy()
-        # Two filters that converged onto one person: keep the older.
-        for a in list(self.tracks):
-            for b in list(self.tracks):
-                if a is not b and a in self.tracks and b in self.tracks and a.born <= b.born:
-                    if self._distance(a.keypoints, b.keypoints) < cfg.duplicate_m:
-                        self._end(b)
-        self.frame += 1
-        return list(self.tracks)
+        left_out = self._start_new(people, used, stamp_ns)
+        views = {}
+        for s in self.seats:
+            uv, w = self._observations(people, s.members)
+            if cfg.joint_gate_m and s.tracked:
+                w = self._gate_joints(s.keypoints, uv, w)
+            seen = w.max(axis=1) > 0
+            s.triangulated = None
+            if seen.sum() < cfg.min_views:
+                continue  # not stepped: their stages keep their state for a return
+            views[s.number] = dataclasses.replace(self.renderer.render(uv, w, seen, stamp_ns), person=s.number)
+            # until a skeleton is fed back, where their own detections triangulate
+            s.triangulated = triangulate_robust(self.rig, uv, w)[0]
+            s.keypoints, s.tracked = s.triangulated.copy(), False
+        untracked = np.array([int((~u).sum()) for u in used])
+        return Look(stamp_ns, views, {s.number: s.slot for s in self.seats}, untracked, left_out)
+
+    def feedback(self, number: int, stamp_ns: int, feedback: np.ndarray | None, tracking: bool = True) -> None:
+        """A person's fed-back skeleton: where their detections are looked for next once it is
+        output (`tracking`); before, and while it is held back, where they triangulate (a
+        skeleton the images disagree with must not pull the detections it is given)."""
+        seat = next((s for s in self.seats if s.number == number), None)
+        body = skeleton_of(feedback)
+        if seat is not None and body is not None and tracking:
+            seat.keypoints, seat.tracked, seat.seen_ns = np.array(body, dtype=np.float64), True, stamp_ns
+
+    def ended(self, stamp_ns: int) -> set[int]:
+        """The people who end at `stamp_ns` by what was fed back (people_config.ended_people)."""
+        gone, merged = ended_people(stamp_ns, {s.number: s.seen_ns for s in self.seats},
+                                    {s.number: s.keypoints if s.tracked else None for s in self.seats}, self.config)
+        return gone | merged
+
+    def end(self, numbers: Sequence[int] | set[int]) -> None:
+        self.seats = [s for s in self.seats if s.number not in numbers]

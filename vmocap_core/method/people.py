@@ -3,7 +3,7 @@ per-view joint candidates (OpenPose style: candidates with scores, plus part-aff
 between candidates of connected joints) -> 1. 2D people per view (greedy assembly on the
 part-affinity scores), 2. 3D people (associating 2D people across views by epipolar
 consistency, then triangulating), 3. PCMs rendered from one person's own detections.
-multiperson.py runs one pipeline per person on those PCMs. Nothing here reads ground truth.
+multiperson.py is the look that gives people_tracker.py those PCMs. Nothing here reads ground truth.
 """
 
 from __future__ import annotations

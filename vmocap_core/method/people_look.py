@@ -127,9 +127,10 @@ class PeopleLook:
         self._untracked = np.full(len(rig), -1)  # per camera, the detections nobody tracks at the last look
         self._left_out = 0  # people (seen by two cameras) not tracked for want of a slot, at the last look
 
-    def feedback(self, number: int, stamp_ns: int, feedback: np.ndarray | None) -> None:
+    def feedback(self, number: int, stamp_ns: int, feedback: np.ndarray | None, tracking: bool = True) -> None:
         """A person's fed-back skeleton of the frame set stamped `stamp_ns` (results.feedback_of):
-        their next crops follow it; a seed (their track slid onto another body) is where to look."""
+        their next crops follow it, output or not (`tracking`: the graph's feedback does not say);
+        a seed (their track slid onto another body) is where to look."""
         seat = next((s for s in self.seats if s.number == number), None)
         if seat is None or stamp_ns < seat.fed_ns:
             return

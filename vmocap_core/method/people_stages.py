@@ -11,6 +11,8 @@ REMEMBERED_LENGTHS), without the identification phase; they get a new id.
 
 from __future__ import annotations
 
+from typing import Iterable
+
 import numpy as np
 
 from ..cameras.projection import Rig
@@ -28,11 +30,14 @@ class MarkerSlot:
     for each new person; a free slot (person -1) gives no markers. vmocap_markers runs one per
     slot; offline, people_tracker.py does."""
 
-    def __init__(self, rig: Rig, config: MarkersConfig | None = None) -> None:
-        # no re-acquisition of a weak keypoint at its maps' strongest peaks (MarkerStage._reacquire):
-        # with others in the room those peaks are as likely theirs, and a triangulation of two
-        # bodies' peaks lands on neither; a lost person is found again by the detector instead
-        self.rig, self.config = rig, (config or MarkersConfig()).replace(reacquire_weight=0.0)
+    def __init__(self, rig: Rig, config: MarkersConfig | None = None, reacquire: bool = False) -> None:
+        # no re-acquisition of a weak keypoint at its maps' strongest peaks (MarkerStage._reacquire)
+        # where the maps come from the CNN: with others in the room those peaks are as likely
+        # theirs, and a triangulation of two bodies' peaks lands on neither; a lost person is
+        # found again by the detector instead (reacquire: maps drawn from the person's own
+        # detections alone, multiperson.py)
+        config = config or MarkersConfig()
+        self.rig, self.config = rig, config if reacquire else config.replace(reacquire_weight=0.0)
         self.person = -1
         self.stage: MarkerStage | None = None
 
@@ -76,9 +81,10 @@ class PeopleSkeletons:
             self.seen_ns[number] = stamp_ns
         return stage
 
-    def step(self, stamp_ns: int, markers: dict[int, Markers]) -> tuple[dict[int, TrackResult], list[int]]:
-        """Each person's result (in the order of `markers`) and the numbers of those ended now:
-        by the end rule, or gone from `markers` (the CNN's side ended them first)."""
+    def step(self, stamp_ns: int, markers: dict[int, Markers], gone: Iterable[int] = ()) -> tuple[dict[int, TrackResult], list[int]]:
+        """The results of the people whose `markers` came (in their order; a person without
+        markers in a frame set keeps their stage as it was) and the numbers of those ended now:
+        by the end rule, or in `gone` (the CNN's side ended them first)."""
         results = {}
         markers = {n: m for n, m in markers.items() if n not in self._over}
         for n, m in markers.items():
@@ -86,9 +92,8 @@ class PeopleSkeletons:
             self.bodies[n] = body = skeleton_of(feedback_of(r))
             if body is not None:
                 self.seen_ns[n] = stamp_ns
-        gone, merged = ended_people(stamp_ns, {n: self.seen_ns[n] for n in markers},
-                                    {n: self.bodies[n] for n in markers}, self.people)
-        gone |= set(self.stages) - set(markers)
+        timed_out, merged = ended_people(stamp_ns, self.seen_ns, self.bodies, self.people)
+        gone = timed_out | (set(gone) & set(self.stages))
         for n in sorted(gone):
             identified = self.stages[n].identified
             if identified is not None:

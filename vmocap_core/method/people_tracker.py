@@ -51,8 +51,8 @@ class Person:
 
 @dataclass
 class PeopleFrame:
-    """One frame set: every person's result (people ended in it are not among them) and the
-    people the detector saw but nobody tracks (per camera)."""
+    """One frame set: the result of every person stepped in it (people ended in it are not among
+    them) and the people the detector saw but nobody tracks (per camera)."""
 
     stamp_ns: int
     people: list[Person]
@@ -73,17 +73,19 @@ class PeopleFrame:
 
 
 class PeopleTracker:
-    """Up to `people.max_people` people through one BlazePose PCM source (pcm.pipeline.BlazePosePcm);
+    """Up to `people.max_people` people through one BlazePose PCM source (pcm.pipeline.BlazePosePcm),
+    or through another look (`look`: multiperson.DetectionsLook, people from 2D detections);
     `step(images, stamp_ns)` per frame set (module doc)."""
 
     def __init__(self, rig: Rig, pcm: Any, config: PipelineConfig | None = None, people: PeopleConfig | None = None,
-                 landmarks: str = "blazepose", crop_prediction: str = "rigid", binning: int = 1) -> None:
+                 landmarks: str = "blazepose", crop_prediction: str = "rigid", binning: int = 1, look: Any = None) -> None:
         self.rig, self.pcm = rig, pcm
         self.people_config = people or PeopleConfig()
         cfg = config or PipelineConfig()  # the CNN's keypoints are its landmarks, not joint centres
         self.config = cfg.replace(landmarks=resolve(cfg.skeleton.landmarks, landmarks))
-        self.look = PeopleLook(rig, pcm, self.people_config, crop_prediction, binning)
-        self.slots = [MarkerSlot(rig, self.config.markers) for _ in range(self.people_config.max_people)]
+        self.look = look if look is not None else PeopleLook(rig, pcm, self.people_config, crop_prediction, binning)
+        reacquire = bool(getattr(self.look, "own_maps", False))  # maps of the person's own detections alone
+        self.slots = [MarkerSlot(rig, self.config.markers, reacquire) for _ in range(self.people_config.max_people)]
         self.skeletons = PeopleSkeletons(self.config.skeleton, self.people_config)
         self.people: dict[int, Person] = {}
 
@@ -92,17 +94,20 @@ class PeopleTracker:
         """The rig as the images show it (binned)."""
         return self.look.seen
 
-    def step(self, images: Sequence[np.ndarray | None], stamp_ns: int) -> PeopleFrame:
+    def step(self, images: Sequence[Any], stamp_ns: int) -> PeopleFrame:
+        """One frame set (the look's input: images, or 2D people per view): the people the look
+        gives heatmaps for are stepped; the others keep their stages as they were."""
         look = self.look.step(images, stamp_ns)
         markers = {n: self.slots[look.slots[n]].step(views) for n, views in look.views.items()}
         results, ended = self.skeletons.step(stamp_ns, markers)
         for n, result in results.items():
             fb = feedback_of(result)
             self.slots[look.slots[n]].feedback(fb)
-            self.look.feedback(n, result.feedback_stamp, fb)
+            self.look.feedback(n, result.feedback_stamp, fb, result.status == "tracking")
             person = self.people.setdefault(n, Person(n))
             person.last = FrameResult(look.views[n], markers[n], result, fb)
         self.look.end(ended)
         for n in ended:
             self.people.pop(n, None)
-        return PeopleFrame(stamp_ns, list(self.people.values()), look.untracked, ended, look.left_out)
+        stepped = [p for n, p in self.people.items() if n in results]
+        return PeopleFrame(stamp_ns, stepped, look.untracked, ended, look.left_out)

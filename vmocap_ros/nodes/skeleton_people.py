@@ -53,6 +53,7 @@ class PeopleSkeletonNode(VmocapNode):
             self.subscribe(CLOUD, t.slot(k).markers, lambda m, k=k: self._on_markers(k, m), depth=p["queue_depth"],
                            latched=True)
         self.pending: dict[int, dict[int, Any]] = {}  # frame set stamp -> slot -> Markers
+        self.seated: dict[int, int] = {}  # slot -> the person in it at the last frame set
         self.counts = {"frames": 0, "incomplete": 0}
         self.last: Any = None  # the last PeopleFrame
 
@@ -79,7 +80,10 @@ class PeopleSkeletonNode(VmocapNode):
 
         t0 = time.perf_counter()
         markers = {m.person: m for _, m in sorted(by_slot.items()) if m.person >= 0}
-        results, ended = self.skeletons.step(stamp_ns, markers)
+        # a slot whose person changed: vmocap_pcm ended them (by the rule applied here too, or first)
+        gone = [n for k, n in self.seated.items() if n >= 0 and by_slot[k].person != n]
+        self.seated = {k: m.person for k, m in by_slot.items()}
+        results, ended = self.skeletons.step(stamp_ns, markers, gone)
         people = []
         for k, m in sorted(by_slot.items()):
             r = results.get(m.person)

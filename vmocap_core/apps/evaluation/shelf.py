@@ -1,12 +1,14 @@
 """`vmocap eval shelf`: our pipeline on the Shelf benchmark's real OpenPose detections.
 
 Per frame and view the BODY_25 candidates are grouped into 2D people with their part-affinity
-scores; 2D people are given to the person trackers whose projected skeleton they fit, the
-rest are associated across views (epipolar consistency + triangulation) to start new trackers.
-Each tracker is one `method.pipeline.Pipeline` whose PCMs are rendered (a Gaussian per
-candidate at OpenPose's stride 8, amplitude = candidate score) from its own person's
-candidates only. While a tracker initializes (the paper's II-C needs a few agreeing frames)
-its person is reported by triangulation of its own detections.
+scores; the multi-person tracker of the live graph (method/people_tracker.py: a marker and a
+skeleton stage per person, people ended by the same rule) runs on them with the detections'
+look (method/multiperson.py) instead of the CNN's: 2D people go to the person whose projected
+skeleton they fit, the rest are associated across views (epipolar consistency +
+triangulation) into new people, and each person's PCMs are rendered (a Gaussian per candidate
+at OpenPose's stride 8, amplitude = candidate score) from their own candidates only. While a
+person initializes (the paper's II-C needs a few agreeing frames) they are reported by
+triangulation of their own detections.
 
 The ground truth is read only to score: per frame, Hungarian matching of reconstructed people
 to ground-truth ids, then PCP per part and id and MPJPE per id (pcp.py states the head-joint
@@ -21,13 +23,15 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ...errors import VmocapError
 from ...keypoints import KEYPOINTS
-from ...method.multiperson import MultiPersonConfig, MultiPersonTracker
+from ...method.multiperson import DetectionsLook, MultiPersonConfig
 from ...method.people import PcmRenderer, assemble_people, associate, to_keypoints
+from ...method.people_config import PeopleConfig
 from ...paths import SHARED_DATA
 from .pcp import PART_GROUPS, ShelfScore, to_shelf15
 from .shelf_data import BODY25_LIMBS, BODY25_TO_KEYPOINT, ShelfData, load_shelf
@@ -74,6 +78,22 @@ def people_per_view(data: ShelfData, frame: int) -> list[np.ndarray]:
     return out
 
 
+# The people's settings of the live graph (people_config.py), with room for everyone on the shelf
+PEOPLE = {"max_people": 10}
+
+
+def make_tracker(data: ShelfData, tracker_settings: dict | None = None, mp_config: MultiPersonConfig | None = None,
+                 sigma_cells: float | None = None) -> Any:
+    """The multi-person tracker (people_tracker.py) with the detections' look over Shelf."""
+    from ...method.config import PipelineConfig
+    from ...method.people_tracker import PeopleTracker
+
+    people = PeopleConfig(**PEOPLE)
+    look = DetectionsLook(data.rig, make_renderer(data, sigma_cells or SIGMA_CELLS), mp_config, people)
+    return PeopleTracker(data.rig, None, PipelineConfig.from_dict(tracker_settings or TRACKER_SETTINGS), people,
+                         landmarks="none", look=look)
+
+
 def make_renderer(data: ShelfData, sigma_cells: float = SIGMA_CELLS) -> PcmRenderer:
     keypoints = np.unique(BODY25_TO_KEYPOINT[BODY25_TO_KEYPOINT >= 0])
     return PcmRenderer([(c.width, c.height) for c in data.rig], keypoints, stride=STRIDE,
@@ -85,13 +105,13 @@ def evaluate(data: ShelfData, progress: bool = True, tracker_settings: dict | No
     """Run ours and the baseline over all frames; returns the results dictionary."""
     from tqdm import tqdm
 
-    from ...method.config import PipelineConfig
-    from ...method.pipeline import Pipeline
     rig = data.rig
-    cfg = PipelineConfig.from_dict(tracker_settings or TRACKER_SETTINGS)
-    mpt = MultiPersonTracker(rig, make_renderer(data, sigma_cells or SIGMA_CELLS), lambda: Pipeline(rig, cfg), mp_config)
+    tracker = make_tracker(data, tracker_settings, mp_config, sigma_cells)
+    max_epipolar_px = tracker.look.cfg.max_epipolar_px
     ours, base = ShelfScore(), ShelfScore()
     sources = {"tracker": 0, "triangulated": 0}
+    started: set[int] = set()
+    ended = 0
     t_front = t_track = 0.0
     for f in tqdm(range(data.n_frames), desc="shelf", unit="frame", disable=not progress, file=sys.stderr):
         gt = data.gt[f]
@@ -99,16 +119,23 @@ def evaluate(data: ShelfData, progress: bool = True, tracker_settings: dict | No
         people = people_per_view(data, f)
         t1 = time.perf_counter()
         # Baseline: per-frame association and triangulation of the same 2D people.
-        bpeople = [p.keypoints for p in associate(rig, people, mpt.cfg.max_epipolar_px)]
+        bpeople = [p.keypoints for p in associate(rig, people, max_epipolar_px)]
         base.add_frame(to_shelf15(np.array(bpeople).reshape(-1, N_KP, 3)), gt.ids, gt.joints, gt.valid)
         # Ours.
         t2 = time.perf_counter()
-        tracks = mpt.step(people, stamp_ns=int(f * 1e9 / FPS))
+        frame = tracker.step(people, int(f * 1e9 / FPS))
+        seats = {s.number: s for s in tracker.look.seats}
         preds = []
-        for t in tracks:
-            if t.output is not None and np.isfinite(t.output).any():
-                preds.append(t.output)
-                sources[t.source] += 1
+        for p in frame.people:
+            started.add(p.number)
+            r = p.result
+            if r is not None and r.status == "tracking" and np.isfinite(r.keypoints).all():
+                preds.append(r.keypoints)
+                sources["tracker"] += 1
+            elif p.number in seats and seats[p.number].triangulated is not None:
+                preds.append(seats[p.number].triangulated)
+                sources["triangulated"] += 1
+        ended += len(frame.ended)
         ours.add_frame(to_shelf15(np.array(preds).reshape(-1, N_KP, 3)), gt.ids, gt.joints, gt.valid)
         t3 = time.perf_counter()
         t_front += t1 - t0
@@ -117,13 +144,14 @@ def evaluate(data: ShelfData, progress: bool = True, tracker_settings: dict | No
     result["baseline"] = base.summary()
     result["frames_total"] = data.n_frames
     result["person_frames"] = sources
-    result["tracks_started"] = sum(1 for e in mpt.events if e[1] == "start")
-    result["tracks_ended"] = sum(1 for e in mpt.events if e[1] == "end")
+    result["tracks_started"] = len(started)
+    result["tracks_ended"] = ended
     result["time_ms_per_frame"] = {
         "grouping": 1000 * t_front / max(data.n_frames, 1),
         "trackers": 1000 * t_track / max(data.n_frames, 1),
     }
-    result["tracker_settings"] = cfg.to_dict()
+    result["tracker_settings"] = tracker.config.to_dict()
+    result["people_settings"] = dict(PEOPLE)
     result["head_mapping"] = (
         "bottom = S + (E-S)/2 + 0.15 F, top = bottom + 0.8 (E-S) + 0.25 F; S shoulder centre, "
         "E ear centre, F = nose - E; pelvis = hip centre"
