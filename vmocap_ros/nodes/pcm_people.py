@@ -28,6 +28,7 @@ class PeoplePcmNode(PcmNode):
     """Synchronized camera images -> every tracked person's heatmaps, slot by slot (module doc)."""
 
     def _make_provider(self):
+        """The CNN, and the look over it (PcmNode.__init__ asks for the provider first)."""
         from vmocap_core.method.people_config import PeopleConfig
         from vmocap_core.method.people_look import PeopleLook
         from vmocap_core.pcm.providers import make_model_provider
@@ -101,7 +102,7 @@ class PeoplePcmNode(PcmNode):
         self.seated[fs.stamp_ns] = by_slot
         while len(self.seated) > SEATED_KEPT:
             self.seated.pop(next(iter(self.seated)))
-        names = self.p["views"] if "views" in self.p else self.rig.names
+        names = self.rig.names + ([f"{n}_1" for n in self.rig.names] if self.p["rotation"] == "lower_body" else [])
         free = PcmViews.empty(len(KEYPOINTS), self.look.pcm.landmark.map_size, fs.stamp_ns)
         msgs = []
         for k in range(self.p["max_people"]):
