@@ -460,3 +460,26 @@ def test_a_person_standing_beside_from_the_start(rig, tmp_path):
     assert f["swap_frames"] == 0 and f["identity_switches"] == 0 and f["ghost_frames"] == 0, f
     assert f["missed_pct"] < 2.0, f
     assert np.nanmean(d[followed]) < 60.0, np.nanmean(d[followed])
+
+
+def test_reversed_and_mirrored_motions(tmp_path):
+    """`--transform`: a clip played backwards, and reflected with left and right swapped, as
+    motions of their own (STEM_reversed.npz, STEM_mirrored.npz); a file that is no clip is refused."""
+    from vmocap_core.apps.bench.motion_groups import motion_group
+    from vmocap_core.errors import MotionFileError
+    from vmocap_core.keypoints import INDEX
+    from vmocap_core.motion import load_motion, transformed
+
+    clip = REPO / "vmocap_core" / "data" / "motions" / "cartwheel.npz"
+    m = load_motion(clip)
+    back = load_motion(transformed(clip, "reversed", tmp_path))
+    assert back.name == "cartwheel_reversed" and back.fps == m.fps
+    np.testing.assert_array_equal(back.positions, m.positions[::-1])
+    mirror = load_motion(transformed(clip, "mirrored", tmp_path))
+    left, right = INDEX["left_wrist"], INDEX["right_wrist"]
+    np.testing.assert_allclose(mirror.positions[:, left], m.positions[:, right] * [1, -1, 1])
+    np.testing.assert_allclose(mirror.positions[:, INDEX["pelvis"]], m.positions[:, INDEX["pelvis"]] * [1, -1, 1])
+    assert motion_group(mirror.positions) == motion_group(back.positions) == motion_group(m.positions) == "inverted"
+    (tmp_path / "bad.npz").write_bytes(b"no clip")
+    with pytest.raises(MotionFileError):
+        transformed(tmp_path / "bad.npz", "mirrored", tmp_path)

@@ -78,3 +78,40 @@ def extend(motion: Motion, min_seconds: float) -> Motion:
         seq.append((motion.positions if fwd else motion.positions[::-1])[1:])
         fwd = not fwd
     return Motion(motion.name, np.concatenate(seq), motion.present, motion.fps)
+
+
+TRANSFORMS = ("reversed", "mirrored")  # motions made from a clip (`transformed`)
+
+
+def _mirrored_names(names: list[str]) -> list[int]:
+    """Per keypoint name, the index of its left/right counterpart (itself for the midline)."""
+    def other(n: str) -> str:
+        if n.startswith("left_"):
+            return "right_" + n[len("left_"):]
+        if n.startswith("right_"):
+            return "left_" + n[len("right_"):]
+        return n
+    return [names.index(other(n)) if other(n) in names else i for i, n in enumerate(names)]
+
+
+def transformed(path: str | Path, kind: str, folder: str | Path) -> Path:
+    """A motion made from the clip at `path`, written to `folder` as STEM_KIND.npz: `reversed`
+    (played backwards: getting up becomes lying down, a roll rolls the other way, a backflip's
+    rotation turns round) or `mirrored` (reflected in the clip's x-z plane, left and right
+    swapped: a cartwheel to the other side). Physically the body's motions are as plausible;
+    the tracker has seen neither."""
+    if kind not in TRANSFORMS:
+        raise MotionFileError(f"unknown transform {kind!r} (known: {', '.join(TRANSFORMS)})")
+    load_motion(path)  # a clear error for a file that is no clip
+    with np.load(path, allow_pickle=False) as d:
+        joints = np.asarray(d["joints"], dtype=np.float64)
+        names = [str(n) for n in d["names"]]
+        fps = float(d["fps"])
+    if kind == "reversed":
+        joints = joints[::-1]
+    else:
+        joints = joints[:, _mirrored_names(names)] * np.array([1.0, -1.0, 1.0])
+    out = Path(folder) / f"{Path(path).stem}_{kind}.npz"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(out, joints=np.ascontiguousarray(joints), names=np.array(names), fps=np.array(fps))
+    return out

@@ -28,6 +28,7 @@ from ...graph_config import Topics
 from ...keypoints import INDEX, KEYPOINTS
 from ...method.results import seed_of, skeleton_of
 from ...method.skeleton import BONES
+from ...motion import TRANSFORMS, transformed
 from ..metrics import acceleration_error, table_one
 from . import add_tracker_arguments, tracker_settings
 from .accuracy import BUNDLED, RATE_HZ, default_motions
@@ -128,6 +129,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--clips", nargs="+", type=Path,
                         help="motion .npz files, or `all`: the shared clips and the development set "
                              "(default: the shared clips)")
+    parser.add_argument("--transform", nargs="+", choices=TRANSFORMS, default=[],
+                        help="also the motions made from each clip: played backwards (reversed), reflected with left "
+                             "and right swapped (mirrored); motions the tracker was not tuned on (motion.transformed)")
     parser.add_argument("--shapes", type=int,
                         help="body shapes per clip: the clip's own (the rendering of before) and the next ones, each "
                              "with its own seeded look (default: 2 with --clips all, else 1: the default run's rows, "
@@ -326,6 +330,7 @@ def prepare(args: argparse.Namespace) -> tuple[list[Path], range, Any]:
     from ..render.recording import scale_rig
 
     files = clip_files(args.clips)
+    files += [transformed(f, kind, args.cache / "transformed") for f in list(files) for kind in args.transform]
     if not files:
         raise VmocapError("no motion clips (give --clips)")
     if args.shapes is None:
