@@ -116,16 +116,20 @@ class MarkersNode(VmocapNode):
         while st.queue and (st.awaiting is None or self.timeout == 0):
             pcm = st.queue.popleft()
             t0 = time.perf_counter()
-            # frame sets lost anywhere before the tracker (DDS queues, the PCM node, a camera)
-            self.counts["missing"] += frames_missing(st.last_stamp, pcm.stamp_ns, self.p["fps"])
+            # frame sets lost anywhere before the tracker (DDS queues, the PCM node, a camera);
+            # every slot answers every frame set: the first one's count for the frame sets
+            first = st is self.subject
+            if first:
+                self.counts["missing"] += frames_missing(st.last_stamp, pcm.stamp_ns, self.p["fps"])
             st.last_stamp = pcm.stamp_ns
             markers = st.stage.step(pcm)
             if self.timeout > 0:  # before publishing: the feedback may come back at once
                 st.awaiting, st.awaiting_since = pcm.stamp_ns, time.monotonic()
             st.pub(markers_message(markers))
-            self.counts["frames"] += 1
             self.proc.add(1e3 * (time.perf_counter() - t0))
-            self.record_age(pcm.stamp_ns)
+            if first:
+                self.counts["frames"] += 1
+                self.record_age(pcm.stamp_ns)
             if not self.people:
                 self._check_subject(pcm, markers)
 

@@ -111,8 +111,12 @@ class PeoplePcmNode(PcmNode):
                      for v, (img, info) in zip(heatmaps.view_names(views, self.rig), heatmaps.pcm_msgs(views, self.rig, data))]
         return look, msgs, time.perf_counter() - t0
 
+    def _publish(self, fs: Any, data: bool, look: Any, msgs: list, seconds: float) -> None:
+        self.last_look = look
+        super()._publish(fs, data, look, msgs, seconds)
+
     def _publish_keypoints(self, pcm: Any, cams: Any, stamp_ns: int) -> None:
-        self.last_look = pcm  # each camera's 2D keypoints are one person's: not published with several
+        """Each camera's 2D keypoints are one person's: not published with several."""
 
     def status(self) -> dict[str, Any]:
         out = super().status()
