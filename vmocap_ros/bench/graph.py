@@ -189,6 +189,8 @@ def run_mode(mode: str, cfg: Path, bag: Path, rig, args: argparse.Namespace, pro
         "input_rate_hz": round(input_rate, 2),
         "input_rate_from": input_from,
         "dropped_pct": round(dropped, 2),
+        # the longest a subscriber waits for the next frame set (capture stamps): a stall, not a rate
+        "longest_gap_ms": round(float(np.diff(sorted(sets_out)).max(initial=0)) / 1e6, 1),
         "latency_ms": latency(s["joint_states"]),
         # age after each stage: the nodes' own figures; joint_states as a controller receives it
         "stages_ms": {"transport": transport, "pcm": node_age(status.get("vmocap_pcm")),
@@ -288,7 +290,8 @@ def _run(args: argparse.Namespace, work: Path) -> int:
               + (f"  graph adds {r['graph_overhead_ms_p50']:.1f} ms p50" if r["graph_overhead_ms_p50"] is not None else ""))
         if math.isnan(r["input_rate_hz"]):  # say why
             print(f"   input rate unknown: {r['input_rate_from']}")
-        print(f"   tracking {r['tracking_pct']:.1f} % of the frame sets out; CNN precision: {r['precision']}")
+        print(f"   tracking {r['tracking_pct']:.1f} % of the frame sets out; longest gap between two out "
+              f"{r['longest_gap_ms']:.0f} ms; CNN precision: {r['precision']}")
         print("   age after stage (p50/p95 ms): " + ", ".join(f"{k} {v['p50']}/{v['p95']}" for k, v in st.items()))
         print("   process CPU % of one core: " + ", ".join(f"{k} {v}" for k, v in r["process_cpu_pct"].items()))
         print("   callback CPU % of one core: " + ", ".join(f"{k} {v}" for k, v in r["cpu_pct"].items())
