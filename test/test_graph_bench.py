@@ -26,6 +26,8 @@ def test_bench_graph_json(tmp_path):
         # frame sets really flow through the whole graph (rates are low on a loaded 2-core box)
         assert m["rate_hz"] > 1.0 and m["input_rate_hz"] > 10.0, (mode, m)
         assert 0.0 <= m["dropped_pct"] < 100.0
+        # at least one period (30 Hz default), less than the run: the output never stopped
+        assert 1000.0 / 30.0 - 1.0 < m["longest_gap_ms"] < 3000.0, (mode, m)
         markers = m["stages_ms"]["markers"]
         assert 0.0 < markers["p50"] <= markers["p95"] < 5000.0, (mode, m)
         assert set(m["cpu_pct"]) == {"vmocap_pcm", "vmocap_markers", "vmocap_skeleton"}
