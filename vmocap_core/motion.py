@@ -31,9 +31,8 @@ class Motion:
         return bool(np.any((z[:, 0] < z[:, 1]) & (z[:, 0] < z[:, 2])))
 
 
-def load_motion(path: str | Path) -> Motion:
-    """Read a motion clip; keypoint names outside the vocabulary are ignored."""
-    path = Path(path)
+def _read_clip(path: Path) -> tuple[np.ndarray, list[str], float]:
+    """A clip file's joints (T, J, 3), their names and fps, as stored (MotionFileError if it is none)."""
     try:
         with np.load(path, allow_pickle=False) as d:
             joints = np.asarray(d["joints"], dtype=np.float64)
@@ -45,14 +44,21 @@ def load_motion(path: str | Path) -> Motion:
         raise MotionFileError(f"{path}: joints must be (T>=2, J, 3) with J names, got {joints.shape} and {len(names)} names")
     if not np.isfinite(fps) or fps <= 0:
         raise MotionFileError(f"{path}: fps must be positive, got {fps}")
+    if not any(n in INDEX for n in names):
+        raise MotionFileError(f"{path}: none of the keypoint names {names} is in the vocabulary")
+    return joints, names, fps
+
+
+def load_motion(path: str | Path) -> Motion:
+    """Read a motion clip; keypoint names outside the vocabulary are ignored."""
+    path = Path(path)
+    joints, names, fps = _read_clip(path)
     pos = np.full((joints.shape[0], len(KEYPOINTS), 3), np.nan)
     present = np.zeros(len(KEYPOINTS), dtype=bool)
     for j, n in enumerate(names):
         if n in INDEX:
             pos[:, INDEX[n]] = joints[:, j]
             present[INDEX[n]] = True
-    if not present.any():
-        raise MotionFileError(f"{path}: none of the keypoint names {names} is in the vocabulary")
     return Motion(path.stem, pos, present, fps)
 
 
@@ -102,11 +108,7 @@ def transformed(path: str | Path, kind: str, folder: str | Path) -> Path:
     the tracker has seen neither."""
     if kind not in TRANSFORMS:
         raise MotionFileError(f"unknown transform {kind!r} (known: {', '.join(TRANSFORMS)})")
-    load_motion(path)  # a clear error for a file that is no clip
-    with np.load(path, allow_pickle=False) as d:
-        joints = np.asarray(d["joints"], dtype=np.float64)
-        names = [str(n) for n in d["names"]]
-        fps = float(d["fps"])
+    joints, names, fps = _read_clip(Path(path))
     if kind == "reversed":
         joints = joints[::-1]
     else:

@@ -49,8 +49,18 @@ def view_names(views: PcmViews, rig: Rig) -> list[str]:
     for c in views.camera:
         k = seen.get(int(c), 0)
         seen[int(c)] = k + 1
-        names.append(rig[int(c)].name if k == 0 else f"{rig[int(c)].name}_{k}")
+        names.append(_view_name(rig, int(c), k))
     return names
+
+
+def _view_name(rig: Rig, camera: int, k: int) -> str:
+    return rig[camera].name if k == 0 else f"{rig[camera].name}_{k}"
+
+
+def rig_view_names(rig: Rig, per_camera: int = 1) -> list[str]:
+    """Every view name a frame set can have with up to `per_camera` views per camera
+    (blazepose.views_per_camera), in view_names' naming."""
+    return [_view_name(rig, c, k) for k in range(per_camera) for c in range(len(rig))]
 
 
 def view_camera(name: str, rig: Rig) -> int:

@@ -16,6 +16,13 @@ from .blazepose_net import BlazePoseNet
 from .crops import Crops
 
 ROTATION_MODES = ("none", "all", "lower_body")
+
+
+def views_per_camera(mode: str) -> int:
+    """The most views rotated_crops gives one camera in rotation `mode` (lower_body: 2)."""
+    return 2 if mode == "lower_body" else 1
+
+
 # Measured on real frames (test_pcm_panoptic: 5 Panoptic views turned upside down): BlazePose's
 # presence drops to ~0 and its upper-body heatmaps are ~44 cm off on an unrotated inverted person,
 # so the paper's variant (upper body from the unrotated view) loses the upper body, while "all"

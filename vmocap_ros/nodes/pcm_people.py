@@ -16,6 +16,7 @@ from vmocap_core.bag import messages as M
 from vmocap_core.errors import VmocapError
 from vmocap_core.keypoints import KEYPOINTS
 from vmocap_core.outputs.messages import CLOUD
+from vmocap_core.pcm.blazepose import views_per_camera
 from vmocap_core.pcm.views import PcmViews
 
 from ..common import Topics
@@ -102,7 +103,7 @@ class PeoplePcmNode(PcmNode):
         self.seated[fs.stamp_ns] = by_slot
         while len(self.seated) > SEATED_KEPT:
             self.seated.pop(next(iter(self.seated)))
-        names = self.rig.names + ([f"{n}_1" for n in self.rig.names] if self.p["rotation"] == "lower_body" else [])
+        names = heatmaps.rig_view_names(self.rig, views_per_camera(self.p["rotation"]))
         free = PcmViews.empty(len(KEYPOINTS), self.look.pcm.landmark.map_size, fs.stamp_ns)
         msgs = []
         for k in range(self.p["max_people"]):
