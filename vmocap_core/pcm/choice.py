@@ -5,9 +5,13 @@ or the initialization's triangulation mixes bodies (it then stalls while both ar
 starts on whoever the views' best scores favoured). Each pair of cameras' detected hip centres
 is triangulated into a candidate; a candidate is a person where its projection falls near a
 detection (within AGREE_FRACTION of that detection's hip-to-head length) in at least two
-cameras. The subject is the person nearest to a seed (the last tracked position) or, without
-one, the one seen by the most cameras (then the highest summed score). Detections that are not
-the subject's are others in view.
+cameras, with that detection's hip-to-head length a person's at the candidate's depth: two
+people's hips seen by two cameras give rays that cross somewhere between them, and there the
+detections say a body a fraction of a person, or several times one. The subject is the person
+nearest to a seed (the last tracked position) or, without one, the one seen by the most cameras,
+then the highest summed score, each detection's lowered where its size at that depth is far from
+a standing adult's (where such rays cross nearer, the sizes say a body half a person).
+Detections that are not the subject's are others in view.
 """
 
 from __future__ import annotations
@@ -24,6 +28,15 @@ from .detector import Detection
 
 AGREE_FRACTION = 0.5  # detected hip within this x the detection's hip-to-head length: the same person
 SUBJECT_REACH_M = 0.9  # the detector's hip-to-head point distance on a standing adult, about
+# a detection's hip-to-head length, back-projected to a candidate's depth, within these times
+# SUBJECT_REACH_M: the same person (a child or a body foreshortened towards the camera, lying,
+# down to a third; a box grown around outstretched arms up to 2.5 times)
+REACH_RANGE = (1 / 3, 2.5)
+# ranking people: a detection's score counts whole while its size there is within ADULT_BAND
+# times an adult's either way, and falls off beyond, by SIZE_SPREAD (log scale; half an adult
+# weighs 0.6); within the band the ranking is the detector's scores alone
+ADULT_BAND = 4 / 3
+SIZE_SPREAD = float(np.log(1.5))
 
 
 @dataclass
@@ -58,18 +71,24 @@ def candidates(rig: Rig, hips: Sequence[np.ndarray]) -> np.ndarray:
     return X[np.isfinite(X).all(axis=1)]
 
 
-def _matches(rig: Rig, X: np.ndarray, hips: Sequence[np.ndarray], reach: Sequence[np.ndarray]) -> np.ndarray:
-    """(C, M) index of the detection each candidate projects near in each camera (-1: none)."""
+def _matches(rig: Rig, X: np.ndarray, hips: Sequence[np.ndarray], reach: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(C, M) index of the detection each candidate projects near in each camera (-1: none),
+    and that detection's body at the candidate's depth in standing adults (NaN: none)."""
     proj, front = rig.project(X)
+    depth = rig.to_camera_frames(X)[..., 2]  # (C, M)
     out = np.full((len(rig), len(X)), -1)
+    sizes = np.full((len(rig), len(X)), np.nan)
     for c, (h, r) in enumerate(zip(hips, reach)):
         if len(h) == 0:
             continue
         d = np.linalg.norm(proj[c][:, None] - h[None], axis=-1) / np.maximum(r[None], 1e-6)  # (M, n)
         near = d.argmin(axis=1)
-        ok = front[c] & (d[np.arange(len(X)), near] < AGREE_FRACTION)
+        focal = 0.5 * (rig[c].K[0, 0] + rig[c].K[1, 1])
+        size = r[near] * depth[c] / (focal * SUBJECT_REACH_M)  # the near detection's body at this depth, in adults
+        ok = front[c] & (d[np.arange(len(X)), near] < AGREE_FRACTION) & (size >= REACH_RANGE[0]) & (size <= REACH_RANGE[1])
         out[c] = np.where(ok, near, -1)
-    return out
+        sizes[c] = np.where(ok, size, np.nan)
+    return out, sizes
 
 
 def choose_subject(rig: Rig, found: Sequence[Sequence[Detection]], seed: np.ndarray | None = None) -> Choice:
@@ -77,7 +96,7 @@ def choose_subject(rig: Rig, found: Sequence[Sequence[Detection]], seed: np.ndar
     agreeing on anyone: each camera's detection nearest to the seed's projection, or its best."""
     hips, reach, scores = detection_arrays(found)
     X = candidates(rig, hips)
-    match = _matches(rig, X, hips, reach)
+    match, sizes = _matches(rig, X, hips, reach)
     views = (match >= 0).sum(axis=0)
     person = views >= 2
     index = np.full(len(rig), -1)
@@ -87,7 +106,10 @@ def choose_subject(rig: Rig, found: Sequence[Sequence[Detection]], seed: np.ndar
             key = np.where(person, np.linalg.norm(X - np.asarray(seed, dtype=np.float64).reshape(3), axis=1), np.inf)
             best = int(np.argmin(key))
         else:
-            total = sum(np.where(match[c] >= 0, s[np.maximum(match[c], 0)], 0.0) for c, s in enumerate(scores) if len(s))
+            beyond = np.maximum(np.abs(np.log(np.where(match >= 0, sizes, 1.0))) - np.log(ADULT_BAND), 0.0)
+            prior = np.exp(-0.5 * (beyond / SIZE_SPREAD) ** 2)  # (C, M)
+            total = sum(np.where(match[c] >= 0, s[np.maximum(match[c], 0)] * prior[c], 0.0)
+                        for c, s in enumerate(scores) if len(s))
             best = int(np.lexsort((-np.asarray(total), -views))[0])  # most views, then the highest summed score
         index = match[:, best].copy()
         # the point from all its views (the candidate came from one pair of them)
