@@ -154,6 +154,23 @@ def test_time_from_each_entry_to_a_body():
     assert entry_delays(np.zeros(5, bool), body[:5], 2) == []
 
 
+def test_the_wait_for_a_first_body_counts_as_time_without_one():
+    """`missed_pct` counts from a person's first body on; `without_body_pct` over all their time
+    in view, so a person found late is not scored as never missed."""
+    from vmocap_core.apps.bench.people import people_figures
+
+    T = 100
+    truths = np.zeros((1, T, 25, 3))
+    truths[0, :, :, 0] = np.linspace(0.0, 1.0, 25)  # a fixed body
+    present = np.ones((1, T), bool)
+    body = truths[0].copy()
+    body[:40] = np.nan  # the first body at frame 40, then none at 90-99
+    body[90:] = np.nan
+    p = people_figures({"a": body}, truths, present)["persons"][0]
+    assert p["missed_pct"] == 100 * 10 / 60 and p["without_body_pct"] == 100 * 50 / 100
+    assert people_figures({}, truths, present)["persons"][0]["without_body_pct"] == 100.0
+
+
 def test_a_new_id_after_a_re_entry_is_no_identity_switch():
     """REP-155: a person who left is ended and comes back under a new id; the benchmark counts
     that apart (`reentry_new_ids`), and an id change while they stay in view as a switch."""

@@ -158,7 +158,9 @@ def people_figures(bodies: dict[str, np.ndarray], truths: np.ndarray, present: n
     they are present without a body (missed), identity switches (their matched body's id
     changes while they stay in view; a new id after they left and came back is counted apart,
     `reentry_new_ids`), and per entry into view the time to their first body (entry_delays; the first
-    entry too). Frames with a body matched to nobody are ghosts."""
+    entry too). Over the whole recording: the share of the frames they are present without a
+    body (`without_body_pct`: the wait for their first body counts too). Frames with a body
+    matched to nobody are ghosts."""
     from scipy.optimize import linear_sum_assignment
 
     ids = list(bodies)
@@ -184,7 +186,8 @@ def people_figures(bodies: dict[str, np.ndarray], truths: np.ndarray, present: n
         m = np.flatnonzero(match[k] >= 0)
         delays = entry_delays(present[k], match[k] >= 0, absent)
         timing = {"entry_to_body_s": delays, "reentry_s": max(delays[1:], key=lambda v: np.inf if v is None else v)
-                  if len(delays) > 1 else None}
+                  if len(delays) > 1 else None,
+                  "without_body_pct": float(100 * (present[k] & (match[k] < 0)).sum() / max(present[k].sum(), 1))}
         if m.size == 0:
             persons.append({"mpjpe_mm": None, "pck50": None, "missed_pct": None, "identity_switches": 0,
                             "reentry_new_ids": 0, "first_s": None, **timing})
@@ -329,6 +332,7 @@ def print_people(result: dict[str, Any]) -> None:
                   f"{every['ghost_frames']} ghost frames")
             for k, r in enumerate(every["persons"]):
                 entries = ", ".join("never" if v is None else f"{v:.2f} s" for v in r["entry_to_body_s"])
-                print(f"  person {k}: MPJPE {f(r['mpjpe_mm'])} mm, PCK50 {f(r['pck50'])}, missed {f(r['missed_pct'])} %, "
+                print(f"  person {k}: MPJPE {f(r['mpjpe_mm'])} mm, PCK50 {f(r['pck50'])}, missed {f(r['missed_pct'])} % "
+                      f"({f(r.get('without_body_pct'))} % of their time in view, first wait included), "
                       f"switches {r['identity_switches']} (new ids on re-entry {r['reentry_new_ids']}), "
                       f"first body at {f(r['first_s'], '.2f')} s, entry -> body {entries or '-'}")
