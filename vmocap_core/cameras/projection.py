@@ -66,6 +66,11 @@ class Camera:
         return self.K @ np.hstack([self.R, self.t[:, None]])
 
     @property
+    def focal(self) -> float:
+        """Mean focal length (px): a length's size in the image at a depth, the same along x and y."""
+        return 0.5 * float(self.K[0, 0] + self.K[1, 1])
+
+    @property
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist != 0.0))
 

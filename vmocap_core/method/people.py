@@ -133,7 +133,7 @@ def epipolar_costs(rig: Rig, people: Sequence[np.ndarray], min_common: int = 4) 
     uv[cams, np.arange(N)] = allp[..., :2]
     xy = undistort_all(rig, uv.reshape(len(rig), N * N_KP, 2)).reshape(len(rig), N, N_KP, 2)
     xn = np.concatenate([xy[cams, np.arange(N)], np.ones((N, N_KP, 1))], axis=-1)  # (N, 25, 3)
-    focal = np.array([0.5 * (c.K[0, 0] + c.K[1, 1]) for c in rig])
+    focal = np.array([c.focal for c in rig])
     E = _essentials(rig)[cams[:, None], cams[None, :]]  # (N, N, 3, 3): view of a -> view of b
     line_b = np.einsum("abij,akj->abki", E, xn)  # lines in b of a's joints (N, N, 25, 3)
     num = np.abs(np.einsum("abki,bki->abk", line_b, xn))

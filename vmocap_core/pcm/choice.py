@@ -83,8 +83,7 @@ def _matches(rig: Rig, X: np.ndarray, hips: Sequence[np.ndarray], reach: Sequenc
             continue
         d = np.linalg.norm(proj[c][:, None] - h[None], axis=-1) / np.maximum(r[None], 1e-6)  # (M, n)
         near = d.argmin(axis=1)
-        focal = 0.5 * (rig[c].K[0, 0] + rig[c].K[1, 1])
-        size = r[near] * depth[c] / (focal * SUBJECT_REACH_M)  # the near detection's body at this depth, in adults
+        size = r[near] * depth[c] / (rig[c].focal * SUBJECT_REACH_M)  # the near detection's body at this depth, in adults
         ok = front[c] & (d[np.arange(len(X)), near] < AGREE_FRACTION) & (size >= REACH_RANGE[0]) & (size <= REACH_RANGE[1])
         out[c] = np.where(ok, near, -1)
         sizes[c] = np.where(ok, size, np.nan)

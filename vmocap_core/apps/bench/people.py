@@ -333,6 +333,6 @@ def print_people(result: dict[str, Any]) -> None:
             for k, r in enumerate(every["persons"]):
                 entries = ", ".join("never" if v is None else f"{v:.2f} s" for v in r["entry_to_body_s"])
                 print(f"  person {k}: MPJPE {f(r['mpjpe_mm'])} mm, PCK50 {f(r['pck50'])}, missed {f(r['missed_pct'])} % "
-                      f"({f(r.get('without_body_pct'))} % of their time in view, first wait included), "
+                      f"({f(r['without_body_pct'])} % of their time in view, first wait included), "
                       f"switches {r['identity_switches']} (new ids on re-entry {r['reentry_new_ids']}), "
                       f"first body at {f(r['first_s'], '.2f')} s, entry -> body {entries or '-'}")
