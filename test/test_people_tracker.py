@@ -96,6 +96,33 @@ def test_tracked_bodies_are_hidden_from_the_detector(rig):
         assert (o[v, u] == 127).all() and (o[v2, u2] == 30).all() and (o == 30).any()
 
 
+def test_the_detector_glances_between_searches_for_newcomers(rig):
+    """While a slot is free, the detector glances at the whole images every glance_every_s
+    (0.2 s) between the full searches for newcomers (every detect_every_s, 0.5 s): someone
+    walking in waits for the next glance, not for the next full search. A glance is the
+    whole images only (no closer or turned look)."""
+    from vmocap_core.method.people_config import PeopleConfig
+    from vmocap_core.method.people_look import PeopleLook
+    from vmocap_core.pcm.pipeline import BlazePosePcm
+
+    pcm = BlazePosePcm(rig, rotation="all", threads=2, precision=_precision())
+    looks: dict[int, tuple[bool, bool]] = {}
+    detect, frame = pcm.detect_people, [0]
+
+    def spy(images, turned=True, closer=True):
+        looks.setdefault(frame[0], (turned, closer))
+        return detect(images, turned, closer)
+
+    pcm.detect_people = spy
+    look = PeopleLook(rig, pcm, PeopleConfig(max_people=2))
+    empty_room = [np.zeros((c.height, c.width, 3), np.uint8) for c in rig]
+    for t in range(61):  # 1 s at 60 Hz
+        frame[0] = t
+        look.step(empty_room, t * 16_666_667)
+    assert sorted(looks) == [0, 12, 24, 30, 42, 54, 60]
+    assert all(looks[t] == (False, False) for t in (12, 24, 42, 54)) and looks[0] == (True, True)
+
+
 def test_people_outputs_give_each_body_its_own_id():
     """Two people: two different ids in /humans/bodies/tracked while both track, each with
     its urdf, joint_states and keypoints; a person the tracker ends leaves the list at once

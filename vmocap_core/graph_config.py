@@ -131,6 +131,9 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("detect_every_s", 0.5, "several people: while fewer than max_people are tracked, the detector looks for "
               "newcomers this often (s, capture time); it runs on every frame set while someone is being found or was "
               "lost", 0.0, 60.0),
+        Param("glance_every_s", 0.2, "several people: between those searches, the detector glances at the whole "
+              "images (no closer look) this often (s, capture time), so that someone walking in waits this long for "
+              "it, not detect_every_s", 0.0, 60.0),
         Param("count_every_s", 2.0, "several people: while max_people are tracked, the detector counts the people left "
               "out this often (s, capture time; /diagnostics says how many; 0: never)", 0.0, 600.0),
     ],

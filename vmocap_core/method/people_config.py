@@ -22,6 +22,9 @@ class PeopleError(VmocapError):
 class PeopleConfig:
     max_people: int = 2  # people tracked at once; more in view are counted, not tracked
     detect_every_s: float = 0.5  # while fewer are tracked: the detector looks for newcomers this often
+    # ... and glances at the whole images this often in between (no closer look): someone walking
+    # in waits for a body this long plus their initialization, not detect_every_s plus it
+    glance_every_s: float = 0.2
     count_every_s: float = 2.0  # while max_people are tracked: it counts the people left out this often (0: never)
     end_after_s: float = 1.0  # a person without a skeleton for this long is ended
     reacquire_m: float = 1.0  # a lost person is found again within this of their last hip centre
@@ -38,8 +41,8 @@ class PeopleConfig:
     def __post_init__(self) -> None:
         if int(self.max_people) < 1:
             raise PeopleError(f"max_people must be at least 1, got {self.max_people}")
-        if min(self.detect_every_s, self.count_every_s) < 0:
-            raise PeopleError("detect_every_s and count_every_s must be >= 0")
+        if min(self.detect_every_s, self.glance_every_s, self.count_every_s) < 0:
+            raise PeopleError("detect_every_s, glance_every_s and count_every_s must be >= 0")
         if int(self.confirm_frames) < 0:
             raise PeopleError(f"confirm_frames must be >= 0, got {self.confirm_frames}")
 

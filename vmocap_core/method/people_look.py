@@ -6,7 +6,8 @@ each lattice search reads maps of its own person. The detector runs on images wi
 bodies' silhouettes greyed (`hidden`): every frame set while someone found is not initialized yet
 (their crops come from it), every wait_search_s while someone lost waits (their last crops held in
 between), and every `detect_every_s` while fewer than `max_people` are tracked, to find people who
-walked in (`_search`: cheap whole-image looks, a closer look where needed). A detection that a
+walked in (`_search`: cheap whole-image looks, a closer look where needed), with glances (the
+whole images only) every `glance_every_s` in between. A detection that a
 tracked person's pelvis projects onto is theirs; the others are grouped across cameras
 (pcm/choice.py: hip centres triangulated from two cameras that project onto a detection in both)
 into new people, the one seen by the most cameras first. The crops of everyone go through the
@@ -38,7 +39,7 @@ from .prediction import BodyPredictor
 from .results import seed_of, skeleton_of
 
 PELVIS = INDEX["pelvis"]
-SearchKind = Literal["waiting", "newcomers", "counting"]  # what a detector search is for (_search)
+SearchKind = Literal["waiting", "newcomers", "glance", "counting"]  # what a detector search is for (_search)
 
 
 @dataclass
@@ -122,10 +123,11 @@ class PeopleLook:
         self.crop_prediction = crop_prediction
         self.seats: list[Seat] = []
         self._next = 0
-        self._last_detection_ns: int | None = None
+        self._last_detection_ns: int | None = None  # the last search's stamp
+        self._last_full_ns: int | None = None  # the last search's that was no glance (_search_due)
         self._searches = 0  # searches for newcomers so far
-        self._untracked = np.full(len(rig), -1)  # per camera, the detections nobody tracks at the last look
-        self._left_out = 0  # people (seen by two cameras) not tracked for want of a slot, at the last look
+        self._untracked = np.full(len(rig), -1)  # per camera, the detections nobody tracks at the last full look
+        self._left_out = 0  # people (seen by two cameras) not tracked for want of a slot, at the last full look
 
     def feedback(self, number: int, stamp_ns: int, feedback: np.ndarray | None, tracking: bool = True) -> None:
         """A person's fed-back skeleton of the frame set stamped `stamp_ns` (results.feedback_of):
@@ -166,22 +168,31 @@ class PeopleLook:
         """Which search this frame set runs (_search), if any: "waiting" every frame set while
         someone found is not initialized yet, every wait_search_s while someone lost waits (their
         last detector crops are held in between: a full search costs several frame periods);
-        "newcomers" every detect_every_s while fewer than max_people are tracked; "counting"
-        every count_every_s while max_people are (who is left out)."""
+        "newcomers" every detect_every_s while fewer than max_people are tracked, and a "glance"
+        every glance_every_s in between; "counting" every count_every_s while max_people are
+        (who is left out)."""
         cfg = self.config
-        kind: SearchKind
+
+        def due(last: int | None, every: float) -> bool:
+            return last is None or not 0 <= stamp_ns - last < every * 1e9
+
         if waiting:
             # a person found and not yet initialized gets fresh detections every frame set: the
             # initialization triangulates consecutive frame sets of a body that may walk fast
-            kind, every = "waiting", 0.0 if any(s.seen_ns == s.born_ns for s in waiting) else cfg.wait_search_s
-        elif len(self.seats) < cfg.max_people:
-            kind, every = "newcomers", cfg.detect_every_s
-        elif cfg.count_every_s > 0:
-            kind, every = "counting", cfg.count_every_s
-        else:
+            every = 0.0 if any(s.seen_ns == s.born_ns for s in waiting) else cfg.wait_search_s
+            return "waiting" if due(self._last_detection_ns, every) else None
+        if len(self.seats) < cfg.max_people:
+            if due(self._last_full_ns, cfg.detect_every_s):
+                return "newcomers"
+            # someone walking in is seen whole by two cameras well before the next full search
+            # comes: without glances their wait for a body would be up to detect_every_s plus their
+            # initialization; a glance costs a fraction of a full search (no closer look)
+            if due(self._last_detection_ns, cfg.glance_every_s):
+                return "glance"
             return None
-        last = self._last_detection_ns
-        return kind if last is None or not 0 <= stamp_ns - last < every * 1e9 else None
+        if cfg.count_every_s > 0 and due(self._last_full_ns, cfg.count_every_s):
+            return "counting"
+        return None
 
     def _crops(self, s: Seat, index: np.ndarray, found: Sequence[Sequence[Detection]], have: np.ndarray,
                stamp_ns: int) -> Crops:
@@ -211,6 +222,8 @@ class PeopleLook:
         search = self._search_due(stamp_ns, waiting)
         if search is not None:
             self._last_detection_ns = stamp_ns
+            if search != "glance":
+                self._last_full_ns = stamp_ns
             skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
             pelvises = skeletons[:, PELVIS]
             pelvises = pelvises[np.isfinite(pelvises).all(axis=1)]
@@ -233,8 +246,9 @@ class PeopleLook:
                 s = self._new_seat(choice.point, stamp_ns)
                 crops[s.number] = self._crops(s, choice.index, left, have, stamp_ns)
                 left = explained(self.seen, left, choice.point[None])
-            self._untracked = np.array([len(d) for d in left])
-            self._left_out = self._people_in(left)
+            if search != "glance":  # what the diagnostics say: the full looks' counts
+                self._untracked = np.array([len(d) for d in left])
+                self._left_out = self._people_in(left)
         for s in waiting:  # between searches: their held detector crops
             if s.number not in crops:
                 crops[s.number] = self._crops(s, np.full(len(self.rig), -1), [[] for _ in self.rig], have, stamp_ns)
@@ -270,12 +284,15 @@ class PeopleLook:
         one found someone (a newcomer in the room is seen whole by some camera; the closer look
         in every camera of an empty room costs 110 ms against 4 x 4 ms), and in every camera on
         every closer_every-th search (a person small in every view: far, or a low-resolution
-        rig); no turned look (a lying newcomer is found when they get up). "counting" the people
+        rig); no turned look (a lying newcomer is found when they get up). "glance": the whole
+        images only. "counting" the people
         left out (every slot taken): as for newcomers, but never every camera's closer look,
         which costs more than a frame period."""
         shown = hidden(self.seen, images, skeletons)
         if kind == "waiting":
             return explained(self.seen, self.pcm.detect_people(shown), pelvises)
+        if kind == "glance":
+            return explained(self.seen, self.pcm.detect_people(shown, turned=False, closer=False), pelvises)
         thorough = kind == "newcomers" and self._searches % self.config.closer_every == 0  # the first search too
         if kind == "newcomers":
             self._searches += 1

@@ -43,8 +43,8 @@ class PeoplePcmNode(PcmNode):
                                        p["crop_prediction"], census_every=0)
         provider.warm_up()  # before READY: the first frame set would wait for it
         self.look = PeopleLook(self.rig, provider.pcm, PeopleConfig(
-            max_people=p["max_people"], detect_every_s=p["detect_every_s"], count_every_s=p["count_every_s"],
-            end_after_s=p["end_after_s"]), p["crop_prediction"], p["binning"])
+            max_people=p["max_people"], detect_every_s=p["detect_every_s"], glance_every_s=p["glance_every_s"],
+            count_every_s=p["count_every_s"], end_after_s=p["end_after_s"]), p["crop_prediction"], p["binning"])
         self.seated: dict[int, dict[int, int]] = {}  # frame set stamp -> slot -> person number
         self.fed: list[tuple[int, dict]] = []  # slot feedback not yet given to the look (it may be looking)
         self.pending: set[int] = set()  # slots whose feedback of the awaited frame set has not come
