@@ -342,6 +342,32 @@ def test_a_person_who_left_is_tracked_again_without_identification():
         assert (back.skeleton.identified is known) == again
 
 
+def test_a_person_walking_back_in_is_known_once_their_frames_say_so():
+    """Someone who left comes back, and their first fit is made while parts of them are still
+    outside some views: its link lengths are 7 % off theirs, outside the 5 % a known skeleton
+    is taken at. The identification phase that starts compares the frame sets it collects with
+    the known skeletons every init_frames: once the body is in view, the person is tracked with
+    their own skeleton again, long before the identification phase would have ended."""
+    m = punch()
+    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
+    first = Pipeline(rig, PipelineConfig.of(fps=60.0))
+    src = SyntheticPcmSource(rig, m.positions, m.present, seed=0)
+    for t in range(60):
+        first.step(src.render(t))
+    known = first.skeleton.identified
+    assert known is not None and first.last.status == "tracking"
+    walking_in = m.positions.copy()
+    pelvis = walking_in[60:66, :1]
+    walking_in[60:66] = pelvis + 1.07 * (walking_in[60:66] - pelvis)  # the first fit's frames: too long
+    back = Pipeline(rig, PipelineConfig.of(fps=60.0))
+    back.skeleton.known = [known]
+    src = SyntheticPcmSource(rig, walking_in, m.present, seed=0)
+    statuses = [back.step(src.render(t)).status for t in range(60, 100)]
+    identifying = statuses.count("identifying")
+    assert 0 < identifying <= 2 * back.config.skeleton.init_frames < back.config.skeleton.identify_frames, statuses
+    assert back.skeleton.identified is known and statuses[-1] == "tracking", statuses
+
+
 def test_several_people_do_not_reacquire_a_keypoint_at_another_bodys_peaks():
     """A keypoint whose maps peak on another person 0.4 m away (a hand reaching past, two
     people face to face): the lattice around it finds nothing, and one person's re-acquisition

@@ -22,7 +22,7 @@ from .consistency import RESUME_GAP_S, Verdict, ViewCheck, WeightTrend
 from .filter import make_filter, smoother_model
 from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
-from .init import fit_skeleton, with_midpoints
+from .init import fit_skeleton, identify_dimensions, with_midpoints
 from .init_report import CORE
 from .landmarks import load_landmarks
 from .one_euro import OneEuroFilter
@@ -36,6 +36,13 @@ REACQUIRE_LENGTHS = 0.15  # a body found again whose link lengths are the subjec
 # (`SkeletonStage.known`): that person come back. Tighter than REACQUIRE_LENGTHS: the
 # skeleton may be another person's.
 REMEMBERED_LENGTHS = 0.05
+
+
+def length_offset(new: dict[str, float], old: dict[str, float]) -> float:
+    """How far one body's link lengths are from another's: |median ratio - 1| (inf: none known in both)."""
+    ratios = np.array([new[k] / old[k] for k in old if old[k] > 0 and k in new])
+    ratios = ratios[np.isfinite(ratios)]
+    return abs(float(np.median(ratios)) - 1.0) if ratios.size else np.inf
 
 
 class SkeletonStage:
@@ -345,9 +352,7 @@ class SkeletonStage:
         for i, (known, bound) in enumerate(bounds):
             if known is None:
                 continue
-            old = known.dims.bone_lengths()
-            ratios = np.array([new[k] / old[k] for k in old if old[k] > 0])
-            off = abs(float(np.median(ratios)) - 1.0) if ratios.size else np.inf
+            off = length_offset(new, known.dims.bone_lengths())
             if off <= bound:
                 near.append((off, i, known))
         for _, _, known in sorted(near, key=lambda n: n[:2]):
@@ -360,6 +365,29 @@ class SkeletonStage:
         self.skeleton = None
         return None
 
+    def _remembered(self, markers: Markers) -> tuple[Skeleton, Any] | None:
+        """During identification, every init_frames-th frame set: the skeleton of someone who
+        left (`known`) when the last init_frames frame sets have its link lengths (_same_subject).
+        The first fit of a person walking back in is made while parts of them are still outside
+        some views, and its lengths may miss theirs; a few frame sets later they are in view."""
+        cfg = self.config
+        if not self.known or self._identify is None or len(self._identify) % cfg.init_frames:
+            return None
+        frames = np.array(self._identify[-cfg.init_frames:])
+        # the fit costs tens of ms: only for lengths near a known body's (the landmarks' own
+        # lengths, before their offsets are removed, as the fit's first pass takes them)
+        rough = identify_dimensions(frames).bone_lengths()
+        if min(length_offset(rough, k.dims.bone_lengths()) for k in self.known) > REACQUIRE_LENGTHS:
+            return None
+        fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, self._q_raw, self._landmarks)
+        if fitted is None:
+            return None
+        provisional = self.skeleton
+        again = self._same_subject(markers, *fitted)
+        if again is None:
+            self.skeleton = provisional
+        return again
+
     def _identifying(self, markers: Markers, centres: np.ndarray, raw: np.ndarray) -> TrackResult:
         """Identification phase: collect the virtual markers for identify_seconds of capture
         time (identify_frames at the nominal rate; fewer when frame sets are skipped, so a graph
@@ -368,6 +396,10 @@ class SkeletonStage:
         cfg = self.config
         assert self._identify is not None  # started by the first fit
         self._identify.append(np.where((markers.weights > 0)[:, None], markers.positions, np.nan))
+        again = self._remembered(markers)
+        if again is not None:
+            self._identify = None
+            return self._start_tracking(markers, *again)
         span_frames = (markers.stamp_ns - self._identify_start_ns) * 1e-9 * cfg.fps + 1
         if len(self._identify) >= cfg.identify_frames or span_frames >= cfg.identify_frames - 0.5:
             frames = np.array(self._identify)
