@@ -285,9 +285,8 @@ class PeopleLook:
         in every camera of an empty room costs 110 ms against 4 x 4 ms), and in every camera on
         every closer_every-th search (a person small in every view: far, or a low-resolution
         rig); no turned look (a lying newcomer is found when they get up). "glance": the whole
-        images only. "counting" the people
-        left out (every slot taken): as for newcomers, but never every camera's closer look,
-        which costs more than a frame period."""
+        images only. "counting" the people left out (every slot taken): as for newcomers, but
+        never every camera's closer look, which costs more than a frame period."""
         shown = hidden(self.seen, images, skeletons)
         if kind == "waiting":
             return explained(self.seen, self.pcm.detect_people(shown), pelvises)

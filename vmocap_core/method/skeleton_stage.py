@@ -347,6 +347,7 @@ class SkeletonStage:
         this track's own skeleton, REMEMBERED_LENGTHS of a `known` one; the nearest first) and
         it fits within init_max_fit_error_m; None for a body to identify anew."""
         new = sk.dims.bone_lengths()
+        before = self.skeleton  # borrowed below: each candidate's landmark offsets
         near: list[tuple[float, int, Skeleton]] = []
         bounds = [(self.identified, REACQUIRE_LENGTHS)] + [(k, REMEMBERED_LENGTHS) for k in self.known]
         for i, (known, bound) in enumerate(bounds):
@@ -362,7 +363,7 @@ class SkeletonStage:
             refit = solve_ik(known, fit.q, centres, w, 30, damping=1e-2, regularization=1e-6, line_search=True)
             if np.sqrt(refit.cost) <= self.config.init_max_fit_error_m:
                 return known, refit
-        self.skeleton = None
+        self.skeleton = before
         return None
 
     def _remembered(self, markers: Markers) -> tuple[Skeleton, Any] | None:
@@ -371,7 +372,8 @@ class SkeletonStage:
         The first fit of a person walking back in is made while parts of them are still outside
         some views, and its lengths may miss theirs; a few frame sets later they are in view."""
         cfg = self.config
-        if not self.known or self._identify is None or len(self._identify) % cfg.init_frames:
+        assert self._identify is not None  # called while identifying
+        if not self.known or len(self._identify) % cfg.init_frames:
             return None
         frames = np.array(self._identify[-cfg.init_frames:])
         # the fit costs tens of ms: only for lengths near a known body's (the landmarks' own
@@ -380,13 +382,7 @@ class SkeletonStage:
         if min(length_offset(rough, k.dims.bone_lengths()) for k in self.known) > REACQUIRE_LENGTHS:
             return None
         fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, self._q_raw, self._landmarks)
-        if fitted is None:
-            return None
-        provisional = self.skeleton
-        again = self._same_subject(markers, *fitted)
-        if again is None:
-            self.skeleton = provisional
-        return again
+        return None if fitted is None else self._same_subject(markers, *fitted)
 
     def _identifying(self, markers: Markers, centres: np.ndarray, raw: np.ndarray) -> TrackResult:
         """Identification phase: collect the virtual markers for identify_seconds of capture
