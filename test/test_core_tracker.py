@@ -399,3 +399,34 @@ def test_several_people_do_not_reacquire_a_keypoint_at_another_bodys_peaks():
     assert np.linalg.norm(wrist_after(one) - other[wrist]) < 0.1  # one person: re-acquired on the other body
     several = MarkerSlot(rig, PipelineConfig.of(fps=60.0).markers).config  # a person's stage among several
     assert np.linalg.norm(wrist_after(several) - other[wrist]) > 0.3
+
+
+def test_initialization_bears_a_limb_keypoint_missing_in_some_frame_sets():
+    """II-C's consecutive frame sets: the views must agree on the trunk in each of them, and on
+    each other core keypoint in most of them and in the last. A wrist whose views disagree in
+    every other frame set (as beside another body, or at an image's edge) no longer starts the
+    count again each time; a hip that does still does."""
+    import dataclasses
+
+    from vmocap_core.keypoints import INDEX
+
+    m = punch()
+    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
+    src = SyntheticPcmSource(rig, m.positions, m.present, seed=0)
+
+    def first_fit(keypoint: str) -> int | None:
+        tracker = Pipeline(rig, PipelineConfig.of(fps=60.0))
+        for t in range(14):
+            pcm = src.render(t)
+            if t % 2:
+                valid = pcm.valid.copy()
+                valid[:, pcm.keypoints == INDEX[keypoint]] = False
+                pcm = dataclasses.replace(pcm, valid=valid)
+            if tracker.step(pcm).status != "initializing":
+                return t
+        return None
+
+    init_frames = PipelineConfig.of(fps=60.0).skeleton.init_frames
+    assert first_fit("left_wrist") == init_frames - 1
+    assert first_fit("left_hip") is None
+

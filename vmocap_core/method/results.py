@@ -16,6 +16,7 @@ if TYPE_CHECKING:
 
 N_KP = len(KEYPOINTS)
 PELVIS, NECK = INDEX["pelvis"], INDEX["neck"]
+TRUNK = np.array([INDEX[n] for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip")])
 
 
 @dataclass

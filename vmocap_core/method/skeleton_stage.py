@@ -27,7 +27,7 @@ from .init_report import CORE
 from .landmarks import load_landmarks
 from .one_euro import OneEuroFilter
 from .path_gate import PathGate
-from .results import N_KP, Markers, TrackResult
+from .results import N_KP, NECK, PELVIS, TRUNK, Markers, TrackResult
 from .skeleton import Skeleton
 from .smoothing import FixedLagSmoother
 
@@ -36,6 +36,9 @@ REACQUIRE_LENGTHS = 0.15  # a body found again whose link lengths are the subjec
 # (`SkeletonStage.known`): that person come back. Tighter than REACQUIRE_LENGTHS: the
 # skeleton may be another person's.
 REMEMBERED_LENGTHS = 0.05
+_CORE = np.array([INDEX[n] for n in CORE])
+_TRUNK = np.r_[TRUNK, NECK, PELVIS]
+_WHOLE = np.union1d(_CORE, _TRUNK)
 
 
 def length_offset(new: dict[str, float], old: dict[str, float]) -> float:
@@ -314,14 +317,21 @@ class SkeletonStage:
         self.status = "initializing"
         if markers.kind != "triangulated":
             return self._empty(markers, status)
-        p = with_midpoints(markers.positions[None])[0]
-        if not all(np.isfinite(p[INDEX[n]]).all() for n in CORE + ("neck", "pelvis")):
-            self._buffer.clear()  # the views must agree on consecutive frames
+        seen = np.isfinite(with_midpoints(markers.positions[None])[0]).all(axis=1)
+        # The views must agree on consecutive frame sets. A wrist or ankle whose views disagree
+        # in one of them (crossing another body, an image's edge) leaves a gap in its own link's
+        # median only, when an identification phase identifies the link lengths again: each core
+        # keypoint in most of the frame sets then, and all in the last, which the first pose is
+        # fitted to. Without that phase these frame sets are all the link lengths come from.
+        needed = _TRUNK if cfg.identify_frames > 0 else _WHOLE
+        if not seen[needed].all():
+            self._buffer.clear()
             return self._empty(markers, status)
         self._buffer.append(markers.positions.copy())
-        if len(self._buffer) < cfg.init_frames:
-            return self._empty(markers, status)
         frames = np.array(self._buffer)
+        if (len(frames) < cfg.init_frames or not seen[_CORE].all()
+                or (np.isfinite(frames[:, _CORE, 0]).sum(axis=0) <= cfg.init_frames // 2).any()):
+            return self._empty(markers, status)
         fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, landmarks=self._landmarks)
         if fitted is None:
             self._buffer.popleft()
