@@ -430,3 +430,32 @@ def test_initialization_bears_a_limb_keypoint_missing_in_some_frame_sets():
     assert first_fit("left_wrist") == init_frames - 1
     assert first_fit("left_hip") is None
 
+
+def test_a_trunk_one_camera_holds_whole_is_not_output():
+    """A person walking out of every image but one: the trunk's depth along that camera's rays
+    is what the landmark model guesses at the other images' edges, and the skeleton slides with
+    it while the views left still agree. While the markers say only one camera's image holds
+    the whole trunk, the track goes on without output, and the diagnostics say why."""
+    m = punch()
+    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
+    src = SyntheticPcmSource(rig, m.positions, m.present, seed=0)
+    tracker = Pipeline(rig, PipelineConfig.of(fps=60.0))
+    step = tracker.markers.step
+    leaving = range(80, 100)
+    t = 0
+
+    def markers(pcm):
+        out = step(pcm)
+        if t in leaving and out.inside is not None:
+            out.inside = out.inside & np.uint32(1)  # camera 0's image only
+        return out
+
+    tracker.markers.step = markers
+    statuses, why = [], []
+    for t in range(130):
+        statuses.append(tracker.step(src.render(t)).status)
+        why.append(tracker.skeleton.warning(statuses[-1], []) or "")
+    assert statuses[79] == "tracking"
+    assert all(s == "uncertain" for s in statuses[80:100]), statuses[80:100]
+    assert "trunk" in why[85]
+    assert statuses[-1] == "tracking"

@@ -46,6 +46,15 @@ class Markers:
 
 
     @property
+    def trunk_views(self) -> int | None:
+        """Lattice markers: how many cameras' images hold the whole trunk (both hips and both
+        shoulders, by `inside`); None: not known."""
+        if self.inside is None:
+            return None
+        both = np.bitwise_and.reduce(np.asarray(self.inside, np.uint32)[TRUNK])
+        return int(np.bitwise_count(both))
+
+    @property
     def support(self) -> float | None:
         """Lattice markers: the share of the markers found (weight > 0) whose position two
         cameras' maps or more confirm (consistency.py), from this frame set alone; None for

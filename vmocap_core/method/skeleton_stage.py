@@ -79,6 +79,7 @@ class SkeletonStage:
         # metres (horizontal) from the subject's path behind a "lost" step, and the bound (path_gate.py)
         self.strayed: tuple[float, float] | None = None
         self._pelvis = np.full(3, np.nan)  # the track's hip centre (the last first IK's)
+        self.outside: int | None = None  # the cameras holding the trunk behind an "uncertain" step (fewer than 2)
         self.faded: float | None = None  # the markers' weight ratio behind an "uncertain" step (below check_min_weight_ratio)
         self._last_stamp: int | None = None
         # frame sets in a row that passed every rule since the output was held (None: flowing)
@@ -127,6 +128,9 @@ class SkeletonStage:
         if self.unsupported is not None:
             return (f"{status}: {self.unsupported:.0%} of this frame set's markers are held by two cameras or more "
                     f"(check_min_support {cfg.check_min_support:.0%}), this frame set is not output")
+        if self.outside is not None:
+            return (f"{status}: the trunk (hips and shoulders) lies whole in {self.outside} camera image(s): a body "
+                    "two cameras do not see is not fixed in space, this frame set is not output")
         if self.faded is not None:
             return (f"{status}: this frame set's markers weigh {self.faded:.0%} of the track's recent median "
                     f"(check_min_weight_ratio {cfg.check_min_weight_ratio:.0%}): the CNN's maps are fading, "
@@ -137,7 +141,7 @@ class SkeletonStage:
         return None
 
     def step(self, markers: Markers) -> TrackResult:
-        self.disagreement = self.unsupported = self.faded = self.strayed = self.resuming = None
+        self.disagreement = self.unsupported = self.outside = self.faded = self.strayed = self.resuming = None
         if markers.kind == "lattice" and self.skeleton is not None:
             # markers again after frame sets without any (every view covered, or none came for
             # RESUME_GAP_S): the skeleton is the one from before, so the output waits for the
@@ -155,15 +159,22 @@ class SkeletonStage:
             # this frame set's own markers, most of them seen by one camera only: the skeleton
             # fitted to them is not output, the track goes on (the next check decides)
             unsupported = judged and support is not None and support < self.config.check_min_support
+            # a trunk whole in one camera's image only (walking out of the others): its depth
+            # along that camera's rays is the landmark model's guess at the image edges, and
+            # the skeleton slides with it while the views left agree
+            trunk = markers.trunk_views
+            outside = judged and trunk is not None and trunk < 2
             ratio = self.weights.ratio(markers.weights, markers.check, markers.inside)
             faded = judged and ratio is not None and ratio < self.config.check_min_weight_ratio
             if verdict == "ok" and unsupported:
                 verdict, self.unsupported = "uncertain", support
+            elif verdict == "ok" and outside:
+                verdict, self.outside = "uncertain", trunk
             elif verdict == "ok" and faded:
                 verdict, self.faded = "uncertain", ratio
             # held back before: output resumes on the check_resume_frames-th frame set in a row
             # that passes every rule (the hysteresis forgives one bad check only while it flows)
-            passed = not (self.verdict.disagreed or unsupported or faded)
+            passed = not (self.verdict.disagreed or unsupported or outside or faded)
             if self._passed is not None:
                 self._passed = self._passed + 1 if passed else 0
                 if verdict == "ok" and self._passed < self.config.check_resume_frames:
