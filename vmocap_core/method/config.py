@@ -140,7 +140,7 @@ class SkeletonConfig(_Stage):
     # the real CNN 0.75 identifies better (docs/image_benchmark.md); on the synthetic noise
     # model, whose weights say less about a marker's error, it does worse: off by default.
     offline_identify_quantile: float = 0.0
-    init_frames: int = 5  # consecutive frames agreeing on the trunk (each limb keypoint: most of them) (II-C)
+    init_frames: int = 5  # consecutive frames the views agree in (II-C; skeleton_stage: limb keypoints' gaps)
     # Our addition: after the provisional fit on those frames, track this long (status
     # "identifying", no output) and identify the link lengths again on all of those frames'
     # virtual markers; output starts with these. 0: the provisional fit is final (the paper).

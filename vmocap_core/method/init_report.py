@@ -1,9 +1,9 @@
 """Why a subject is not initialized: the views' disagreement, in words a user can act on.
 
 Initialization (II-C) needs the core keypoints triangulated from views that agree (residual at
-most `init_max_reprojection_px`): the trunk's on `init_frames` consecutive frame sets, each limb
-keypoint's on most of them and on the last. When it stalls, the
-cause is almost always visible in the triangulation: a keypoint whose views disagree by tens
+most `init_max_reprojection_px`) on `init_frames` consecutive frame sets (with an identification
+phase after it, a limb keypoint on most of them and the last). When it stalls, the cause is
+almost always visible in the triangulation: a keypoint whose views disagree by tens
 of pixels (wrong calibration, a wrong CNN, two people), a keypoint seen by fewer than two
 cameras, or cameras that contribute nothing at all (no person in view, or a CNN presence below
 `min_presence`).
