@@ -8,6 +8,7 @@ frames), the waist height, the face and foot offsets, and fits the initial pose.
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -18,9 +19,9 @@ from ..keypoints import INDEX
 from ..pcm.views import PcmViews
 from .config import MarkersConfig
 from .ik import solve_ik
-from .init_report import camera_mask
+from .init_report import CORE, camera_mask
 from .landmarks import LandmarkModel, trunk_axes
-from .results import N_KP, Markers, nan_markers
+from .results import N_KP, NECK, PELVIS, TRUNK, Markers, nan_markers
 from .skeleton import BodyDimensions, Skeleton
 from .triangulation import triangulate_robust
 
@@ -55,6 +56,45 @@ def triangulated_markers(rig: Rig, pcm: PcmViews, cfg: MarkersConfig) -> Markers
     np.maximum.at(presence, np.asarray(pcm.camera, dtype=np.intp), np.asarray(pcm.presence, dtype=np.float64))
     out.presence = {rig[c].name: float(presence[c]) for c in range(C) if presence[c] >= 0}
     return out
+
+
+_CORE = np.array([INDEX[n] for n in CORE])
+_TRUNK = np.r_[TRUNK, NECK, PELVIS]
+_WHOLE = np.union1d(_CORE, _TRUNK)
+
+
+class InitFrames:
+    """The consecutive frame sets whose triangulated keypoints an initialization is fitted on
+    (II-C): the views must agree on the core keypoints in each of the last `n`. With
+    `limb_gaps` (an identification phase identifies the link lengths again afterwards), a wrist
+    or ankle whose views disagree in one of them (crossing another body, an image's edge) leaves
+    a gap in its own link's median only: the trunk in each frame set, each core keypoint in most
+    of them and in the last, which the first pose is fitted to. Without that phase these frame
+    sets are all the link lengths come from."""
+
+    def __init__(self, n: int, limb_gaps: bool) -> None:
+        self.n, self.limb_gaps = n, limb_gaps
+        self._frames: deque[np.ndarray] = deque(maxlen=n)
+
+    def clear(self) -> None:
+        self._frames.clear()
+
+    def drop_oldest(self) -> None:
+        self._frames.popleft()
+
+    def add(self, positions: np.ndarray) -> np.ndarray | None:
+        """This frame set's triangulated keypoints (25, 3; NaN unknown) -> the frame sets to fit
+        (n, 25, 3), or None while they are not there."""
+        seen = np.isfinite(with_midpoints(positions[None])[0]).all(axis=1)
+        if not seen[_TRUNK if self.limb_gaps else _WHOLE].all():
+            self._frames.clear()
+            return None
+        self._frames.append(positions.copy())
+        frames = np.array(self._frames)
+        if (len(frames) < self.n or not seen[_CORE].all()
+                or (np.isfinite(frames[:, _CORE, 0]).sum(axis=0) <= self.n // 2).any()):
+            return None
+        return frames
 
 
 def with_midpoints(p: np.ndarray) -> np.ndarray:

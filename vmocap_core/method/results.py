@@ -44,7 +44,6 @@ class Markers:
     # several people (people_stages.py): the person these are the markers of (PcmViews.person); -1: the one subject
     person: int = -1
 
-
     @property
     def trunk_views(self) -> int | None:
         """Lattice markers: how many cameras' images hold the whole trunk (both hips and both

@@ -22,12 +22,11 @@ from .consistency import RESUME_GAP_S, Verdict, ViewCheck, WeightTrend
 from .filter import make_filter, smoother_model
 from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
-from .init import fit_skeleton, identify_dimensions, with_midpoints
-from .init_report import CORE
+from .init import InitFrames, fit_skeleton, identify_dimensions
 from .landmarks import load_landmarks
 from .one_euro import OneEuroFilter
 from .path_gate import PathGate
-from .results import N_KP, NECK, PELVIS, TRUNK, Markers, TrackResult
+from .results import N_KP, Markers, TrackResult
 from .skeleton import Skeleton
 from .smoothing import FixedLagSmoother
 
@@ -36,9 +35,6 @@ REACQUIRE_LENGTHS = 0.15  # a body found again whose link lengths are the subjec
 # (`SkeletonStage.known`): that person come back. Tighter than REACQUIRE_LENGTHS: the
 # skeleton may be another person's.
 REMEMBERED_LENGTHS = 0.05
-_CORE = np.array([INDEX[n] for n in CORE])
-_TRUNK = np.r_[TRUNK, NECK, PELVIS]
-_WHOLE = np.union1d(_CORE, _TRUNK)
 
 
 def length_offset(new: dict[str, float], old: dict[str, float]) -> float:
@@ -54,7 +50,7 @@ class SkeletonStage:
     def __init__(self, config: SkeletonConfig | None = None) -> None:
         self.config = config or SkeletonConfig()
         self.skeleton: Skeleton | None = None
-        self._buffer: deque[np.ndarray] = deque(maxlen=self.config.init_frames)
+        self._buffer = InitFrames(self.config.init_frames, limb_gaps=self.config.identify_frames > 0)
         self._identify: list[np.ndarray] | None = None  # markers of the identification phase
         self._identify_start_ns = 0  # capture stamp of its first frame set
         self._q_raw: np.ndarray | None = None
@@ -328,24 +324,12 @@ class SkeletonStage:
         self.status = "initializing"
         if markers.kind != "triangulated":
             return self._empty(markers, status)
-        seen = np.isfinite(with_midpoints(markers.positions[None])[0]).all(axis=1)
-        # The views must agree on consecutive frame sets. A wrist or ankle whose views disagree
-        # in one of them (crossing another body, an image's edge) leaves a gap in its own link's
-        # median only, when an identification phase identifies the link lengths again: each core
-        # keypoint in most of the frame sets then, and all in the last, which the first pose is
-        # fitted to. Without that phase these frame sets are all the link lengths come from.
-        needed = _TRUNK if cfg.identify_frames > 0 else _WHOLE
-        if not seen[needed].all():
-            self._buffer.clear()
-            return self._empty(markers, status)
-        self._buffer.append(markers.positions.copy())
-        frames = np.array(self._buffer)
-        if (len(frames) < cfg.init_frames or not seen[_CORE].all()
-                or (np.isfinite(frames[:, _CORE, 0]).sum(axis=0) <= cfg.init_frames // 2).any()):
+        frames = self._buffer.add(markers.positions)
+        if frames is None:
             return self._empty(markers, status)
         fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, landmarks=self._landmarks)
         if fitted is None:
-            self._buffer.popleft()
+            self._buffer.drop_oldest()
             self.init_problem = (f"the views agree, but {cfg.init_frames} frame sets of triangulated keypoints do not "
                                  f"fit one skeleton within init_max_fit_error_m = {cfg.init_max_fit_error_m:g} m")
             return self._empty(markers, status)
