@@ -126,6 +126,7 @@ class PeopleLook:
         self._last_detection_ns: int | None = None  # the last search's stamp
         self._last_full_ns: int | None = None  # the last search's that was no glance (_search_due)
         self._searches = 0  # searches for newcomers so far
+        self._greyed: frozenset[int] = frozenset()  # the people hidden at the last search that looked closer everywhere
         self._untracked = np.full(len(rig), -1)  # per camera, the detections nobody tracks at the last full look
         self._left_out = 0  # people (seen by two cameras) not tracked for want of a slot, at the last full look
 
@@ -227,7 +228,7 @@ class PeopleLook:
             skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
             pelvises = skeletons[:, PELVIS]
             pelvises = pelvises[np.isfinite(pelvises).all(axis=1)]
-            left = self._search(images, skeletons, pelvises, search)
+            left = self._search(images, skeletons, pelvises, search, frozenset(tracked))
             # the lost first (near where they were), then newcomers, the best seen first
             for s in waiting:
                 choice = choose_subject(self.seen, left, s.seed)
@@ -277,14 +278,16 @@ class PeopleLook:
         return n
 
     def _search(self, images: Sequence[np.ndarray | None], skeletons: np.ndarray, pelvises: np.ndarray,
-                kind: SearchKind) -> list[list[Detection]]:
+                kind: SearchKind, greyed: frozenset[int] = frozenset()) -> list[list[Detection]]:
         """Per camera, the detections no tracked person explains, with the tracked bodies hidden.
         For someone "waiting": every look of detect_people. For "newcomers": the
         whole images, and the closer look only in the cameras that found nobody while another
         one found someone (a newcomer in the room is seen whole by some camera; the closer look
         in every camera of an empty room costs 110 ms against 4 x 4 ms), and in every camera on
         every closer_every-th search (a person small in every view: far, or a low-resolution
-        rig); no turned look (a lying newcomer is found when they get up). "glance": the whole
+        rig), and in the first search after someone tracked is hidden who was not at the last
+        such look (the detector, a one-person model, drew the most prominent person of an image
+        and missed a smaller one beside them: `greyed` are the numbers of the hidden); no turned look (a lying newcomer is found when they get up). "glance": the whole
         images only. "counting" the people left out (every slot taken): as for newcomers, but
         never every camera's closer look, which costs more than a frame period."""
         shown = hidden(self.seen, images, skeletons)
@@ -292,9 +295,12 @@ class PeopleLook:
             return explained(self.seen, self.pcm.detect_people(shown), pelvises)
         if kind == "glance":
             return explained(self.seen, self.pcm.detect_people(shown, turned=False, closer=False), pelvises)
-        thorough = kind == "newcomers" and self._searches % self.config.closer_every == 0  # the first search too
+        thorough = kind == "newcomers" and (self._searches % self.config.closer_every == 0  # the first search too
+                                            or not greyed <= self._greyed)
         if kind == "newcomers":
             self._searches += 1
+        if thorough:
+            self._greyed = greyed
         left = explained(self.seen, self.pcm.detect_people(shown, turned=thorough, closer=thorough), pelvises)
         empty = [c for c, d in enumerate(left) if not d and shown[c] is not None]
         if not thorough and empty and len(empty) < sum(im is not None for im in shown):
