@@ -60,9 +60,9 @@ def _frame_sets(rec, rig):
 
 
 def _detection(rig, camera: int, pelvis: np.ndarray) -> Detection:
-    uv, _ = rig.project(np.stack([pelvis, pelvis + [0.0, 0.0, 0.9]]))
-    hip, head = uv[camera]
-    return Detection(0.9, np.r_[hip - 40, hip + 40], np.stack([hip, head, hip, head]))
+    uv, _ = rig.project(np.stack([pelvis, pelvis + [0.0, 0.0, 0.9], pelvis + [0.0, 0.0, 0.5]]))
+    hip, head, shoulders = uv[camera]
+    return Detection(0.9, np.r_[hip - 40, hip + 40], np.stack([hip, head, shoulders, head]))
 
 
 def test_detections_of_tracked_people_are_theirs(rig):

@@ -22,9 +22,11 @@ def rig():
     return load_rig(REPO / "config" / "benchmark_rig.yaml")
 
 
-def detection(rig, cam: int, hip: np.ndarray, score: float, noise_px: float = 0.0) -> Detection:
-    uv, _ = rig.project(np.stack([hip, hip + [0.0, 0.0, 0.9]]))
-    kp = np.vstack([uv[cam], uv[cam]]) + noise_px
+def detection(rig, cam: int, hip: np.ndarray, score: float, noise_px: float = 0.0, trunk_m: float = 0.5) -> Detection:
+    """The detector's keypoints of an upright person: hip centre, the point above the head,
+    the shoulder centre `trunk_m` above the hips, the upper body's point."""
+    uv, _ = rig.project(np.stack([hip, hip + [0.0, 0.0, 0.9], hip + [0.0, 0.0, trunk_m], hip + [0.0, 0.0, 0.9]]))
+    kp = uv[cam] + noise_px
     x0, y0 = kp.min(axis=0) - 40
     x1, y1 = kp.max(axis=0) + 40
     return Detection(score, np.array([x0, y0, x1, y1]), kp)
@@ -76,6 +78,19 @@ def test_one_person_found_twice_is_one_person(rig):
     assert others_near(rig, 0, [dup[0], part], A) == 0  # a part of the subject found on its own
     found = [[detection(rig, c, A, 0.9), detection(rig, c, A, 0.8, 6.0)] for c in range(len(rig))]
     assert choose_subject(rig, found).others.tolist() == [0] * len(rig)
+
+
+def test_detections_whose_shoulders_are_no_trunk_from_the_hips_are_nobody(rig):
+    """Two cameras' hip rays that cross where the detections' sizes say a person, but whose
+    shoulder centres, triangulated from the same views, lie on the hips or metres above them
+    (two people's rays crossing in the air): nobody. A child's trunk still is someone."""
+    G = np.array([-0.5, -0.5, 1.3])
+    for trunk in (0.05, 1.5):
+        found = [[detection(rig, 0, G, 0.9, trunk_m=trunk)], [], [], [detection(rig, 3, G, 0.9, trunk_m=trunk)]]
+        assert choose_subject(rig, found).point is None
+    for trunk in (0.3, 0.5):
+        found = [[detection(rig, 0, G, 0.9, trunk_m=trunk)], [], [], [detection(rig, 3, G, 0.9, trunk_m=trunk)]]
+        assert np.linalg.norm(choose_subject(rig, found).point - G) < 0.05
 
 
 def sized(rig, cam: int, hip: np.ndarray, size: float) -> Detection:

@@ -7,7 +7,9 @@ is triangulated into a candidate; a candidate is a person where its projection f
 detection (within AGREE_FRACTION of that detection's hip-to-head length) in at least two
 cameras, with that detection's hip-to-head length a person's at the candidate's depth: two
 people's hips seen by two cameras give rays that cross somewhere between them, and there the
-detections say a body a fraction of a person, or several times one. The subject is the person
+detections say a body a fraction of a person, or several times one; and the detections' shoulder
+centres, triangulated from the same views, lie a trunk's length from the hip centre there
+(crossing rays of two people's hips give shoulders anywhere: on the hips, metres off). The subject is the person
 nearest to a seed (the last tracked position) or, without one, the one seen by the most cameras,
 then the highest summed score, each detection's lowered where its size at that depth is far from
 a standing adult's (where such rays cross nearer, the sizes say a body half a person).
@@ -37,6 +39,11 @@ REACH_RANGE = (1 / 3, 2.5)
 # weighs 0.6); within the band the ranking is the detector's scores alone
 ADULT_BAND = 4 / 3
 SIZE_SPREAD = float(np.log(1.5))
+# a person's hip centre to shoulder centre (the detector's keypoints 0 and 2), metres, in 3D: a
+# young child's to a tall adult's (about 0.3-0.6), with the detector's keypoints' slack; the
+# pose does not matter (lying, bent over), the length is the body's
+TRUNK_RANGE_M = (0.2, 0.9)
+SHOULDERS = 2  # the detector's keypoint at the shoulder centre
 
 
 @dataclass
@@ -90,6 +97,23 @@ def _matches(rig: Rig, X: np.ndarray, hips: Sequence[np.ndarray], reach: Sequenc
     return out, sizes
 
 
+def _trunk_length_ok(rig: Rig, found: Sequence[Sequence[Detection]], match: np.ndarray) -> np.ndarray:
+    """(M,) whether each candidate's matched detections (match (C, M)) put the shoulder centre
+    TRUNK_RANGE_M from the hip centre, both triangulated from those views."""
+    if match.shape[1] == 0:
+        return np.zeros(0, bool)
+    w = (match >= 0).astype(float)
+    idx = np.maximum(match, 0)
+    points = []
+    for kp in (0, SHOULDERS):
+        per_cam = [np.array([d.keypoints[kp] for d in dets]).reshape(-1, 2) if dets else np.zeros((1, 2)) for dets in found]
+        uv = np.stack([per_cam[c][idx[c]] for c in range(len(found))])  # (C, M, 2)
+        points.append(triangulate(rig, uv, w)[0])
+    trunk = np.linalg.norm(points[1] - points[0], axis=1)
+    with np.errstate(invalid="ignore"):
+        return (trunk >= TRUNK_RANGE_M[0]) & (trunk <= TRUNK_RANGE_M[1])
+
+
 def choose_subject(rig: Rig, found: Sequence[Sequence[Detection]], seed: np.ndarray | None = None) -> Choice:
     """The subject's detection in each camera (see the module doc). Fewer than two cameras
     agreeing on anyone: each camera's detection nearest to the seed's projection, or its best."""
@@ -97,7 +121,7 @@ def choose_subject(rig: Rig, found: Sequence[Sequence[Detection]], seed: np.ndar
     X = candidates(rig, hips)
     match, sizes = _matches(rig, X, hips, reach)
     views = (match >= 0).sum(axis=0)
-    person = views >= 2
+    person = (views >= 2) & _trunk_length_ok(rig, found, match)
     index = np.full(len(rig), -1)
     point = None
     if person.any():
