@@ -257,7 +257,7 @@ def test_the_walkers_paths_of_each_scene():
     walks in along that line and stops on it facing the subject; person 2 is the same in
     cross and beside; an unknown scene is an error."""
     from vmocap_core.apps.bench.people import BESIDE_M, FACING_X, walker_paths
-    from vmocap_core.apps.render.group import Walker
+    from vmocap_core.apps.render.group import TURN_RAD_S, Walker
     from vmocap_core.apps.render.recording import ClipSpec
     from vmocap_core.errors import VmocapError
 
@@ -272,6 +272,16 @@ def test_the_walkers_paths_of_each_scene():
     assert np.allclose(np.abs(heading), np.pi)
     with pytest.raises(VmocapError, match="scene"):
         walker_paths(2, 4.0, "hug")
+    # person 2 stops beside the subject and walks out the way it came: it turns on the spot at
+    # TURN_RAD_S over 0.8 s within its stop, not in one frame; a walker that does not stop to
+    # turn has the cache key it had
+    t = np.arange(480) / 60.0
+    back = Walker(ClipSpec(CLIP, 480, 60.0, 0, 2), cross[1])
+    heading = back._heading(t, np.array(cross[1]))
+    step = np.abs(np.angle(np.exp(1j * np.diff(heading))))
+    assert step.max() <= TURN_RAD_S / 60.0 + 1e-9 and back.turns() and not Walker(ClipSpec(CLIP, 240, 60.0, 0, 1), facing).turns()
+    turning = np.flatnonzero(step > 1e-9) / 60.0
+    assert 2.0 <= turning.min() and turning[turning < 4.0].max() <= 3.2  # within the stop at (-1.2, -1.2), 2.0-3.2 s
 
 
 @pytest.fixture(scope="module")

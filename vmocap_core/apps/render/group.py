@@ -25,6 +25,9 @@ from .recording import TRUTH_TOPIC, ClipSpec, cache_key, clip_scene, posed_bodie
 from .scene import Appearance
 
 GROUP_VERSION = 1  # bump when a group's rendered bytes change for the same inputs
+# a walker that stops and walks off another way turns on the spot at this rate (half a turn in
+# 0.8 s, a brisk turn), centred on the middle of its stop; before, it turned in one frame
+TURN_RAD_S = np.pi / 0.8
 
 
 def truth_topic(person: int) -> str:
@@ -66,20 +69,38 @@ class Walker:
         P[..., :2] += xy[:, None]
         return P
 
+    def turns(self) -> bool:
+        """Whether the walker stops between two legs of different directions (and turns there)."""
+        w = np.asarray(self.waypoints, dtype=np.float64)
+        yaw = self._legs(w)[0]
+        return bool(len(yaw) > 1 and np.any(np.abs(np.angle(np.exp(1j * np.diff(yaw)))) > 1e-9))
+
     @staticmethod
-    def _heading(t: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """(T,) direction of travel; while standing, that of the nearest leg of the path walked."""
+    def _legs(w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The legs walked: (yaw, start time, end time), each (L,)."""
         step = np.diff(w[:, 1:], axis=0)
         moving = np.flatnonzero(np.linalg.norm(step, axis=1) > 1e-9)
-        if moving.size == 0:
+        return np.arctan2(step[moving, 1], step[moving, 0]), w[moving, 0], w[moving + 1, 0]
+
+    @staticmethod
+    def _heading(t: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """(T,) direction of travel; while standing between two legs, turning from the one to the
+        other at TURN_RAD_S, centred on the middle of the stop (the whole stop if shorter)."""
+        yaw, start, end = Walker._legs(w)
+        if yaw.size == 0:
             return np.zeros(len(t))  # standing all along: facing +x
-        leg_yaw = np.arctan2(step[moving, 1], step[moving, 0])
-        mid = 0.5 * (w[moving, 0] + w[moving + 1, 0])
-        # the leg whose middle is nearest in time (the walk is straight within a leg)
-        nearest = np.abs(t[:, None] - mid[None]).argmin(axis=1)
-        inside = (t[:, None] >= w[moving, 0][None]) & (t[:, None] <= w[moving + 1, 0][None])
-        leg = np.where(inside.any(axis=1), inside.argmax(axis=1), nearest)
-        return leg_yaw[leg]
+        heading = np.full(len(t), yaw[0])
+        for k in range(len(yaw)):
+            heading[t >= start[k]] = yaw[k]
+            if k + 1 < len(yaw):  # the stop after leg k: turn towards leg k + 1
+                delta = float(np.angle(np.exp(1j * (yaw[k + 1] - yaw[k]))))  # the shorter way round
+                stop = start[k + 1] - end[k]
+                span = min(abs(delta) / TURN_RAD_S, stop)
+                t0 = end[k] + 0.5 * (stop - span)
+                f = np.clip((t - t0) / span, 0.0, 1.0) if span > 0 else (t >= t0).astype(float)
+                during = (t > end[k]) & (t < start[k + 1])
+                heading[during] = yaw[k] + delta * f[during]
+        return heading
 
 
 @dataclass(frozen=True)
@@ -98,7 +119,8 @@ def group_cache_key(spec: GroupSpec, rig: Rig) -> str:
     for w in spec.others:
         h.update(Path(w.clip.path).read_bytes())
         h.update(json.dumps({"frames": w.clip.frames, "rate": w.clip.rate_hz, "seed": w.clip.seed, "variant": w.clip.variant,
-                             "waypoints": [list(p) for p in w.waypoints], "size": w.size, "v": GROUP_VERSION}).encode())
+                             "waypoints": [list(p) for p in w.waypoints], "size": w.size, "v": GROUP_VERSION,
+                             **({"turn_rad_s": TURN_RAD_S} if w.turns() else {})}).encode())
     return h.hexdigest()[:16]
 
 
