@@ -285,9 +285,10 @@ class PeopleLook:
         one found someone (a newcomer in the room is seen whole by some camera; the closer look
         in every camera of an empty room costs 110 ms against 4 x 4 ms), and in every camera on
         every closer_every-th search (a person small in every view: far, or a low-resolution
-        rig), and in the first search after someone tracked is hidden who was not at the last
-        such look (the detector, a one-person model, drew the most prominent person of an image
-        and missed a smaller one beside them: `greyed` are the numbers of the hidden); no turned look (a lying newcomer is found when they get up). "glance": the whole
+        rig), with a turned look too (a lying newcomer); and the closer look in every camera in
+        the first search after someone tracked is hidden who was not at the last such look (the
+        detector, a one-person model, drew the most prominent person of an image and missed a
+        smaller one beside them; `greyed`: the numbers of the hidden). "glance": the whole
         images only. "counting" the people left out (every slot taken): as for newcomers, but
         never every camera's closer look, which costs more than a frame period."""
         shown = hidden(self.seen, images, skeletons)
@@ -295,13 +296,13 @@ class PeopleLook:
             return explained(self.seen, self.pcm.detect_people(shown), pelvises)
         if kind == "glance":
             return explained(self.seen, self.pcm.detect_people(shown, turned=False, closer=False), pelvises)
-        thorough = kind == "newcomers" and (self._searches % self.config.closer_every == 0  # the first search too
-                                            or not greyed <= self._greyed)
+        periodic = kind == "newcomers" and self._searches % self.config.closer_every == 0  # the first search too
+        thorough = periodic or (kind == "newcomers" and not greyed <= self._greyed)
         if kind == "newcomers":
             self._searches += 1
         if thorough:
             self._greyed = greyed
-        left = explained(self.seen, self.pcm.detect_people(shown, turned=thorough, closer=thorough), pelvises)
+        left = explained(self.seen, self.pcm.detect_people(shown, turned=periodic, closer=thorough), pelvises)
         empty = [c for c, d in enumerate(left) if not d and shown[c] is not None]
         if not thorough and empty and len(empty) < sum(im is not None for im in shown):
             again = self.pcm.detect_people([shown[c] if c in empty else None for c in range(len(shown))], turned=False)
