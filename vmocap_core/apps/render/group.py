@@ -26,7 +26,7 @@ from .scene import Appearance
 
 GROUP_VERSION = 1  # bump when a group's rendered bytes change for the same inputs
 # a walker that stops and walks off another way turns on the spot at this rate (half a turn in
-# 0.8 s, a brisk turn), centred on the middle of its stop; before, it turned in one frame
+# 0.8 s, a brisk turn), centred on the middle of its stop: a body does not turn in one frame
 TURN_RAD_S = np.pi / 0.8
 
 
