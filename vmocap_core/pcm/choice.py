@@ -9,10 +9,11 @@ cameras, with that detection's hip-to-head length a person's at the candidate's 
 people's hips seen by two cameras give rays that cross somewhere between them, and there the
 detections say a body a fraction of a person, or several times one; and the detections' shoulder
 centres, triangulated from the same views, lie a trunk's length from the hip centre there
-(crossing rays of two people's hips give shoulders anywhere: on the hips, metres off). The subject is the person
-nearest to a seed (the last tracked position) or, without one, the one seen by the most cameras,
-then the highest summed score, each detection's lowered where its size at that depth is far from
-a standing adult's (where such rays cross nearer, the sizes say a body half a person).
+(crossing rays of two people's hips give shoulders anywhere: on the hips, metres off). The
+subject is the person nearest to a seed (the last tracked position) or, without one, the one
+seen by the most cameras, then the highest summed score, each detection's lowered where its size
+at that depth is far from a standing adult's (where such rays cross nearer, the sizes say a body
+half a person).
 Detections that are not the subject's are others in view.
 """
 
@@ -97,19 +98,21 @@ def _matches(rig: Rig, X: np.ndarray, hips: Sequence[np.ndarray], reach: Sequenc
     return out, sizes
 
 
-def _trunk_length_ok(rig: Rig, found: Sequence[Sequence[Detection]], match: np.ndarray) -> np.ndarray:
-    """(M,) whether each candidate's matched detections (match (C, M)) put the shoulder centre
-    TRUNK_RANGE_M from the hip centre, both triangulated from those views."""
+def _trunk_length_ok(rig: Rig, found: Sequence[Sequence[Detection]], hips: Sequence[np.ndarray],
+                     match: np.ndarray) -> np.ndarray:
+    """(M,) whether each candidate's matched detections (match (C, M); hips from
+    detection_arrays) put the shoulder centre TRUNK_RANGE_M from the hip centre, both
+    triangulated from those views."""
     if match.shape[1] == 0:
         return np.zeros(0, bool)
     w = (match >= 0).astype(float)
     idx = np.maximum(match, 0)
-    points = []
-    for kp in (0, SHOULDERS):
-        per_cam = [np.array([d.keypoints[kp] for d in dets]).reshape(-1, 2) if dets else np.zeros((1, 2)) for dets in found]
-        uv = np.stack([per_cam[c][idx[c]] for c in range(len(found))])  # (C, M, 2)
-        points.append(triangulate(rig, uv, w)[0])
-    trunk = np.linalg.norm(points[1] - points[0], axis=1)
+    shoulders = [np.array([d.keypoints[SHOULDERS] for d in dets]).reshape(-1, 2) for dets in found]
+    ends = []
+    for per_cam in (hips, shoulders):  # (C, M, 2): each camera's matched detection (any, where none: weight 0)
+        uv = np.stack([p[idx[c]] if len(p) else np.zeros((match.shape[1], 2)) for c, p in enumerate(per_cam)])
+        ends.append(triangulate(rig, uv, w)[0])
+    trunk = np.linalg.norm(ends[1] - ends[0], axis=1)
     with np.errstate(invalid="ignore"):
         return (trunk >= TRUNK_RANGE_M[0]) & (trunk <= TRUNK_RANGE_M[1])
 
@@ -121,7 +124,7 @@ def choose_subject(rig: Rig, found: Sequence[Sequence[Detection]], seed: np.ndar
     X = candidates(rig, hips)
     match, sizes = _matches(rig, X, hips, reach)
     views = (match >= 0).sum(axis=0)
-    person = (views >= 2) & _trunk_length_ok(rig, found, match)
+    person = (views >= 2) & _trunk_length_ok(rig, found, hips, match)
     index = np.full(len(rig), -1)
     point = None
     if person.any():
