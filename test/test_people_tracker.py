@@ -254,9 +254,9 @@ def test_a_new_id_after_a_re_entry_is_no_identity_switch():
 def test_the_walkers_paths_of_each_scene():
     """`--scene cross`: person 1 crosses the room at y = 0.9; `--scene beside`: it walks in
     and stops beside the subject's line, BESIDE_M away, until the end; `--scene facing`: it
-    walks in along that line and stops on it facing the subject; person 2 is the same in
-    cross and beside; an unknown scene is an error."""
-    from vmocap_core.apps.bench.people import BESIDE_M, FACING_X, walker_paths
+    walks in along that line and stops on it facing the subject (`--scene hug`: nearer, at
+    HUG_X); person 2 is the same in cross and beside; an unknown scene is an error."""
+    from vmocap_core.apps.bench.people import BESIDE_M, FACING_X, HUG_X, walker_paths
     from vmocap_core.apps.render.group import TURN_RAD_S, Walker
     from vmocap_core.apps.render.recording import ClipSpec
     from vmocap_core.errors import VmocapError
@@ -268,10 +268,11 @@ def test_the_walkers_paths_of_each_scene():
     # facing: along the subject's line (y = 0) from beyond the room to FACING_X, facing -x (the subject)
     facing = walker_paths(2, 4.0, "facing")[0]
     assert facing[0][1:] == (4.2, 0.0) and facing[-1] == (4.0, FACING_X, 0.0)
+    assert walker_paths(2, 4.0, "hug")[0] == tuple((t, HUG_X if x == FACING_X else x, y) for t, x, y in facing)
     heading = Walker(ClipSpec(CLIP, 240, 60.0, 0, 1), facing)._heading(np.arange(240) / 60.0, np.array(facing))
     assert np.allclose(np.abs(heading), np.pi)
     with pytest.raises(VmocapError, match="scene"):
-        walker_paths(2, 4.0, "hug")
+        walker_paths(2, 4.0, "waltz")
     # person 2 stops beside the subject and walks out the way it came: it turns on the spot at
     # TURN_RAD_S over 0.8 s within its stop, not in one frame; a walker that does not stop to
     # turn has the cache key it had

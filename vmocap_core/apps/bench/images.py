@@ -122,7 +122,7 @@ def synthetic_figure(path: Path, seed: int) -> float | None:
     return float(r["method"]["mpjpe_mm"])
 
 
-SCENES = ("cross", "beside", "facing")  # --people: where person 1 walks (people.walker_paths)
+SCENES = ("cross", "beside", "facing", "hug")  # --people: where person 1 walks (people.walker_paths)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -169,7 +169,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", choices=SCENES, default="cross",
                         help="with --people: person 1 crosses the room in front of the subject (cross), or walks in "
                              "and stands beside the subject's path, 0.4 m away (beside), or stands on that path facing "
-                             "the subject, who walks up to 0.55 m of it, hip to hip (facing)")
+                             "the subject, who walks up to 0.55 m of it, hip to hip (facing), or to 0.25 m (hug)")
     parser.add_argument("--max-people", type=int, default=1,
                         help="with --people: track up to this many (vmocap process --max-people) and score every "
                              "person: MPJPE, identity switches, missed frames, ghost bodies")

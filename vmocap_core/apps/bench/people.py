@@ -38,6 +38,7 @@ ABSENT_S = 0.25  # seen by fewer than 2 cameras this long: their next presence i
 
 BESIDE_M = 0.4  # "beside": person 1 stops this far from the line the subject walks along (shoulders all but touch)
 FACING_X = 1.05  # "facing": person 1 stands here on the subject's line, 0.55 m from the subject's turning point
+HUG_X = 0.75  # "hug": ... 0.25 m from it: the two bodies all but touch and the detector sees them as one
 
 
 def walker_paths(people: int, seconds: float, scene: str = "cross") -> list[tuple[tuple[float, float, float], ...]]:
@@ -48,7 +49,9 @@ def walker_paths(people: int, seconds: float, scene: str = "cross") -> list[tupl
     along y = 0, x -0.6 ... 0.6), who then passes it again and again shoulder to shoulder; with
     scene "facing", it walks in along that line from beyond the room's +x edge and stops at
     x = FACING_X facing the subject, who walks up to 0.55 m of it (hip to hip: handshake distance,
-    each in front of the other for the cameras on the +x side) and back, again and again.
+    each in front of the other for the cameras on the +x side) and back, again and again; with
+    scene "hug", the same but it stops at x = HUG_X, 0.25 m from the subject's turning point
+    (the distance of a hug: the clips do not embrace, their arms pass through each other).
     2: from behind cam2 (at (-3.9, -3.9) one camera sees it: not present) to stand beside the
     subject at (-1.2, -1.2), out again and back (the subject is alone at the start: the benchmark
     scores the person the tracker starts on)."""
@@ -58,6 +61,7 @@ def walker_paths(people: int, seconds: float, scene: str = "cross") -> list[tupl
         raise VmocapError(f"scene {scene!r}: one of {', '.join(SCENES)}")
     first = {"beside": ((0.0, -3.0, BESIDE_M), (0.3 * d, 0.0, BESIDE_M), (d, 0.0, BESIDE_M)),
              "facing": ((0.0, 4.2, 0.0), (0.3 * d, FACING_X, 0.0), (d, FACING_X, 0.0)),
+             "hug": ((0.0, 4.2, 0.0), (0.3 * d, HUG_X, 0.0), (d, HUG_X, 0.0)),
              "cross": ((0.0, -4.2, 0.9), (d, 4.2, 0.9))}[scene]
     paths: list[tuple[tuple[float, float, float], ...]] = [first]
     paths.append(tuple((f * d, *xy) for f, xy in ((0.0, out), (0.05, out), (0.25, beside), (0.4, beside),
