@@ -590,6 +590,38 @@ def test_two_people_face_to_face(rig, tmp_path_factory, tmp_path):
     assert f["ghost_frames"] == 0 and f["bodies"] == 2, f
 
 
+@rendering
+def test_one_subject_at_hug_distance_stays_the_subject(rig, tmp_path_factory, tmp_path):
+    """Bad input: the other person stands 0.25 m from where the subject turns (hips 0.2-0.3 m
+    apart: a hug, their arms passing through each other), and the detector sees one body. With
+    the default one subject the output stays on the subject: never on the other person, never
+    a body that is nobody's, never more than FALSE_TRACKING_MM off while output."""
+    from vmocap_core.apps.bench import images, people
+    from vmocap_core.apps.bench.people import HUG_X
+    from vmocap_core.apps.process import process_bag
+    from vmocap_core.apps.render.group import GroupSpec, Walker, render_group, truth_topic
+    from vmocap_core.apps.render.recording import ClipSpec, read_truth
+
+    frames = 240
+    other = Walker(ClipSpec(CLIP, frames, 60.0, 0, 1), ((0.0, HUG_X + 0.1, 0.0), (0.2, HUG_X, 0.0)), 0.93)
+    rec = render_group(GroupSpec(ClipSpec(CLIP, frames, 60.0, 0), (other,)), rig,
+                       tmp_path_factory.mktemp("hug") / "cache", progress=False)
+    stamps, _ = read_truth(rec)
+    truths = np.stack([read_truth(rec, truth_topic(k))[1] for k in range(2)])
+    apart = np.linalg.norm(truths[0, :, INDEX["pelvis"], :2] - truths[1, :, INDEX["pelvis"], :2], axis=1)
+    assert apart.min() < 0.3 and (apart < 0.4).sum() >= 20, apart.min()  # the premise: all but touching, for a while
+    out = tmp_path / "out.mcap"
+    process_bag(rec, out, rig, config={"fps": 60.0}, progress=False, overwrite=True,
+                provider=images._Provider(rig, "all", _precision()))
+    est = images.read_estimates(out, stamps)
+    f = people.identity_figures(est, truths, people.seen_by(rig, truths)[0] >= 2)
+    e = images.frame_mpjpe(est, truths[0])
+    print(f"{f}; tracked {np.isfinite(e).mean():.0%}, MPJPE {np.nanmean(e):.1f}, max {np.nanmax(e):.0f} mm; "
+          f"{(apart < 0.4).sum()} frame sets closer than 0.4 m")
+    assert f["swap_frames"] == 0 and f["ghost_frames"] == 0, f
+    assert np.isfinite(e).mean() > 0.7 and np.nanmax(e) < images.FALSE_TRACKING_MM, e
+
+
 def _clear_of(rig, person: np.ndarray, other: np.ndarray) -> np.ndarray:
     """(T,) how many cameras have `person`'s pelvis and neck ((T, 25, 3) truth) inside its
     image and outside `other`'s projected box grown by 15 % (clear of the box: clear of the
