@@ -553,6 +553,21 @@ def test_a_person_lying_on_the_floor_beside_the_subject(rig, tmp_path_factory, t
     assert np.isfinite(e).mean() > 0.7 and np.nanmean(e) < 40.0 and np.nanmax(e) < images.FALSE_TRACKING_MM, e
 
 
+def _standing_in_the_way(rig, folder, x: float, frames: int = 240):
+    """A smaller person standing on the subject's line at `x`, facing the subject as it walks up
+    and back: (recording, stamps, both truths (2, T, 25, 3), their hips' distance (T,))."""
+    from vmocap_core.apps.render.group import GroupSpec, Walker, render_group, truth_topic
+    from vmocap_core.apps.render.recording import ClipSpec, read_truth
+
+    # a step towards the subject first: a person standing all along would face +x, away from it
+    other = Walker(ClipSpec(CLIP, frames, 60.0, 0, 1), ((0.0, x + 0.1, 0.0), (0.2, x, 0.0)), 0.93)
+    rec = render_group(GroupSpec(ClipSpec(CLIP, frames, 60.0, 0), (other,)), rig, folder / "cache", progress=False)
+    stamps, _ = read_truth(rec)
+    truths = np.stack([read_truth(rec, truth_topic(k))[1] for k in range(2)])
+    apart = np.linalg.norm(truths[0, :, INDEX["pelvis"], :2] - truths[1, :, INDEX["pelvis"], :2], axis=1)
+    return rec, stamps, truths, apart
+
+
 @rendering
 def test_two_people_face_to_face(rig, tmp_path_factory, tmp_path):
     """Bad input: two people face to face at handshake distance (hips 0.44-0.55 m apart: the
@@ -565,17 +580,8 @@ def test_two_people_face_to_face(rig, tmp_path_factory, tmp_path):
     from vmocap_core.apps.bench import images, people
     from vmocap_core.apps.bench.people import FACING_X
     from vmocap_core.apps.process import process_bag
-    from vmocap_core.apps.render.group import GroupSpec, Walker, render_group, truth_topic
-    from vmocap_core.apps.render.recording import ClipSpec, read_truth
 
-    frames = 240
-    # a step towards the subject first: a person standing all along would face +x, away from it
-    other = Walker(ClipSpec(CLIP, frames, 60.0, 0, 1), ((0.0, FACING_X + 0.1, 0.0), (0.2, FACING_X, 0.0)), 0.93)
-    rec = render_group(GroupSpec(ClipSpec(CLIP, frames, 60.0, 0), (other,)), rig,
-                       tmp_path_factory.mktemp("facing") / "cache", progress=False)
-    stamps, _ = read_truth(rec)
-    truths = np.stack([read_truth(rec, truth_topic(k))[1] for k in range(2)])
-    apart = np.linalg.norm(truths[0, :, INDEX["pelvis"], :2] - truths[1, :, INDEX["pelvis"], :2], axis=1)
+    rec, stamps, truths, apart = _standing_in_the_way(rig, tmp_path_factory.mktemp("facing"), FACING_X)
     assert apart.min() < 0.56 and (apart < 0.6).sum() >= 20, apart.min()  # the premise: close, for a while
     out = tmp_path / "out.mcap"
     process_bag(rec, out, rig, config={"fps": 60.0}, progress=False, overwrite=True, max_people=2,
@@ -599,16 +605,8 @@ def test_one_subject_at_hug_distance_stays_the_subject(rig, tmp_path_factory, tm
     from vmocap_core.apps.bench import images, people
     from vmocap_core.apps.bench.people import HUG_X
     from vmocap_core.apps.process import process_bag
-    from vmocap_core.apps.render.group import GroupSpec, Walker, render_group, truth_topic
-    from vmocap_core.apps.render.recording import ClipSpec, read_truth
 
-    frames = 240
-    other = Walker(ClipSpec(CLIP, frames, 60.0, 0, 1), ((0.0, HUG_X + 0.1, 0.0), (0.2, HUG_X, 0.0)), 0.93)
-    rec = render_group(GroupSpec(ClipSpec(CLIP, frames, 60.0, 0), (other,)), rig,
-                       tmp_path_factory.mktemp("hug") / "cache", progress=False)
-    stamps, _ = read_truth(rec)
-    truths = np.stack([read_truth(rec, truth_topic(k))[1] for k in range(2)])
-    apart = np.linalg.norm(truths[0, :, INDEX["pelvis"], :2] - truths[1, :, INDEX["pelvis"], :2], axis=1)
+    rec, stamps, truths, apart = _standing_in_the_way(rig, tmp_path_factory.mktemp("hug"), HUG_X)
     assert apart.min() < 0.3 and (apart < 0.4).sum() >= 20, apart.min()  # the premise: all but touching, for a while
     out = tmp_path / "out.mcap"
     process_bag(rec, out, rig, config={"fps": 60.0}, progress=False, overwrite=True,
