@@ -44,13 +44,15 @@ def tf_keypoint_errors(msgs: dict, ns: str = "/vmocap") -> tuple[float, list[int
                           np.array([[x.transform.rotation.x, x.transform.rotation.y, x.transform.rotation.z, x.transform.rotation.w] for x in ts]))
 
     tree = TfTree()
-    for _, m in msgs["/tf_static"]:
-        tree.add(transforms(m))
     clouds = {stamp(m.header): m for _, m in msgs[f"{ns}/keypoints"]}
     tf_stamps, worst = [], 0.0
-    for _, m in msgs.get("/tf", []):
+    # in the order written: a new skeleton's /tf_static (other link lengths) holds from its frame on
+    for _, dynamic, m in sorted([(t, 0, m) for t, m in msgs["/tf_static"]] + [(t, 1, m) for t, m in msgs.get("/tf", [])],
+                                key=lambda e: e[:2]):
+        tree.add(transforms(m))
+        if not dynamic:
+            continue
         s = stamp(m.transforms[0].header)
         tf_stamps.append(s)
-        tree.add(transforms(m))
         worst = max(worst, float(np.abs(tree.positions([f"kp_{k}" for k in KEYPOINTS]) - cloud(clouds[s])).max()))
     return worst, tf_stamps, {s for s, c in clouds.items() if c.width > 0}

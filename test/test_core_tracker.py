@@ -25,7 +25,20 @@ def test_short_synthetic_run_is_accurate_and_rigid():
     assert s["init_frames"] < 15 + 30  # initialization, then 0.5 s of identification
     assert s["method"]["mpjpe_mm"] < 60.0
     assert s["method"]["mpjpe_mm"] < s["baseline"]["mpjpe_mm"]
-    assert s["method"]["bone_length_std_m"] < 1e-9
+    # rigid: the provisional skeleton's lengths, then the identified ones (identify_output)
+    assert len(_length_changes(run.method, m.present)) == 1
+
+
+def _length_changes(out, present):
+    """The output frames whose bone lengths differ from the frame before's (tracked frames only)."""
+    from vmocap_core.keypoints import INDEX
+    from vmocap_core.method.skeleton import BONES
+
+    bones = np.array([(INDEX[a], INDEX[b]) for a, b in BONES.values() if present[INDEX[a]] and present[INDEX[b]]])
+    lengths = np.linalg.norm(out[:, bones[:, 0]] - out[:, bones[:, 1]], axis=-1)
+    frames = np.flatnonzero(np.isfinite(lengths).all(axis=1))
+    jumps = np.abs(np.diff(lengths[frames], axis=0)).max(axis=1) > 1e-9
+    return frames[1:][jumps]
 
 
 def test_lost_person_triggers_reinitialization_without_exceptions():
@@ -51,9 +64,9 @@ def test_lost_person_triggers_reinitialization_without_exceptions():
 
 
 def test_identification_phase_improves_link_lengths():
-    """The 0.5 s identification phase (statuses "identifying", no output) ends with link
-    lengths nearer the truth than the 5-frame provisional fit, and the output's bones are
-    constant from its first frame."""
+    """The 0.5 s identification phase (without identify_output: statuses "identifying", no
+    output) ends with link lengths nearer the truth than the 5-frame provisional fit, and the
+    output's bones are constant from its first frame."""
     from vmocap_core.keypoints import INDEX
     from vmocap_core.method.skeleton import BONES
 
@@ -61,7 +74,7 @@ def test_identification_phase_improves_link_lengths():
     m.positions = m.positions[:120]
     err = {}
     for seconds in (0.0, 0.5):
-        run = run_motion(m, seed=3, config=PipelineConfig.of(fps=60.0, identify_seconds=seconds))
+        run = run_motion(m, seed=3, config=PipelineConfig.of(fps=60.0, identify_seconds=seconds, identify_output=False))
         if seconds:
             first_id = run.status.index("identifying")
             done = first_id + run.status[first_id:].index("uncertain")
@@ -77,6 +90,15 @@ def test_identification_phase_improves_link_lengths():
         assert max(np.ptp(length(out, a, b)) for a, b in bones) < 1e-9
         err[seconds] = np.mean([abs(length(out, a, b)[0] - np.median(length(gt, a, b))) for a, b in bones])
     assert err[0.5] < 0.7 * err[0.0], err
+    # with identify_output (default) the provisional skeleton is output during the phase, and
+    # the identified one replaces it where the phase ends: the same lengths, 0.5 s sooner a body
+    run = run_motion(m, seed=3, config=PipelineConfig.of(fps=60.0, identify_seconds=0.5))
+    assert run.status.count("identifying") == 1  # the provisional fit's own frame set
+    switch = _length_changes(run.method, m.present)
+    assert len(switch) == 1 and first_id + 29 <= switch[0] <= first_id + 30, (first_id, switch)
+    assert run.first_tracked <= first_id + 6 and (np.array(run.status[run.first_tracked:]) == "tracking").mean() > 0.95
+    out = run.method[switch[0]:]
+    assert np.mean([abs(length(out, a, b)[0] - np.median(length(gt, a, b))) for a, b in bones]) < 1.05 * err[0.5]
 
 
 def test_identification_lasts_the_same_capture_time_when_frame_sets_are_skipped():
@@ -92,7 +114,7 @@ def test_identification_lasts_the_same_capture_time_when_frame_sets_are_skipped(
     bones = [(a, b) for a, b in BONES.values() if m.present[INDEX[a]] and m.present[INDEX[b]]]
     first, lengths = {}, {}
     for step in (1, 2):
-        tracker = Pipeline(rig, PipelineConfig.of(fps=60.0, identify_seconds=0.5))
+        tracker = Pipeline(rig, PipelineConfig.of(fps=60.0, identify_seconds=0.5, identify_output=False))
         for t in range(0, 120, step):
             r = tracker.step(src.render(t, tracker.tilt())).skeleton
             if r.status == "identifying" and step not in first:

@@ -23,16 +23,22 @@ def _offline_velocities(path: Path, stale_ns: int) -> dict[int, np.ndarray]:
     from vmocap_core.bag import BagReader
     from vmocap_core.bag.messages import cloud_keypoints, stamp_ns
     from vmocap_core.keypoints import INDEX
+    from vmocap_core.method.skeleton import BONES
 
+    bones = np.array([(INDEX[a], INDEX[b]) for a, b in BONES.values()])
     frames = []
     with BagReader(path) as r:
         for m in r.messages(["/vmocap/keypoints"]):
             d = m.decode()
             P = cloud_keypoints(d)[0]
             if P is not None:
-                frames.append((stamp_ns(d), P[[INDEX["left_wrist"], INDEX["right_wrist"]]]))
+                lengths = np.linalg.norm(P[bones[:, 0]] - P[bones[:, 1]], axis=-1)
+                frames.append((stamp_ns(d), P[[INDEX["left_wrist"], INDEX["right_wrist"]]], lengths))
     frames.sort(key=lambda f: f[0])
-    return {t1: (p1 - p0) / ((t1 - t0) * 1e-9) for (t0, p0), (t1, p1) in zip(frames, frames[1:]) if t1 - t0 <= stale_ns}
+    # not across a change of link lengths (the identified skeleton replacing the provisional
+    # one): the controller gets a new description there and starts over
+    return {t1: (p1 - p0) / ((t1 - t0) * 1e-9) for (t0, p0, l0), (t1, p1, l1) in zip(frames, frames[1:])
+            if t1 - t0 <= stale_ns and np.abs(l1 - l0).max() < 1e-6}
 
 
 def test_lost_subject_from_stale_stamps() -> None:

@@ -105,14 +105,15 @@ def test_recorded_joint_states_and_root_pose_reproduce_the_keypoints(processed) 
 
     out, _ = processed
     msgs = _rosbags_messages(out)
-    xml = msgs[f"{NS}/robot_description"][0][1].data
-    model = pin.buildModelFromXML(xml)
+    # the description in effect at each joint state: the last one written before it
+    models = [(t, pin.buildModelFromXML(m.data)) for t, m in msgs[f"{NS}/robot_description"]]
     kp = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec: m for _, m in msgs[f"{NS}/keypoints"]}
     poses = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec: m.pose for _, m in msgs[f"{NS}/root_pose"]}
     states = msgs[f"{NS}/joint_states"]
     assert len(states) >= 5 and len(poses) == len(states)
     worst = 0.0
-    for _, js in states:
+    for logged, js in states:
+        model = [m for t, m in models if t <= logged][-1]
         stamp = js.header.stamp.sec * 10**9 + js.header.stamp.nanosec
         p = poses[stamp]
         t = np.array([p.position.x, p.position.y, p.position.z])

@@ -141,10 +141,14 @@ class SkeletonConfig(_Stage):
     # model, whose weights say less about a marker's error, it does worse: off by default.
     offline_identify_quantile: float = 0.0
     init_frames: int = 5  # consecutive frames the views agree in (II-C; skeleton_stage: limb keypoints' gaps)
-    # Our addition: after the provisional fit on those frames, track this long (status
-    # "identifying", no output) and identify the link lengths again on all of those frames'
-    # virtual markers; output starts with these. 0: the provisional fit is final (the paper).
+    # Our addition: after the provisional fit on those frames, track this long and identify
+    # the link lengths again on all of those frames' virtual markers; the output keeps these.
+    # 0: the provisional fit is final (the paper).
     identify_seconds: float = 0.5
+    # Output during identification, from the provisional skeleton (its link lengths from
+    # init_frames frame sets; the identified ones replace them at the phase's end, the filter
+    # carrying the pose across): a body 0.5 s sooner for a controller. False: no output then.
+    identify_output: bool = True
     init_max_fit_error_m: float = 0.04  # skeleton fit residual (RMS) to confirm
     # Where the PCM model's keypoints lie relative to the joint centres (landmarks.py): "auto"
     # (the PCM source's own: "blazepose" for the CNN, "none" for the synthetic PCMs and PCM

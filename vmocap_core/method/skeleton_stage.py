@@ -95,6 +95,12 @@ class SkeletonStage:
     def joint_names(self) -> list[str]:
         return self._joint_names
 
+    @property
+    def provisional(self) -> bool:
+        """Tracking on the provisional skeleton: its link lengths change once the identification
+        phase ends (identify_output)."""
+        return self._identify is not None
+
     def reset(self) -> None:
         self.skeleton = None
         self._buffer.clear()
@@ -145,6 +151,8 @@ class SkeletonStage:
             resumed = self.status == "lost" or (self._last_stamp is not None
                                                 and markers.stamp_ns - self._last_stamp > RESUME_GAP_S * 1e9)
             verdict = self.verdict.update(markers.check)
+            if verdict == "ok" and self.provisional and self.verdict.disagreed:
+                verdict = "uncertain"  # a provisional skeleton has not earned the hysteresis that forgives a bad check
             if resumed and verdict == "ok" and self.verdict.min_agreement > 0 and self.config.check_confirm_frames > 0:
                 self.verdict.doubt(self.config.check_confirm_frames)
                 verdict = "uncertain"
@@ -242,7 +250,18 @@ class SkeletonStage:
         sites = self._sites(first.keypoints, first.q)
         self._pelvis = sites[INDEX["pelvis"]]
         if self._identify is not None:
-            return self._identifying(markers, centres, sites)
+            if not cfg.identify_output:
+                return self._identifying(markers, centres, sites)
+            done = self._identify_step(markers)
+            if done is not None:  # identified: the pose carries on with the new skeleton
+                sk, first = done
+                self.skeleton = self.identified = sk
+                self._q_raw = first.q.copy()
+                centres = self._centres(markers.positions, first.q)
+                sites = self._sites(first.keypoints, first.q)
+                self._pelvis = sites[INDEX["pelvis"]]
+            if self._q_out is None:  # the phase's first output: the second IK starts at the first's pose
+                self._q_out = first.q.copy()
         t1 = time.perf_counter()
         frame = (markers.stamp_ns, markers.weights.copy(), centres.copy(), first.q)
         if self._lag is not None:
@@ -343,6 +362,8 @@ class SkeletonStage:
         if cfg.identify_frames > 0:
             self._identify = []
             self._identify_start_ns = markers.stamp_ns
+            if cfg.identify_output and self.verdict.min_agreement > 0 and cfg.check_confirm_frames > 0:
+                self.verdict.doubt(cfg.check_confirm_frames)  # as _start_tracking: output once the images agree
             return self._identifying(markers, self._centres(markers.positions, fit.q), self._sites(fit.keypoints, fit.q))
         return self._start_tracking(markers, sk, fit)
 
@@ -389,28 +410,37 @@ class SkeletonStage:
         fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, self._q_raw, self._landmarks)
         return None if fitted is None else self._same_subject(markers, *fitted)
 
+    def _identify_step(self, markers: Markers) -> tuple[Skeleton, Any] | None:
+        """One frame set of the identification phase: its markers collected; at the phase's end
+        (or a remembered body recognized) the skeleton and its fit to this frame set."""
+        cfg = self.config
+        assert self._identify is not None and self.skeleton is not None  # started by the first fit
+        self._identify.append(np.where((markers.weights > 0)[:, None], markers.positions, np.nan))
+        again = self._remembered(markers)
+        if again is not None:
+            self._identify = None
+            return again
+        span_frames = (markers.stamp_ns - self._identify_start_ns) * 1e-9 * cfg.fps + 1
+        if len(self._identify) < cfg.identify_frames and span_frames < cfg.identify_frames - 0.5:
+            return None
+        frames = np.array(self._identify)
+        self._identify = None
+        fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, self._q_raw, self._landmarks)
+        if fitted is not None:
+            return fitted
+        centres = self._centres(markers.positions, self._q_raw)
+        fit = solve_ik(self.skeleton, self._q_raw, centres, np.isfinite(frames[-1]).all(axis=1).astype(float),
+                       30, damping=1e-2, regularization=1e-6, line_search=True)
+        return self.skeleton, fit
+
     def _identifying(self, markers: Markers, centres: np.ndarray, raw: np.ndarray) -> TrackResult:
         """Identification phase: collect the virtual markers for identify_seconds of capture
         time (identify_frames at the nominal rate; fewer when frame sets are skipped, so a graph
         that falls behind starts its output as late as one that keeps up), then identify the
         skeleton on all of them and start tracking (the provisional one stays otherwise)."""
-        cfg = self.config
-        assert self._identify is not None  # started by the first fit
-        self._identify.append(np.where((markers.weights > 0)[:, None], markers.positions, np.nan))
-        again = self._remembered(markers)
-        if again is not None:
-            self._identify = None
-            return self._start_tracking(markers, *again)
-        span_frames = (markers.stamp_ns - self._identify_start_ns) * 1e-9 * cfg.fps + 1
-        if len(self._identify) >= cfg.identify_frames or span_frames >= cfg.identify_frames - 0.5:
-            frames = np.array(self._identify)
-            self._identify = None
-            fitted = fit_skeleton(frames, cfg.init_max_fit_error_m, self._q_raw, self._landmarks)
-            if fitted is not None:
-                return self._start_tracking(markers, *fitted)
-            fit = solve_ik(self.skeleton, self._q_raw, centres, np.isfinite(frames[-1]).all(axis=1).astype(float),
-                           30, damping=1e-2, regularization=1e-6, line_search=True)
-            return self._start_tracking(markers, self.skeleton, fit)
+        done = self._identify_step(markers)
+        if done is not None:
+            return self._start_tracking(markers, *done)
         self.status = "identifying"
         nan = np.full((N_KP, 3), np.nan)
         return TrackResult(markers.stamp_ns, "identifying", np.full(40, np.nan), self._joint_names, nan, raw.copy(),

@@ -73,4 +73,5 @@ class SkeletonNode(VmocapNode):
         last = self.stage.verdict.last
         return dict(self.counts, status=self.last_status,
                     agreement="-" if last is None else f"{last.agreement:.2f}",
+                    link_lengths="-" if self.stage.skeleton is None else "provisional" if self.stage.provisional else "identified",
                     body_id=(self.hri.core.body_id if self.hri is not None else None) or "-")
