@@ -297,6 +297,8 @@ def test_false_tracking_counts_tracked_frames_over_100_mm():
     est[~tracked] = np.nan
     r = images.score(est, truth)
     assert (r["tracked_frames"], r["false_tracked_frames"]) == (5, 2) and r["false_tracking_pct"] == pytest.approx(40.0)
+    # tracked_pct from the first tracked frame (5 of 7), output_pct of all frames (5 of 8)
+    assert r["tracked_pct"] == pytest.approx(100 * 5 / 7) and r["output_pct"] == pytest.approx(100 * 5 / 8)
     none = images.score(np.full_like(est, np.nan), truth)
     assert none["false_tracking_pct"] is None and none["tracked_frames"] == 0
     rows = [{"c": r}, {"c": {**none, "n": 0}}]

@@ -82,15 +82,16 @@ def false_tracking(tracked: np.ndarray, error_mm: np.ndarray, limit_mm: float = 
 
 
 def score(est: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
-    """Figures from the first tracked frame on (the synthetic benchmark's rule). A frame counts
-    as reported tracked when its keypoint cloud has points: the outputs carry them only for the
-    status `tracking` (not while identifying, uncertain or lost)."""
+    """Figures from the first tracked frame on (the synthetic benchmark's rule), but
+    `output_pct`: the share of all frames, the first ones included, with a body out. A frame
+    counts as reported tracked when its keypoint cloud has points: the outputs carry them only
+    for the status `tracking` (not while identifying, uncertain or lost)."""
     present = np.isfinite(truth).all(axis=(0, 2))
     reported = np.isfinite(est[:, present]).all(axis=(1, 2))
     false = false_tracking(reported, frame_mpjpe(est, truth))
     tracked = np.flatnonzero(reported)
     if tracked.size == 0:
-        return {"mpjpe_mm": None, "pck50": None, "tracked_pct": 0.0, "n": 0, **false}
+        return {"mpjpe_mm": None, "pck50": None, "tracked_pct": 0.0, "output_pct": 0.0, "n": 0, **false}
     f = np.arange(tracked[0], len(est))
     e, g = est[f], truth[f]
     res = table_one(e, g, present)
@@ -105,6 +106,7 @@ def score(est: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
         "mpjpe_mm": res["mpjpe_mm"], "pck50": res["pck50"], "pck100": res["pck100"], "n": res["n"],
         "groups": res["groups"],
         "tracked_pct": float(100 * np.isfinite(e[:, present]).all(axis=(1, 2)).mean()),
+        "output_pct": float(100 * reported.mean()),
         "init_frames": int(tracked[0]),
         "offset_mm": {KEYPOINTS[j]: float(np.linalg.norm(offset[j]) * 1000) for j in np.flatnonzero(present)},
         "mpjpe_without_offset_mm": res_off["mpjpe_mm"],
