@@ -165,14 +165,13 @@ class PeopleLook:
         self.seats.append(s)
         return s
 
-    def _search_due(self, stamp_ns: int, waiting: list[Seat], tracked: frozenset[int]) -> SearchKind | None:
+    def _search_due(self, stamp_ns: int, waiting: list[Seat]) -> SearchKind | None:
         """Which search this frame set runs (_search), if any: "waiting" every frame set while
         someone found is not initialized yet, every wait_search_s while someone lost waits (their
         last detector crops are held in between: a full search costs several frame periods);
-        "newcomers" every detect_every_s while fewer than max_people are tracked, and at once when
-        someone has a skeleton who was not hidden at the last closer look (`tracked`: whoever has
-        one now), a "glance" every glance_every_s in between; "counting" every count_every_s
-        while max_people are (who is left out)."""
+        "newcomers" every detect_every_s while fewer than max_people are tracked, and a "glance"
+        every glance_every_s in between; "counting" every count_every_s while max_people are
+        (who is left out)."""
         cfg = self.config
 
         def due(last: int | None, every: float) -> bool:
@@ -184,9 +183,7 @@ class PeopleLook:
             every = 0.0 if any(s.seen_ns == s.born_ns for s in waiting) else cfg.wait_search_s
             return "waiting" if due(self._last_detection_ns, every) else None
         if len(self.seats) < cfg.max_people:
-            # someone newly tracked may have hidden a smaller person from the one-person
-            # detector: that closer look (_search) comes now, not up to detect_every_s later
-            if due(self._last_full_ns, cfg.detect_every_s) or not tracked <= self._greyed:
+            if due(self._last_full_ns, cfg.detect_every_s):
                 return "newcomers"
             # someone walking in is seen whole by two cameras well before the next full search
             # comes: without glances their wait for a body would be up to detect_every_s plus their
@@ -223,7 +220,7 @@ class PeopleLook:
                 c = self.pcm.crops_from_skeleton(kp, turned_fraction=BODY_FRACTION)
                 crops[s.number] = c.select(have[c.camera])
         waiting = [s for s in self.seats if s.number not in tracked]
-        search = self._search_due(stamp_ns, waiting, frozenset(tracked))
+        search = self._search_due(stamp_ns, waiting)
         if search is not None:
             self._last_detection_ns = stamp_ns
             if search != "glance":
