@@ -116,8 +116,11 @@ def test_live_session_equals_the_processed_bag(live, which: str) -> None:
     assert s.joint_names == ref.joint_names
     np.testing.assert_allclose(s.angles[s.tracked], ref.angles[ref.tracked], atol=1e-6)
     np.testing.assert_allclose(s.keypoints[s.tracked], ref.keypoints[ref.tracked], atol=1e-6)
-    assert len(s.subjects) == 1
-    np.testing.assert_allclose(dims_vector(s.subjects[0][1]), dims_vector(ref.subjects[-1][1]), atol=1e-6)
+    # the provisional skeleton, then the identified one (identify_output), as the processed bag's
+    assert len(s.subjects) == len(ref.subjects) == 2
+    for (t, d), (t_ref, d_ref) in zip(s.subjects, ref.subjects):
+        assert t == t_ref
+        np.testing.assert_allclose(dims_vector(d), dims_vector(d_ref), atol=1e-6)
 
 
 def test_live_c3d_read_by_ezc3d(live) -> None:
@@ -175,11 +178,12 @@ def test_live_csv_and_bvh(live) -> None:
     tab = np.genfromtxt(live["files"]["csv"], delimiter=",", names=True, skip_header=1, filling_values=np.nan)
     assert len(tab) == s.n_frames
     np.testing.assert_allclose(tab["root_z"], s.angles[:, s.joint_names.index("root_z")], atol=1e-8, equal_nan=True)
-    files = sorted(live["dir"].glob("live*.bvh"))
-    assert len(files) == len(s.segments()) == 1
-    seg = s.segments()[0]
-    for k, got in bvh_keypoints(files[0]):
-        np.testing.assert_allclose(got, s.keypoints[seg.start + k] @ Z_TO_Y_UP.T, atol=1e-6)
+    # one file per skeleton: the provisional one's frames, then the identified one's
+    files = [live["files"]["bvh"], live["files"]["bvh"].with_name("live_part2.bvh")]
+    assert sorted(live["dir"].glob("live*.bvh")) == sorted(files) and len(s.segments()) == 2
+    for path, seg in zip(files, s.segments()):
+        for k, got in bvh_keypoints(path):
+            np.testing.assert_allclose(got, s.keypoints[seg.start + k] @ Z_TO_Y_UP.T, atol=1e-6)
 
 
 def _copy(src: Path, dst: Path, drop: set[str], keypoints=None) -> Path:

@@ -60,6 +60,7 @@ class HriListener:
         self.urdf: dict[str, str] = {}
         self.tf: list[tuple[int, Transforms]] = []
         self.tf_static: list[Transforms] = []
+        self.tf_static_stamps: list[int] = []  # of each /tf_static message (the frame set it came with)
         self.keypoints: dict[int, np.ndarray] = {}
         self.diag: dict[str, str] = {}
         self.publishers: dict[str, int] = {}  # id -> publishers of its joint_states at the end
@@ -68,8 +69,11 @@ class HriListener:
         self.node.create_subscription(IdsList, TRACKED, self._on_tracked, QoSProfile(depth=1000))
         self.node.create_subscription(TFMessage, "/tf", lambda m: self.tf.append((_stamp(m.transforms[0].header),
                                                                                   _transforms(m))), qos(100))
-        self.node.create_subscription(TFMessage, "/tf_static", lambda m: self.tf_static.append(_transforms(m)),
-                                      qos(100, latched=True))
+        def on_static(m: TFMessage) -> None:
+            self.tf_static.append(_transforms(m))
+            self.tf_static_stamps.append(_stamp(m.transforms[0].header))
+
+        self.node.create_subscription(TFMessage, "/tf_static", on_static, qos(100, latched=True))
         self.node.create_subscription(PointCloud2, "/vmocap/keypoints", self._on_keypoints, qos(100))
 
         def on_diag(data: bytes) -> None:
@@ -207,12 +211,14 @@ def test_body_frame_sits_at_the_hips_mid_point_facing_up_the_trunk(run) -> None:
 
 def test_body_links_on_tf_give_the_keypoints(run) -> None:
     """A TF buffer of /tf_static (the subject's and the body's fixed frames in one message) and
-    /tf: the suffixed keypoint frames lie on /vmocap/keypoints."""
+    /tf: the suffixed keypoint frames lie on /vmocap/keypoints. A new skeleton (the identified
+    one after the provisional one) sends new fixed frames, stamped with its first frame set."""
     tree = TfTree()
-    for static in run.tf_static:  # each body's fixed frames, named apart
-        tree.add(static)
     worst, n = 0.0, 0
-    for stamp, tr in run.tf:
+    statics = sorted(zip(run.tf_static_stamps, range(len(run.tf_static))))
+    for stamp, tr in sorted(run.tf, key=lambda e: e[0]):
+        while statics and statics[0][0] <= stamp:  # each body's fixed frames, named apart
+            tree.add(run.tf_static[statics.pop(0)[1]])
         tree.add(tr)
         body = next((c[5:] for c in tr.children if c.startswith("body_")), None)
         if body is not None:

@@ -20,8 +20,8 @@ from ..bag import BagReader
 from ..bag import messages as M
 from ..errors import BagError
 from ..graph_config import Topics
-from ..keypoints import KEYPOINTS
-from ..method.skeleton import BodyDimensions, Skeleton
+from ..keypoints import INDEX, KEYPOINTS
+from ..method.skeleton import BONES, BodyDimensions, Skeleton
 from ..method.smoothing import runs
 from ..outputs.streams import pose_of
 from ..outputs.urdf import JOINT_NAMES, model_angles, quaternion_to_rotvec, rotvec_to_quaternion
@@ -52,12 +52,18 @@ class Session:
         return np.isfinite(self.keypoints).all(axis=(1, 2)) & np.isfinite(self.angles).all(axis=1)
 
     def segments(self) -> list[slice]:
-        """Runs of consecutive tracked frames."""
-        return runs(self.tracked)
+        """Runs of consecutive tracked frames, split where the subject's dimensions change (a
+        BVH file holds one skeleton)."""
+        starts = {int(round((t - self.t0_ns) * self.rate_hz / 1e9)) for t, _ in self.subjects}
+        out = []
+        for seg in runs(self.tracked):
+            cuts = [seg.start] + sorted(i for i in starts if seg.start < i < seg.stop) + [seg.stop]
+            out += [slice(a, b) for a, b in zip(cuts, cuts[1:])]
+        return out
 
     def dims_at(self, frame: int) -> BodyDimensions:
         """The subject's dimensions identified last before this frame (else the first)."""
-        dims = _dims_at(self.subjects, self.t0_ns + frame * 1e9 / self.rate_hz)
+        dims = _dims_at(self.subjects, self.t0_ns + (frame + 0.5) * 1e9 / self.rate_hz)  # the frame's stamp, rounded
         if dims is None:
             raise BagError("the bag has no subject dimensions (/diagnostics status "
                            f"'{SUBJECT_STATUS}', robot_description, or keypoints with joint_states)")
@@ -127,6 +133,18 @@ def _read(path: str | Path, topics: Topics, recover: bool = False) -> _Recorded:
     return rec
 
 
+_BONES = np.array([(INDEX[a], INDEX[b]) for a, b in BONES.values()])
+
+
+def _same_lengths(ts: list[int], keypoints: dict[int, np.ndarray]) -> list[list[int]]:
+    """A tracked run's stamps split where its bones change length: a new skeleton without a
+    gap (the identified one replacing the provisional one, SkeletonConfig.identify_output)."""
+    K = np.array([keypoints[t] for t in ts])
+    lengths = np.linalg.norm(K[:, _BONES[:, 0]] - K[:, _BONES[:, 1]], axis=-1)
+    change = np.flatnonzero(np.nan_to_num(np.abs(np.diff(lengths, axis=0)), nan=0.0).max(axis=1, initial=0.0) > 1e-6) + 1
+    return [[int(t) for t in part] for part in np.split(np.asarray(ts), change)]
+
+
 def _model_dofs(path: str | Path, rec: _Recorded, topics: Topics, stamps: np.ndarray, idx: np.ndarray,
                 tracked: np.ndarray) -> tuple[dict[int, np.ndarray], list[tuple[int, BodyDimensions]]]:
     """The model's 40 DOF of every tracked stamp, and the subjects' dimensions by stamp: as
@@ -146,8 +164,7 @@ def _model_dofs(path: str | Path, rec: _Recorded, topics: Topics, stamps: np.nda
     grid = np.zeros(int(idx[-1]) + 1, dtype=bool)
     grid[idx[tracked]] = True
     at = dict(zip(idx.tolist(), stamps.tolist()))
-    for seg in runs(grid):
-        ts = [at[i] for i in range(seg.start, seg.stop)]
+    for ts in (part for seg in runs(grid) for part in _same_lengths([at[i] for i in range(seg.start, seg.stop)], rec.keypoints)):
         dims = _dims_at(known, ts[0])
         poses: Poses | None = None
         if all(t in rec.poses for t in ts):
