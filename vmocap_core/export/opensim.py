@@ -323,7 +323,9 @@ def round_trip(session: Session, folder: Path, stem: str, progress: bool = True,
     adapted_model(osim, setup, generic)
     keypoints = np.where(frames[:, None, None], session.keypoints, np.nan)
     stretch = upright_stretch(keypoints, session.rate_hz)
-    rest = rest_trial(session.dims_at(int(np.flatnonzero(frames)[0])))
+    # the skeleton of the most frames: the identified one, not a track's provisional first 0.5 s
+    held = [seg for seg in session.segments() if frames[seg].any()] or segments
+    rest = rest_trial(session.dims_at(max(held, key=lambda seg: seg.stop - seg.start).start))
     check = measurement_lengths(rest)
     scaled = folder / f"{stem}_scaled.osim"
     if stretch is not None and not missing:
