@@ -97,9 +97,9 @@ class SkeletonStage:
 
     @property
     def provisional(self) -> bool:
-        """Tracking on the provisional skeleton: its link lengths change once the identification
-        phase ends (identify_output)."""
-        return self._identify is not None
+        """Output from the provisional skeleton (identify_output): its link lengths change once
+        the identification phase ends."""
+        return self._identify is not None and self.config.identify_output
 
     def reset(self) -> None:
         self.skeleton = None
