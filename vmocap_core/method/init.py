@@ -248,6 +248,13 @@ def initial_pose(skeleton: Skeleton, keypoints: np.ndarray) -> np.ndarray:
     return q
 
 
+def length_offset(new: dict[str, float], old: dict[str, float]) -> float:
+    """How far one body's link lengths are from another's: |median ratio - 1| (inf: none known in both)."""
+    ratios = np.array([new[k] / old[k] for k in old if old[k] > 0 and k in new])
+    ratios = ratios[np.isfinite(ratios)]
+    return abs(float(np.median(ratios)) - 1.0) if ratios.size else np.inf
+
+
 def fit_skeleton(frames: np.ndarray, max_fit_error_m: float, q0: np.ndarray | None = None,
                  landmarks: LandmarkModel | None = None) -> tuple[Skeleton, Any] | None:
     """Identify a skeleton on keypoint frames (N, 25, 3; NaN unknown) and fit it to the last

@@ -20,9 +20,10 @@ from ..keypoints import INDEX
 from .config import SkeletonConfig
 from .consistency import RESUME_GAP_S, Verdict, ViewCheck, WeightTrend
 from .filter import make_filter, smoother_model
+from .held import held_warning
 from .ik import solve_ik
 from .ik import warm_up as warm_up_ik
-from .init import InitFrames, fit_skeleton, identify_dimensions
+from .init import InitFrames, fit_skeleton, identify_dimensions, length_offset
 from .landmarks import load_landmarks
 from .one_euro import OneEuroFilter
 from .path_gate import PathGate
@@ -35,13 +36,6 @@ REACQUIRE_LENGTHS = 0.15  # a body found again whose link lengths are the subjec
 # (`SkeletonStage.known`): that person come back. Tighter than REACQUIRE_LENGTHS: the
 # skeleton may be another person's.
 REMEMBERED_LENGTHS = 0.05
-
-
-def length_offset(new: dict[str, float], old: dict[str, float]) -> float:
-    """How far one body's link lengths are from another's: |median ratio - 1| (inf: none known in both)."""
-    ratios = np.array([new[k] / old[k] for k in old if old[k] > 0 and k in new])
-    ratios = ratios[np.isfinite(ratios)]
-    return abs(float(np.median(ratios)) - 1.0) if ratios.size else np.inf
 
 
 class SkeletonStage:
@@ -97,8 +91,7 @@ class SkeletonStage:
 
     @property
     def provisional(self) -> bool:
-        """Output from the provisional skeleton (identify_output): its link lengths change once
-        the identification phase ends."""
+        """Output from the provisional skeleton (identify_output), whose lengths change at identification's end."""
         return self._identify is not None and self.config.identify_output
 
     def reset(self) -> None:
@@ -118,29 +111,8 @@ class SkeletonStage:
 
     def warning(self, status: str, names: list[str]) -> str | None:
         """Why the last step's status is `status` (uncertain or lost) when the images said so,
-        for the diagnostics (None when they did not)."""
-        cfg = self.config
-        if self.strayed is not None:
-            off, bound = self.strayed
-            return (f"{status}: the track came back {off:.2f} m from where the subject was heading (over {bound:.2f} m: "
-                    f"check_resume_max_m {cfg.check_resume_max_m:g}, more after a gap): another body, the subject is "
-                    "looked for again")
-        if self.disagreement is not None:
-            return self.disagreement.warning(status, cfg.check_min_agreement, cfg.check_min_support, names)
-        if self.unsupported is not None:
-            return (f"{status}: {self.unsupported:.0%} of this frame set's markers are held by two cameras or more "
-                    f"(check_min_support {cfg.check_min_support:.0%}), this frame set is not output")
-        if self.outside is not None:
-            return (f"{status}: the trunk (hips and shoulders) lies whole in {self.outside} camera image(s): a body "
-                    "two cameras do not see is not fixed in space, this frame set is not output")
-        if self.faded is not None:
-            return (f"{status}: this frame set's markers weigh {self.faded:.0%} of the track's recent median "
-                    f"(check_min_weight_ratio {cfg.check_min_weight_ratio:.0%}): the CNN's maps are fading, "
-                    "this frame set is not output")
-        if self.resuming is not None:
-            return (f"{status}: {self.resuming} frame set(s) in a row agree with the images after output was held "
-                    f"(check_resume_frames {cfg.check_resume_frames}), this frame set is not output")
-        return None
+        for the diagnostics (None when they did not; held.py)."""
+        return held_warning(self, status, names)
 
     def step(self, markers: Markers) -> TrackResult:
         self.disagreement = self.unsupported = self.outside = self.faded = self.strayed = self.resuming = None
@@ -153,8 +125,7 @@ class SkeletonStage:
             verdict = self.verdict.update(markers.check)
             if verdict == "ok" and self.provisional and self.verdict.disagreed:
                 verdict = "uncertain"  # a provisional skeleton has not earned the hysteresis that forgives a bad check
-            if resumed and verdict == "ok" and self.verdict.min_agreement > 0 and self.config.check_confirm_frames > 0:
-                self.verdict.doubt(self.config.check_confirm_frames)
+            if resumed and verdict == "ok" and self._doubt():
                 verdict = "uncertain"
             if verdict != "ok":  # what the diagnostics name: the keypoints and views that disagree
                 self.disagreement = self.verdict.last
@@ -362,8 +333,8 @@ class SkeletonStage:
         if cfg.identify_frames > 0:
             self._identify = []
             self._identify_start_ns = markers.stamp_ns
-            if cfg.identify_output and self.verdict.min_agreement > 0 and cfg.check_confirm_frames > 0:
-                self.verdict.doubt(cfg.check_confirm_frames)  # as _start_tracking: output once the images agree
+            if cfg.identify_output:
+                self._doubt()  # as _start_tracking: output once the images agree
             return self._identifying(markers, self._centres(markers.positions, fit.q), self._sites(fit.keypoints, fit.q))
         return self._start_tracking(markers, sk, fit)
 
@@ -411,8 +382,9 @@ class SkeletonStage:
         return None if fitted is None else self._same_subject(markers, *fitted)
 
     def _identify_step(self, markers: Markers) -> tuple[Skeleton, Any] | None:
-        """One frame set of the identification phase: its markers collected; at the phase's end
-        (or a remembered body recognized) the skeleton and its fit to this frame set."""
+        """One frame set of the identification phase, its markers collected for identify_seconds of capture time
+        (fewer frame sets when some are skipped: a graph that falls behind starts as late as one that keeps up);
+        at the phase's end (or a remembered body recognized) the skeleton and its fit to this frame set."""
         cfg = self.config
         assert self._identify is not None and self.skeleton is not None  # started by the first fit
         self._identify.append(np.where((markers.weights > 0)[:, None], markers.positions, np.nan))
@@ -434,10 +406,7 @@ class SkeletonStage:
         return self.skeleton, fit
 
     def _identifying(self, markers: Markers, centres: np.ndarray, raw: np.ndarray) -> TrackResult:
-        """Identification phase: collect the virtual markers for identify_seconds of capture
-        time (identify_frames at the nominal rate; fewer when frame sets are skipped, so a graph
-        that falls behind starts its output as late as one that keeps up), then identify the
-        skeleton on all of them and start tracking (the provisional one stays otherwise)."""
+        """Identification without output (identify_output false): "identifying" until _identify_step's skeleton."""
         done = self._identify_step(markers)
         if done is not None:
             return self._start_tracking(markers, *done)
@@ -451,11 +420,16 @@ class SkeletonStage:
         a skeleton identified or found again by triangulation may fit the wrong body (views that
         see another person, a body identified while it dived into a roll)."""
         result = self._started(markers, sk, fit)
-        if self.verdict.min_agreement > 0 and self.config.check_confirm_frames > 0:
-            self.verdict.doubt(self.config.check_confirm_frames)
-            if result.status == "tracking":
-                result.status = self.status = "uncertain"
+        if self._doubt() and result.status == "tracking":
+            result.status = self.status = "uncertain"
         return result
+
+    def _doubt(self) -> bool:
+        """A track (re)starting is output once check_confirm_frames agreed with it; False: the check is off."""
+        if self.verdict.min_agreement <= 0 or self.config.check_confirm_frames <= 0:
+            return False
+        self.verdict.doubt(self.config.check_confirm_frames)
+        return True
 
     def _started(self, markers: Markers, sk: Skeleton, fit: Any) -> TrackResult:
         self.skeleton = self.identified = sk
