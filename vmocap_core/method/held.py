@@ -4,13 +4,10 @@ lies in one image, the maps fade, output resuming, a track back on another body)
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from .skeleton_stage import SkeletonStage
+from typing import Any
 
 
-def held_warning(stage: SkeletonStage, status: str, names: list[str]) -> str | None:
+def held_warning(stage: Any, status: str, names: list[str]) -> str | None:
     """The reason the stage recorded at its last step for the status `status` (uncertain or
     lost), naming the settings involved; None when the images did not say so."""
     cfg = stage.config
