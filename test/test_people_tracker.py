@@ -463,6 +463,9 @@ def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, scene, offline
         assert r["mpjpe_mm"] is not None and r["mpjpe_mm"] < bound and r["identity_switches"] == 0, f
     assert set(f["persons"][0]["ids"]).isdisjoint(f["persons"][1]["ids"])
     assert images.frame_mpjpe(bodies[f["persons"][0]["ids"][0]], truths[0]).size == len(stamps)
+    # /diagnostics: each person tracked at the last report, with what their link lengths are
+    lengths = dict(e.split(": ") for e in hri.diag["link_lengths"].split(", ")) if hri.diag["link_lengths"] != "-" else {}
+    assert lengths and set(lengths.values()) <= {"provisional", "identified"} and set(lengths) <= set(clouds), hri.diag
     # the graph's bodies are the offline ones, in the order they were found (their ids are drawn
     # anew each run): every keypoint the client got is the offline one of that frame set
     off = people.body_tracks(offline[0], stamps)

@@ -1,6 +1,7 @@
 """Why the skeleton stage holds its output, in words for /diagnostics: one sentence per rule of
 skeleton_stage.SkeletonStage.step (the views disagree, one camera holds the markers, the trunk
-lies in one image, the maps fade, output resuming, a track back on another body)."""
+lies in one image, the maps fade, output resuming, a track back on another body), and what its
+link lengths are."""
 
 from __future__ import annotations
 
@@ -32,3 +33,10 @@ def held_warning(stage: Any, status: str, names: list[str]) -> str | None:
         return (f"{status}: {stage.resuming} frame set(s) in a row agree with the images after output was held "
                 f"(check_resume_frames {cfg.check_resume_frames}), this frame set is not output")
     return None
+
+
+def lengths_word(stage: Any) -> str:
+    """A stage's link lengths in one word: "-" (no skeleton yet), "provisional" (the first fit's,
+    output while identification runs and replaced at its end: SkeletonConfig.identify_output)
+    or "identified"."""
+    return "-" if stage.skeleton is None else "provisional" if stage.provisional else "identified"

@@ -7,6 +7,7 @@ import time
 from typing import Any
 
 from vmocap_core import graph_config
+from vmocap_core.method.held import lengths_word
 from vmocap_core.outputs.messages import CLOUD, markers_from_message, result_messages
 
 from ..subject import hri_outputs, skeleton_outputs
@@ -73,5 +74,5 @@ class SkeletonNode(VmocapNode):
         last = self.stage.verdict.last
         return dict(self.counts, status=self.last_status,
                     agreement="-" if last is None else f"{last.agreement:.2f}",
-                    link_lengths="-" if self.stage.skeleton is None else "provisional" if self.stage.provisional else "identified",
+                    link_lengths=lengths_word(self.stage),
                     body_id=(self.hri.core.body_id if self.hri is not None else None) or "-")

@@ -14,6 +14,7 @@ import numpy as np
 from vmocap_core import graph_config
 from vmocap_core.bag import messages as M
 from vmocap_core.keypoints import KEYPOINTS
+from vmocap_core.method.held import lengths_word
 from vmocap_core.outputs.messages import CLOUD, markers_from_message, result_messages
 
 from ..subject import hri_outputs, skeleton_outputs
@@ -116,4 +117,7 @@ class PeopleSkeletonNode(VmocapNode):
         return dict(self.counts, max_people=self.p["max_people"], people=len(people),
                     tracking=sum(p.status == "tracking" for p in people),
                     statuses=", ".join(f"{i or p.number}: {p.status}" for p, i in zip(people, ids or [None] * len(people)))
-                    or "nobody")
+                    or "nobody",
+                    link_lengths=", ".join(f"{i or p.number}: {lengths_word(self.skeletons.stages[p.number])}"
+                                           for p, i in zip(people, ids or [None] * len(people))
+                                           if p.number in self.skeletons.stages) or "-")
