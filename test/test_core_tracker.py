@@ -423,32 +423,6 @@ def test_several_people_do_not_reacquire_a_keypoint_at_another_bodys_peaks():
     assert np.linalg.norm(wrist_after(several) - other[wrist]) > 0.3
 
 
-def test_a_keypoint_is_not_reacquired_on_its_other_sides_peaks():
-    """The CNN draws a crouched or turned body mirrored in some views: the right wrist's maps
-    peak on the left wrist. The lattice around the right wrist finds little, and the
-    re-acquisition at the maps' strongest peaks would put it on the left wrist (the skeleton
-    then folds across the body). A peak nearer the other side's keypoint than this one is that
-    keypoint: the marker stays weak where it was."""
-    from vmocap_core.keypoints import INDEX
-    from vmocap_core.method.markers import MarkerStage
-
-    m = punch()
-    rig = benchmark_rig(np.nanmean(m.positions[:, 0], axis=0))
-    body = m.positions[40]
-    src = SyntheticPcmSource(rig, body[None], m.present)
-    right, left = INDEX["right_wrist"], INDEX["left_wrist"]
-    assert 0.2 < np.linalg.norm(body[right] - body[left]) < PipelineConfig.of(fps=60.0).markers.reacquire_radius
-    stage = MarkerStage(rig, PipelineConfig.of(fps=60.0).markers)
-    stage.feedback(body)
-    for _ in range(4):
-        pcm = src.render(0)
-        r, l = (int(np.flatnonzero(pcm.keypoints == j)[0]) for j in (right, left))
-        pcm.maps[:, r] = pcm.maps[:, l]  # every view draws the right wrist where the left one is
-        out = stage.step(pcm)
-        stage.feedback(body)
-    assert np.linalg.norm(out.positions[right] - body[left]) > 0.1  # left where the lattice leaves it
-
-
 def test_initialization_bears_a_limb_keypoint_missing_in_some_frame_sets():
     """II-C's consecutive frame sets: the views must agree on the trunk in each of them, and on
     each other core keypoint in most of them and in the last. A wrist whose views disagree in

@@ -16,7 +16,6 @@ import time
 import numpy as np
 
 from ..cameras.projection import Rig
-from ..keypoints import MIRROR
 from ..pcm.views import PcmViews
 from .config import MarkersConfig
 from .consistency import ViewCheck, check_views
@@ -162,14 +161,6 @@ class MarkerStage:
         pts, resid = triangulate_robust(self.rig, cam_uv, cam_w, cfg.init_max_reprojection_px, cfg.min_views)
         assert self.centres is not None  # called from _lattice
         near = np.linalg.norm(pts - self.centres[pcm.keypoints[sub]], axis=1) < cfg.reacquire_radius
-        # A peak within the lattice's reach of the other side's marker is that keypoint: the CNN
-        # drew the body mirrored in some views (crouched, turned), it did not find this one elsewhere.
-        at = np.full(N_KP, -1)
-        at[pcm.keypoints] = np.arange(pcm.keypoints.size)
-        other = at[MIRROR[pcm.keypoints[sub]]]
-        paired = (other >= 0) & (other != sub)
-        gap = np.linalg.norm(pts - markers[np.maximum(other, 0)], axis=1)
-        near &= ~(paired & (gap < cfg.lattice_k * cfg.lattice_spacing))
         ok = np.isfinite(resid) & (resid <= cfg.init_max_reprojection_px) & near
         if not ok.any():
             return markers, weights, n_views
