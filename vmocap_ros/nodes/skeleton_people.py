@@ -113,11 +113,11 @@ class PeopleSkeletonNode(VmocapNode):
         if self.counts["incomplete"]:
             self.watch_dropped(self.counts["incomplete"], "frame sets without every slot's markers")
         people = [] if self.last is None else self.last.people
-        ids = [self.hri.core.body_id(p.number) for p in people] if self.hri is not None else []
+        # each person by body id (their number without the REP-155 outputs)
+        named = [((self.hri.core.body_id(p.number) if self.hri is not None else None) or p.number, p) for p in people]
+        stages = self.skeletons.stages
         return dict(self.counts, max_people=self.p["max_people"], people=len(people),
                     tracking=sum(p.status == "tracking" for p in people),
-                    statuses=", ".join(f"{i or p.number}: {p.status}" for p, i in zip(people, ids or [None] * len(people)))
-                    or "nobody",
-                    link_lengths=", ".join(f"{i or p.number}: {lengths_word(self.skeletons.stages[p.number])}"
-                                           for p, i in zip(people, ids or [None] * len(people))
-                                           if p.number in self.skeletons.stages) or "-")
+                    statuses=", ".join(f"{n}: {p.status}" for n, p in named) or "nobody",
+                    link_lengths=", ".join(f"{n}: {lengths_word(stages[p.number])}" for n, p in named
+                                           if p.number in stages) or "-")
