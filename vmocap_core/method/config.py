@@ -75,6 +75,10 @@ class MarkersConfig(_Stage):
     reacquire_weight: float = 1.0  # a marker weaker than this triggers a search at its PCM peaks
     reacquire_radius: float = 0.6  # metres from the previous keypoint a re-acquired one may lie
     reacquire_after: int = 2  # consecutive weak frames before the search at the PCM peaks
+    # Our addition (mirror.py): a view whose maps read a limb group this many times higher with
+    # its left and right swapped (and at least unmirror_min_value) is read swapped; 0: never
+    unmirror_ratio: float = 1.5
+    unmirror_min_value: float = 0.5
     init_max_reprojection_px: float = 12.0  # views agree: triangulation residual below this
     # a centroid counts when its PCM peak is at least this, before the landmark visibility
     # weighed it (PcmViews.visibility): the start triangulates the CNN's guesses of hidden

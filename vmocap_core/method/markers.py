@@ -23,6 +23,7 @@ from .init import triangulated_markers
 from .init_report import camera_mask
 from .lattice import PcmSampler, lattice_search
 from .lattice import warm_up as warm_up_lattice
+from .mirror import swapped_groups, unmirrored
 from .occlusion import outside_images, without_hidden
 from .refinement import refine_markers
 from .refinement import warm_up as warm_up_refinement
@@ -96,6 +97,11 @@ class MarkerStage:
         outside = outside_images(self.rig, centres[None])[0]
         pcm = without_hidden(pcm, outside)
         sampler = PcmSampler(self.rig, pcm)  # one per frame: the lattice search, the refinement, the check
+        if cfg.unmirror_ratio > 0:
+            swap = swapped_groups(self.rig, pcm, centres, cfg.unmirror_ratio, cfg.unmirror_min_value, sampler)
+            if swap.any():
+                pcm = unmirrored(pcm, swap)
+                sampler = PcmSampler(self.rig, pcm)
         self._last = (pcm, sampler)
         res = lattice_search(
             self.rig,
