@@ -62,6 +62,7 @@ def test_views_drawn_mirrored_are_read_the_other_way_round(scene):
     np.testing.assert_allclose(fixed.weights[wrists], clean.weights[wrists], rtol=0.05)
     assert (as_drawn.weights[wrists] < 0.75 * clean.weights[wrists]).all()
     assert np.linalg.norm(fixed.positions[wrists] - body[wrists], axis=1).max() < 0.03
+    assert fixed.mirrored == 0b101 and clean.mirrored == 0 and as_drawn.mirrored == 0  # cam0 and cam2, for the diagnostics
 
 
 def test_a_prediction_most_views_read_mirrored_is_not_forced_on_them(scene):

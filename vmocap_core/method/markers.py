@@ -97,9 +97,11 @@ class MarkerStage:
         outside = outside_images(self.rig, centres[None])[0]
         pcm = without_hidden(pcm, outside)
         sampler = PcmSampler(self.rig, pcm)  # one per frame: the lattice search, the refinement, the check
+        mirrored = 0
         if cfg.unmirror_ratio > 0:
             swap = swapped_groups(self.rig, pcm, centres, cfg.unmirror_ratio, cfg.unmirror_min_value, sampler)
             if swap.any():
+                mirrored = int(np.bitwise_or.reduce(np.left_shift(1, pcm.camera[swap.any(axis=1)])))
                 pcm = unmirrored(pcm, swap)
                 sampler = PcmSampler(self.rig, pcm)
         self._last = (pcm, sampler)
@@ -129,6 +131,7 @@ class MarkerStage:
                                          sampler=sampler)
             markers = np.where((ok & seen)[:, None], refined, markers)
         out = nan_markers(pcm.stamp_ns, "lattice")
+        out.mirrored = mirrored
         out.positions[pcm.keypoints] = markers
         out.weights[pcm.keypoints] = np.where(seen, weights, 0.0)
         # the cameras whose maps confirm each marker: this frame set's own evidence (Markers.support)

@@ -43,6 +43,8 @@ class Markers:
     inside: np.ndarray | None = None
     # several people (people_stages.py): the person these are the markers of (PcmViews.person); -1: the one subject
     person: int = -1
+    # lattice markers: bit mask of the cameras whose maps were read with a limb group's sides swapped (mirror.py)
+    mirrored: int = 0
 
     @property
     def trunk_views(self) -> int | None:

@@ -58,6 +58,7 @@ class MarkersNode(VmocapNode):
         stage_config = config.stage_config(name, p)
         self.timeout = p["feedback_timeout_ms"] / 1e3
         self.counts = {"frames": 0, "queue_dropped": 0, "missing": 0, "feedback_timeouts": 0}
+        self.mirrored = np.zeros(len(self.rig), dtype=np.int64)  # per camera: frame sets its maps were read mirrored
         latched = bool(p["lockstep"])  # as vmocap_pcm publishes them in lockstep
         # from a vmocap_pcm in another process of this machine the maps come through shared memory
         self._shm_in = ShmIn(self) if p["shm_images"] and not latched else None
@@ -137,6 +138,7 @@ class MarkersNode(VmocapNode):
         """The subject's frame set against the cameras: initialization, presence, timing, epipolar
         geometry, heatmaps, residuals, blind cameras (each a WARN naming what it found)."""
         self.init_watch.update(self, "tracking" if markers.kind == "lattice" else "initializing", markers)
+        self.mirrored += (markers.mirrored >> np.arange(self.mirrored.size)) & 1
         if markers.presence:
             self.presence = markers.presence
         if markers.kind == "lattice":
@@ -240,5 +242,6 @@ class MarkersNode(VmocapNode):
         return dict(self.counts, queued=sum(len(s.queue) for s in self.streams), sync=st.as_dict(), silent=list(st.silent),
                     rejected_frame_sets=sum(s.asm.bad_views for s in self.streams),
                     shared_memory=self._shm_in.status() if self._shm_in is not None else "off", presence={k: round(v, 3) for k, v in self.presence.items()},
-                    **{f"residual_px:{k}": round(v, 1) for k, v in self.cameras.medians().items()})
+                    **{f"residual_px:{k}": round(v, 1) for k, v in self.cameras.medians().items()},
+                    **{f"mirrored:{c.name}": int(n) for c, n in zip(self.rig, self.mirrored) if n})
 
