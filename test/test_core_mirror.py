@@ -73,3 +73,22 @@ def test_a_prediction_most_views_read_mirrored_is_not_forced_on_them(scene):
     assert not swapped_groups(rig, mirrored, body, ratio=1.5, min_value=0.5).any()
     one = arms_mirrored(src.render(0), [1])
     assert swapped_groups(rig, one, body, ratio=1.5, min_value=0.5)[:, 0].any()
+
+
+def test_several_people_read_the_maps_as_drawn(scene):
+    """With others in the room (max_people > 1), the CNN's maps are not read mirrored: at hug
+    distance the other body's limbs lie where this one's mirrored limbs would."""
+    from vmocap_core.method.people_stages import MarkerSlot
+
+    rig, body, src = scene
+    pcm = dataclasses.replace(arms_mirrored(src.render(0), [0, 2]), person=0)
+    slot = MarkerSlot(rig, PipelineConfig.of(fps=60.0).markers)
+    slot.step(pcm)  # a new person: their stage starts
+    assert slot.stage is not None
+    slot.stage.feedback(body)
+    assert slot.step(pcm).mirrored == 0
+    own = MarkerSlot(rig, PipelineConfig.of(fps=60.0).markers, reacquire=True)  # maps from their own detections
+    own.step(pcm)
+    assert own.stage is not None
+    own.stage.feedback(body)
+    assert own.step(pcm).mirrored == 0b101
