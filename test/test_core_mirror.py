@@ -76,19 +76,15 @@ def test_a_prediction_most_views_read_mirrored_is_not_forced_on_them(scene):
 
 
 def test_several_people_read_the_maps_as_drawn(scene):
-    """With others in the room (max_people > 1), the CNN's maps are not read mirrored: at hug
-    distance the other body's limbs lie where this one's mirrored limbs would."""
+    """With others in the room (max_people > 1, or Shelf's several people), maps are not read
+    mirrored: at hug distance the other body's limbs lie where this one's mirrored limbs would."""
     from vmocap_core.method.people_stages import MarkerSlot
 
     rig, body, src = scene
     pcm = dataclasses.replace(arms_mirrored(src.render(0), [0, 2]), person=0)
-    slot = MarkerSlot(rig, PipelineConfig.of(fps=60.0).markers)
-    slot.step(pcm)  # a new person: their stage starts
-    assert slot.stage is not None
-    slot.stage.feedback(body)
-    assert slot.step(pcm).mirrored == 0
-    own = MarkerSlot(rig, PipelineConfig.of(fps=60.0).markers, reacquire=True)  # maps from their own detections
-    own.step(pcm)
-    assert own.stage is not None
-    own.stage.feedback(body)
-    assert own.step(pcm).mirrored == 0b101
+    for reacquire in (False, True):  # maps from the CNN; from the person's own detections
+        slot = MarkerSlot(rig, PipelineConfig.of(fps=60.0).markers, reacquire=reacquire)
+        slot.step(pcm)  # a new person: their stage starts
+        assert slot.stage is not None
+        slot.stage.feedback(body)
+        assert slot.step(pcm).mirrored == 0
