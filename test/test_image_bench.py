@@ -47,6 +47,38 @@ def test_truth_reprojects_onto_the_rendered_body(rig):
         scene.close()
 
 
+def test_two_benches_rendering_one_clip_into_one_cache_at_once(rig, tmp_path):
+    """Two processes render the same clip into the same cache at the same time (two benches
+    started together): both succeed and the cached recording holds the same messages as a
+    rendering alone (they shared one scratch file before: one process failed, and a mixture of
+    the two, still a readable MCAP, stayed in the cache)."""
+    import subprocess
+    import sys
+
+    from vmocap_core.apps.render.recording import ClipSpec, render_recording
+    from vmocap_core.bag import BagReader
+    from vmocap_core.cameras.rig_file import save_rig
+
+    save_rig(rig, tmp_path / "rig.yaml")
+    code = ("import sys; from pathlib import Path; from vmocap_core.cameras.rig_file import load_rig; "
+            "from vmocap_core.apps.render.recording import ClipSpec, render_recording; "
+            f"print(render_recording(ClipSpec(Path({str(CLIP)!r}), 30, 60.0, 3), load_rig({str(tmp_path / 'rig.yaml')!r}), "
+            f"Path({str(tmp_path / 'shared')!r}), progress=False))")
+    procs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [e[-2000:] for _, e in outs]
+    shared = {o.strip() for o, _ in outs}
+    alone = render_recording(ClipSpec(CLIP, 30, 60.0, 3), rig, tmp_path / "alone", progress=False)
+
+    def payloads(p):
+        with BagReader(p) as r:
+            return [(m.topic, bytes(m.data)) for m in r.messages(list(r.topics))]
+
+    assert len(shared) == 1 and payloads(Path(shared.pop())) == payloads(alone)
+    assert sorted(q.name for q in (tmp_path / "shared").iterdir()) == [alone.name]  # no scratch left
+
+
 def test_same_seed_same_bytes(rig, tmp_path):
     from vmocap_core.apps.render.recording import ClipSpec, render_recording
     from vmocap_core.bag import BagReader

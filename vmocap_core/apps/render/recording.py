@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import sys
 import zlib
 from dataclasses import dataclass
@@ -138,9 +139,11 @@ def write_rendered(out: Path, scene: SceneRenderer, frames: Iterable[tuple[np.nd
     topics = Topics()
     rig = scene.rig
     n = len(truths[0][1])
-    tmp = out.with_suffix(".part")
+    # this process's own scratch file: two benches rendering the same clip into one cache at once
+    # each write their own (a shared name had one truncate the other's file mid-write, and a
+    # mixture of the two went into the cache); the last rename wins, both complete and equal
+    tmp = out.with_name(f"{out.stem}.{os.getpid()}.part")
     try:
-        # the .part file is this cache's own scratch: one left by an interrupted render is replaced
         with BagWriter(tmp, compression="zstd", overwrite=True) as w:
             for k, (verts, others) in enumerate(tqdm(frames, total=n, desc=f"render {label}", unit="frame",
                                                      disable=not progress, file=sys.stderr, leave=False)):
@@ -152,7 +155,7 @@ def write_rendered(out: Path, scene: SceneRenderer, frames: Iterable[tuple[np.nd
                     w.write(topic, "sensor_msgs/msg/PointCloud2", M.keypoint_cloud(t, positions[k]), t)
     finally:
         scene.close()
-    tmp.rename(out)
+    tmp.replace(out)
 
 
 def read_truth(path: Path, topic: str = TRUTH_TOPIC) -> tuple[np.ndarray, np.ndarray]:
