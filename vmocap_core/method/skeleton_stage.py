@@ -123,8 +123,6 @@ class SkeletonStage:
             resumed = self.status == "lost" or (self._last_stamp is not None
                                                 and markers.stamp_ns - self._last_stamp > RESUME_GAP_S * 1e9)
             verdict = self.verdict.update(markers.check)
-            if verdict == "ok" and self.provisional and self.verdict.disagreed:
-                verdict = "uncertain"  # a provisional skeleton has not earned the hysteresis that forgives a bad check
             if resumed and verdict == "ok" and self._doubt():
                 verdict = "uncertain"
             if verdict != "ok":  # what the diagnostics name: the keypoints and views that disagree
