@@ -124,9 +124,13 @@ class PcmSampler:
         return vals
 
     def point_values(self, points: np.ndarray) -> np.ndarray:
-        """Each view's PCM value at one point per channel (J, 3) -> (V, J)."""
-        c = np.matmul(self._R, np.asarray(points, dtype=np.float64).T) + self._t[:, :, None]  # (V, 3, J)
-        return self.view_values(c.astype(np.float32)[:, :, :, None])[:, :, 0]
+        """Each view's PCM value at one point per channel (J, 3) -> (V, J), or at L points per
+        channel (J, L, 3) -> (V, J, L)."""
+        pts = np.asarray(points, dtype=np.float64)
+        J = pts.shape[0]
+        c = np.matmul(self._R, pts.reshape(-1, 3).T) + self._t[:, :, None]  # (V, 3, J * L)
+        vals = self.view_values(c.astype(np.float32).reshape(len(c), 3, J, -1))
+        return vals[:, :, 0] if pts.ndim == 2 else vals
 
     def _bilinear(self, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
         """Bilinear PCM values at map coordinates (V, J, L); 0 outside the map."""

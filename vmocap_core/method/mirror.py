@@ -50,8 +50,10 @@ def swapped_groups(rig: Rig, pcm: PcmViews, predicted: np.ndarray, ratio: float,
     pts = np.asarray(predicted, dtype=np.float64)
     known = np.isfinite(pts[kp]).all(axis=1) & np.isfinite(pts[MIRROR[kp]]).all(axis=1)
     sampler = sampler or PcmSampler(rig, pcm)
-    as_drawn = sampler.point_values(np.where(known[:, None], pts[kp], 0.0))  # channel j at keypoint j
-    turned = sampler.point_values(np.where(known[:, None], pts[MIRROR[kp]], 0.0))  # channel j at its mirror
+    # each channel j read at keypoint j (as drawn) and at its mirror keypoint (turned), in one pass
+    both = np.where(known[:, None, None], np.stack([pts[kp], pts[MIRROR[kp]]], axis=1), 0.0)  # (J, 2, 3)
+    values = sampler.point_values(both)  # (V, J, 2)
+    as_drawn, turned = values[..., 0], values[..., 1]
     member = GROUP_MASK[:, kp] & known[None, :]  # (G, J)
     drawn = as_drawn @ member.T  # (V, G)
     other = turned @ member.T
