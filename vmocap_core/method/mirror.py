@@ -11,9 +11,10 @@ views, and fold the limb across the body.
 So, before the search, each view is asked per group of paired keypoints (arms, legs, face):
 are its maps higher at the predicted keypoints, or at the predicted keypoints of the other
 side? A view that reads the group clearly higher the other way round has that group's left and
-right channels swapped. Only a minority of the cameras may be swapped: when most views read the
-body mirrored, it is the prediction that is mirrored (a tracker that swapped the sides), and the
-maps, as drawn, are what brings it back.
+right channels swapped, for the lattice search, the re-acquisition, the refinement and the
+consistency check of that frame set alike. At least two cameras must read the group as drawn,
+and no fewer than would be swapped: when most views read the body mirrored, it is the prediction
+that is mirrored (a tracker that swapped the sides), and the maps, as drawn, bring it back.
 """
 
 from __future__ import annotations
