@@ -37,7 +37,7 @@ class MarkerSlot:
         # found again by the detector instead (reacquire: maps drawn from the person's own
         # detections alone, multiperson.py). Whoever's maps they are, they are read as drawn, not
         # mirrored (mirror.py): at hug distance the other body's limbs lie where this one's
-        # mirrored limbs would (and Shelf's PCP fell 98.08 -> 98.01 % with the mirrored reading).
+        # mirrored limbs would (and Shelf, maps from each person's own detections, lost PCP with it).
         config = (config or MarkersConfig()).replace(unmirror_ratio=0.0)
         self.rig, self.config = rig, config if reacquire else config.replace(reacquire_weight=0.0)
         self.person = -1
