@@ -23,6 +23,7 @@ CLOUD = "sensor_msgs/msg/PointCloud2"
 JOINTS = "sensor_msgs/msg/JointState"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 DIAG = "diagnostic_msgs/msg/DiagnosticArray"
+DIAGNOSTICS_PERIOD_S = 1.0  # every node reports its status on /diagnostics this often
 
 HEADER = "std_msgs/msg/Header"  # a bare stamp: vmocap_pcm's NS/pcm/done
 

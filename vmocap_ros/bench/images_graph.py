@@ -61,7 +61,7 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
     frame sets may pass before the subscription matched)."""
     from vmocap_core.bag import cdr
     from vmocap_core.bag import messages as M
-    from vmocap_core.outputs.messages import DIAG
+    from vmocap_core.outputs.messages import DIAG, DIAGNOSTICS_PERIOD_S
 
     from ..common import msg_class, prepare_env, qos, stop_graph
     from ..run_node import probe_node
@@ -128,6 +128,11 @@ def run_graph(rec: Path, rig_path: Path, stamps: np.ndarray, rotation: str, prec
                     raise VmocapError(f"the node graph exited early (log: {log.name})")
                 if got and time.monotonic() - last_rx[0] > silent_s:
                     break  # the graph fell silent: the tail of the recording was dropped
+            # one more diagnostics period (the nodes report at 1 Hz): a WARN raised in the last
+            # frame sets reaches the bench too, not only when the graph happened to report after it
+            drain = time.monotonic() + DIAGNOSTICS_PERIOD_S + 0.3
+            while time.monotonic() < drain and launch.poll() is None:
+                ex.spin_once(timeout_sec=0.1)
         finally:
             stop_graph(launch)
     if not got:

@@ -18,7 +18,7 @@ from vmocap_core.bag import cdr
 from vmocap_core.bag import messages as M
 from vmocap_core.cameras.sync import lagging
 from vmocap_core.errors import VmocapError
-from vmocap_core.outputs.messages import DIAG, IMAGE
+from vmocap_core.outputs.messages import DIAG, DIAGNOSTICS_PERIOD_S, IMAGE
 
 from ..common import Topics, declare, msg_class, qos
 from ..transport import Output, Transport
@@ -90,7 +90,7 @@ class VmocapNode(Node):
         self._dds_pubs: dict[str, Any] = {}  # topic -> rclpy publisher, for matched-subscriber counts
         self._dds_subs: dict[str, Any] = {}  # topic -> rclpy subscription (drop_subscription)
         self._diag = self.create_publisher(msg_class(DIAG), Topics.diagnostics, qos(10))
-        self.create_timer(1.0, self._publish_diagnostics)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
 
     # -- raw messages --------------------------------------------------------------------
     def publisher(self, type_name: str, topic: str, depth: int = STREAM_DEPTH, latched: bool = False) -> "Output":
