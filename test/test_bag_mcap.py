@@ -284,6 +284,38 @@ def test_the_others_in_view_travel_with_the_pcm_and_the_markers() -> None:
     assert back.others == 2 and back.inside is None and np.array_equal(back.check.agree, check.agree)
 
 
+def test_the_person_and_their_company_travel_with_the_pcm() -> None:
+    """Several people: whose maps they are (PcmViews.person) and how many others have a skeleton
+    beside them (PcmViews.company, which decides the marker stage's re-acquisition) reach
+    vmocap_markers through the wire and in-process; a sender from before `company` (the extra
+    channel's cell J + 2 zero) reads as not known (-1)."""
+    import dataclasses
+
+    from vmocap_core.pcm.synthetic import benchmark_rig
+    from vmocap_core.pcm.views import PcmViews, stride_affine
+
+    rig = benchmark_rig()
+    kp = np.array([0, 1, 7])
+    views = PcmViews(maps=np.random.default_rng(5).random((2, 3, 12, 16)), image_to_map=np.stack([stride_affine(16)] * 2),
+                     camera=[0, 1], keypoints=kp, valid=np.ones((2, 3), bool), presence=[1.0, 1.0], stamp_ns=5)
+    for person, company in ((0, 0), (2, 1), (1, -1), (-1, 3)):
+        sent = dataclasses.replace(views, person=person, company=company)
+        wire = [(cdr.decode("sensor_msgs/msg/Image", cdr.encode("sensor_msgs/msg/Image", i)), c)
+                for i, c in H.pcm_msgs(sent, rig)]
+        for back in (H.pcm_views(wire, rig, kp), H.pcm_views(H.pcm_msgs(sent, rig, data=False), rig, kp)):
+            assert (back.person, back.company) == (person, company)
+            np.testing.assert_array_equal(back.maps, sent.maps.astype(np.float32))
+    older = H.pcm_msgs(dataclasses.replace(views, person=1, company=2), rig)
+    J = len(kp)
+    for img, _ in older:
+        arr = M.image_array(img).copy()  # (H, W, J + 2): keypoints, presence, the extra channel
+        extra = arr[..., J + 1].reshape(-1)
+        extra[J + 2] = 0.0  # what a sender without the field wrote there
+        arr[..., J + 1] = extra.reshape(arr.shape[:2])
+        img["data"] = type(img["data"])(arr.tobytes())
+    assert (H.pcm_views(older, rig, kp).person, H.pcm_views(older, rig, kp).company) == (1, -1)
+
+
 def test_camera_info_mismatch_is_reported() -> None:
     from vmocap_core.pcm.synthetic import benchmark_rig
 

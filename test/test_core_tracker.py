@@ -394,7 +394,11 @@ def test_several_people_do_not_reacquire_a_keypoint_at_another_bodys_peaks():
     """A keypoint whose maps peak on another person 0.4 m away (a hand reaching past, two
     people face to face): the lattice around it finds nothing, and one person's re-acquisition
     at the maps' strongest peaks (MarkerStage._reacquire) takes the other body's wrist. The
-    marker stage of each of several people does without it: the marker stays weak where it was."""
+    marker stage of a person among several does without it while another person has a skeleton
+    (PcmViews.company >= 1): the marker stays weak where it was. A person tracked alone
+    (company 0) re-acquires as the one subject does."""
+    import dataclasses
+
     from vmocap_core.keypoints import INDEX
     from vmocap_core.method.markers import MarkerStage
     from vmocap_core.method.people_stages import MarkerSlot
@@ -405,22 +409,26 @@ def test_several_people_do_not_reacquire_a_keypoint_at_another_bodys_peaks():
     other = body + np.array([0.4, 0.0, 0.0])
     mine, theirs = SyntheticPcmSource(rig, body[None], m.present), SyntheticPcmSource(rig, other[None], m.present)
     wrist = INDEX["right_wrist"]
+    config = PipelineConfig.of(fps=60.0).markers
 
-    def wrist_after(config) -> np.ndarray:
-        stage = MarkerStage(rig, config)
+    def wrist_after(stage, company: int = -1) -> np.ndarray:
         stage.feedback(body)
         for _ in range(4):
-            pcm = mine.render(0)
+            pcm = dataclasses.replace(mine.render(0), person=0, company=company)
             c = int(np.flatnonzero(pcm.keypoints == wrist)[0])
             pcm.maps[:, c] = theirs.render(0).maps[:, c]  # the wrist's maps show the other body's wrist
             out = stage.step(pcm)
             stage.feedback(body)
         return out.positions[wrist]
 
-    one = PipelineConfig.of(fps=60.0).markers
-    assert np.linalg.norm(wrist_after(one) - other[wrist]) < 0.1  # one person: re-acquired on the other body
-    several = MarkerSlot(rig, PipelineConfig.of(fps=60.0).markers).config  # a person's stage among several
-    assert np.linalg.norm(wrist_after(several) - other[wrist]) > 0.3
+    assert np.linalg.norm(wrist_after(MarkerStage(rig, config)) - other[wrist]) < 0.1  # one person: on the other body
+    for company in (1, 2, -1):  # others with a skeleton, or not known: no re-acquisition
+        slot = MarkerSlot(rig, config)
+        slot.step(dataclasses.replace(mine.render(0), person=0, company=company))  # the slot's stage for person 0
+        assert np.linalg.norm(wrist_after(slot, company) - other[wrist]) > 0.3, company
+    slot = MarkerSlot(rig, config)
+    slot.step(dataclasses.replace(mine.render(0), person=0, company=0))
+    assert np.linalg.norm(wrist_after(slot, 0) - other[wrist]) < 0.1  # tracked alone: as the one subject
 
 
 def test_initialization_bears_a_limb_keypoint_missing_in_some_frame_sets():

@@ -9,7 +9,9 @@ One pair per view and frame set, with the same header:
   (`PcmViews.visibility`, not all ones) or the census counted the others in view
   (`PcmViews.others` >= 0) or the maps are one of several people's (`PcmViews.person` >= 0):
   its first J cells (row-major) hold the J keypoints' visibility, cell J holds others + 1 (0:
-  not known), cell J + 1 the person's number + 1 (0: the one subject), the other cells 0.
+  not known), cell J + 1 the person's number + 1 (0: the one subject), cell J + 2 how many
+  others have a skeleton beside that person + 1 (`PcmViews.company`; 0: not known), the other
+  cells 0.
 - Several people (`padded`): a view with presence -1 (every keypoint channel NaN) stands for
   none. The PCM node sends one for each view a slot's person has none of (or every view, for a
   free slot), so that every slot answers every frame set in every view; it is read back as no
@@ -85,7 +87,8 @@ def padded(views: PcmViews, rig: Rig, names: Sequence[str]) -> PcmViews:
                     np.concatenate([views.image_to_map, np.tile(np.eye(2, 3), (n, 1, 1))]),
                     np.concatenate([views.camera, [view_camera(m, rig) for m in missing]]), views.keypoints,
                     np.concatenate([views.valid, np.zeros((n, J), bool)]), np.concatenate([views.presence, np.full(n, -1.0)]),
-                    views.stamp_ns, np.concatenate([views.visibility, np.ones((n, J))]), views.others, views.person)
+                    views.stamp_ns, np.concatenate([views.visibility, np.ones((n, J))]), views.others, views.person,
+                    views.company)
 
 
 def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, dict]]:
@@ -93,10 +96,11 @@ def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, d
     Images carry no `data` but refer to `views` (PCM_VIEW), for receivers in this process
     only (`pcm_views` reads them; CDR would encode them empty)."""
     V, J, H, W = views.maps.shape
-    extra = bool(np.any(views.visibility != 1.0)) or views.others >= 0 or views.person >= 0
+    extra = bool(np.any(views.visibility != 1.0)) or views.others >= 0 or views.person >= 0 or views.company >= 0
     N = J + 2 if extra else J + 1
-    if extra and H * W <= J + 1:
-        raise HeatmapError(f"{W}x{H} maps cannot carry {J} keypoints' visibility, the others in view and the person")
+    if extra and H * W <= J + 2:
+        raise HeatmapError(f"{W}x{H} maps cannot carry {J} keypoints' visibility, the others in view, the person and "
+                           "their company")
     if data:
         # all views at once: (V, H, W, N) interleaved, invalid channels NaN, presence (and visibility) last
         stack = np.empty((V, H, W, N), dtype=np.float32)
@@ -110,6 +114,7 @@ def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, d
             plane[:, :J] = views.visibility
             plane[:, J] = max(views.others, -1) + 1
             plane[:, J + 1] = max(views.person, -1) + 1
+            plane[:, J + 2] = max(views.company, -1) + 1
             stack[..., J + 1] = plane.reshape(V, H, W)
     out = []
     for v in range(V):
@@ -157,13 +162,14 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         maps[~np.asarray(views.valid, dtype=bool)] = np.nan
         presence = np.asarray(views.presence, dtype=np.float32).astype(np.float64)
         visibility = np.asarray(views.visibility, dtype=np.float32).astype(np.float64)
-        others, person = views.others, views.person
+        others, person, company = views.others, views.person, views.company
     else:
         maps = np.empty((V, J, H, W), dtype=np.float32)
         presence = np.zeros(V)
         visibility = np.ones((V, J))
         others = -1  # the most any view says (every view of a frame set carries the same count)
         person = -1  # as every view of a frame set says
+        company = -1  # the same
         for i, ((img, _), source) in enumerate(zip(pairs, sources)):
             if source is None:
                 arr = image_array(img)  # (H, W, J + 1 or J + 2), channels interleaved
@@ -177,6 +183,8 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
                         others = max(others, int(extra[J]) - 1)
                     if extra.size > J + 1:
                         person = max(person, int(extra[J + 1]) - 1)
+                    if extra.size > J + 2:
+                        company = max(company, int(extra[J + 2]) - 1)
             else:
                 views, v = source
                 maps[i] = views.maps[v]
@@ -185,6 +193,7 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
                 visibility[i] = views.visibility[v].astype(np.float32)
                 others = max(others, views.others)
                 person = max(person, views.person)
+                company = max(company, views.company)
     # (V, J): an all-NaN channel says nothing; only a channel whose first cell is NaN can be one
     flat = maps.reshape(V * J, H * W)
     valid: np.ndarray = np.full(V * J, H * W > 0)  # an empty map says nothing either
@@ -210,6 +219,7 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         visibility=visibility,
         others=others,
         person=person,
+        company=company,
     )
     if (presence < 0).any():  # a placeholder view stands for none
         out = out.select(presence >= 0)

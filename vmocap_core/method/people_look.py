@@ -263,7 +263,8 @@ class PeopleLook:
             own = pcm.get(s.number)
             if own is None:
                 own = PcmViews.empty(len(KEYPOINTS), self.pcm.landmark.map_size, stamp_ns)
-            views[s.number] = dataclasses.replace(own, person=s.number)
+            company = len(tracked) - (s.number in tracked)  # the others with a skeleton (MarkerSlot)
+            views[s.number] = dataclasses.replace(own, person=s.number, company=company)
         return Look(stamp_ns, views, {s.number: s.slot for s in self.seats}, self._untracked.copy(), self._left_out)
 
     def _people_in(self, found: list[list[Detection]]) -> int:

@@ -32,14 +32,17 @@ class MarkerSlot:
 
     def __init__(self, rig: Rig, config: MarkersConfig | None = None, reacquire: bool = False) -> None:
         # no re-acquisition of a weak keypoint at its maps' strongest peaks (MarkerStage._reacquire)
-        # where the maps come from the CNN: with others in the room those peaks are as likely
-        # theirs, and a triangulation of two bodies' peaks lands on neither; a lost person is
-        # found again by the detector instead (reacquire: maps drawn from the person's own
-        # detections alone, multiperson.py). Whoever's maps they are, they are read as drawn, not
-        # mirrored (mirror.py): at hug distance the other body's limbs lie where this one's
-        # mirrored limbs would (and Shelf, maps from each person's own detections, lost PCP with it).
+        # where the maps come from the CNN and another tracked person is about: their peaks are
+        # then as likely the other's, and a triangulation of two bodies' peaks lands on neither.
+        # A person tracked alone (PcmViews.company 0) keeps it, as the one-subject pipeline does:
+        # without it, a limb that slid onto an untracked body beside them (a person whose track
+        # just ended) stayed there while the rest of the body walked away. Maps drawn from the
+        # person's own detections alone (multiperson.py) keep it always (`reacquire`). Whoever's
+        # maps they are, they are read as drawn, not mirrored (mirror.py): at hug distance the
+        # other body's limbs lie where this one's mirrored limbs would (and Shelf lost PCP with it).
         config = (config or MarkersConfig()).replace(unmirror_ratio=0.0)
-        self.rig, self.config = rig, config if reacquire else config.replace(reacquire_weight=0.0)
+        self.rig, self.alone = rig, config
+        self.config = config if reacquire else config.replace(reacquire_weight=0.0)
         self.person = -1
         self.stage: MarkerStage | None = None
 
@@ -49,6 +52,7 @@ class MarkerSlot:
             self.stage = MarkerStage(self.rig, self.config) if pcm.person >= 0 else None
         if self.stage is None:
             return nan_markers(pcm.stamp_ns)
+        self.stage.config = self.alone if pcm.company == 0 else self.config
         return self.stage.step(pcm)
 
     def feedback(self, keypoints: np.ndarray | None) -> None:

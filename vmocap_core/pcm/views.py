@@ -60,6 +60,8 @@ class PcmViews:
     others: int = -1
     # several people (method/people_look.py): the number of the person these are the crops of; -1: the one subject
     person: int = -1
+    # several people: how many others have a skeleton beside this person (0: tracked alone); -1: not known
+    company: int = -1
     # peaks() of every channel, kept: the consistency check reads them twice per frame set
     _all_peaks: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
 
@@ -90,7 +92,7 @@ class PcmViews:
         keep = np.asarray(keep, dtype=bool).reshape(self.n_views)
         return PcmViews(self.maps[keep], self.image_to_map[keep], self.camera[keep], self.keypoints, self.valid[keep],
                         self.presence[keep], self.stamp_ns if stamp_ns is None else stamp_ns, self.visibility[keep],
-                        self.others, self.person)
+                        self.others, self.person, self.company)
 
     @property
     def n_views(self) -> int:
@@ -121,6 +123,7 @@ class PcmViews:
             visibility=self.visibility,
             others=self.others,
             person=self.person,
+            company=self.company,
         )
 
     def corrupted(self) -> dict[int, int]:
