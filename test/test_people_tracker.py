@@ -126,8 +126,9 @@ def test_the_detector_glances_between_searches_for_newcomers(rig):
 def test_a_newly_tracked_person_makes_the_next_search_look_closer(rig):
     """The detector, a one-person model, draws the most prominent person of an image and can
     miss a small one beside them; once that person is tracked they are greyed out for the
-    search. The first search for newcomers after someone newly tracked is hidden looks closer
-    in every camera; the next ones, with nobody new, do not (only every closer_every-th)."""
+    search. Someone's first skeleton brings a search for newcomers in the next frame set, not
+    up to detect_every_s later, and it looks closer in every camera; the next ones, with nobody
+    new, come every detect_every_s from there and do not (only every closer_every-th)."""
     from vmocap_core.method.people_config import PeopleConfig
     from vmocap_core.method.people_look import PeopleLook
     from vmocap_core.method.skeleton import Skeleton
@@ -148,15 +149,15 @@ def test_a_newly_tracked_person_makes_the_next_search_look_closer(rig):
     body = body - body[INDEX["pelvis"]] + [0.0, 0.0, 1.0]
     empty_room = [np.zeros((c.height, c.width, 3), np.uint8) for c in rig]
     period = 16_666_667
-    for t in range(91):  # 1.5 s at 60 Hz: newcomer searches at 0, 30, 60 and 90
+    for t in range(91):  # 1.5 s at 60 Hz: newcomer searches at 0, 10 (someone newly tracked), 40 and 70
         frame[0] = t
         if t == 10:  # someone found (as by the first search) and tracked from here on
             look.feedback(look._new_seat(body[INDEX["pelvis"]], t * period).number, t * period, body)
         elif t > 10:
             look.feedback(0, (t - 1) * period, body)
         look.step(empty_room, t * period)
-    assert sorted(looks) == [0, 30, 60, 90]
-    assert looks[0] and looks[30] and not looks[60] and not looks[90]
+    assert sorted(looks) == [0, 10, 40, 70]
+    assert looks[0] and looks[10] and not looks[40] and not looks[70]
 
 
 def test_people_outputs_give_each_body_its_own_id():

@@ -56,6 +56,7 @@ class Seat:
     body: np.ndarray | None = None  # their last fed-back skeleton (None: none, or a seed)
     fed_ns: int = -1  # stamp of their last feedback (a latched topic may bring an older one again)
     held: dict[int, tuple[int, Any]] = field(default_factory=dict)  # camera -> (stamp, detector crop) before a skeleton
+    had_body: bool = False  # a skeleton was fed back for them once
 
 
 @dataclass
@@ -129,6 +130,7 @@ class PeopleLook:
         self._greyed: frozenset[int] = frozenset()  # the people hidden at the last search that looked closer everywhere
         self._untracked = np.full(len(rig), -1)  # per camera, the detections nobody tracks at the last full look
         self._left_out = 0  # people (seen by two cameras) not tracked for want of a slot, at the last full look
+        self._newly_tracked = False  # someone got their first skeleton since the last search for newcomers
 
     def feedback(self, number: int, stamp_ns: int, feedback: np.ndarray | None, tracking: bool = True) -> None:
         """A person's fed-back skeleton of the frame set stamped `stamp_ns` (results.feedback_of):
@@ -141,6 +143,8 @@ class PeopleLook:
         seat.predictor.update(stamp_ns, feedback)
         seat.body, seed = skeleton_of(feedback), seed_of(feedback)
         if seat.body is not None:
+            if not seat.had_body:  # their first skeleton: the next frame set searches (_search_due)
+                seat.had_body = self._newly_tracked = True
             seat.seed, seat.seen_ns = seat.body[PELVIS].copy(), stamp_ns
             seat.held.clear()
         elif seed is not None:
@@ -169,9 +173,10 @@ class PeopleLook:
         """Which search this frame set runs (_search), if any: "waiting" every frame set while
         someone found is not initialized yet, every wait_search_s while someone lost waits (their
         last detector crops are held in between: a full search costs several frame periods);
-        "newcomers" every detect_every_s while fewer than max_people are tracked, and a "glance"
-        every glance_every_s in between; "counting" every count_every_s while max_people are
-        (who is left out)."""
+        "newcomers" every detect_every_s while fewer than max_people are tracked, and at once
+        when someone got their first skeleton (greyed from then on, they no longer hide whom
+        the one-person detector missed beside them), and a "glance" every glance_every_s in
+        between; "counting" every count_every_s while max_people are (who is left out)."""
         cfg = self.config
 
         def due(last: int | None, every: float) -> bool:
@@ -183,7 +188,8 @@ class PeopleLook:
             every = 0.0 if any(s.seen_ns == s.born_ns for s in waiting) else cfg.wait_search_s
             return "waiting" if due(self._last_detection_ns, every) else None
         if len(self.seats) < cfg.max_people:
-            if due(self._last_full_ns, cfg.detect_every_s):
+            if self._newly_tracked or due(self._last_full_ns, cfg.detect_every_s):
+                self._newly_tracked = False
                 return "newcomers"
             # someone walking in is seen whole by two cameras well before the next full search
             # comes: without glances their wait for a body would be up to detect_every_s plus their
