@@ -41,7 +41,7 @@ class MarkerSlot:
         # maps they are, they are read as drawn, not mirrored (mirror.py): at hug distance the
         # other body's limbs lie where this one's mirrored limbs would (and Shelf lost PCP with it).
         config = (config or MarkersConfig()).replace(unmirror_ratio=0.0)
-        self.rig, self.alone = rig, config
+        self.rig, self.alone_config = rig, config
         self.config = config if reacquire else config.replace(reacquire_weight=0.0)
         self.person = -1
         self.stage: MarkerStage | None = None
@@ -52,7 +52,7 @@ class MarkerSlot:
             self.stage = MarkerStage(self.rig, self.config) if pcm.person >= 0 else None
         if self.stage is None:
             return nan_markers(pcm.stamp_ns)
-        self.stage.config = self.alone if pcm.company == 0 else self.config
+        self.stage.config = self.alone_config if pcm.company == 0 else self.config
         return self.stage.step(pcm)
 
     def feedback(self, keypoints: np.ndarray | None) -> None:

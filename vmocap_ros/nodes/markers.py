@@ -147,7 +147,7 @@ class MarkersNode(VmocapNode):
         if markers.kind == "lattice" and self.counts["frames"] % EPIPOLAR_EVERY == 0:
             self._check_epipolar(pcm)
         # every frame set: a camera's blind spell is timed from its first frame set, not from the
-        # next check (sampled, a panel covering a view for 1.2 s was timed as 1.0 s or less)
+        # next check (sampled every 10th, a panel covering a view for 1.2 s was timed 1.0-1.17 s)
         self._check_blind(pcm, markers.kind == "lattice")
         if self.counts["frames"] % CAMERA_CHECK_EVERY == 0:
             self._check_heatmaps(pcm)
