@@ -29,6 +29,7 @@ One pair per view and frame set, with the same header:
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Sequence
 
 import numpy as np
@@ -41,6 +42,8 @@ from .messages import camera_info_msg, header, image_array, image_msg, stamp_ns
 # In-process only (never encoded): the (PcmViews, view index) an Image dict without `data`
 # stands for, so a receiver in the same process reads the maps without their interleaving
 PCM_VIEW = "_vmocap_pcm_view"
+# the PcmViews counts the extra channel carries in its cells J, J + 1, ... as value + 1 (0: not known)
+COUNTS = ("others", "person", "company")
 
 
 def view_names(views: PcmViews, rig: Rig) -> list[str]:
@@ -83,12 +86,12 @@ def padded(views: PcmViews, rig: Rig, names: Sequence[str]) -> PcmViews:
     if not missing:
         return views
     n, (_, J, H, W) = len(missing), views.maps.shape
-    return PcmViews(np.concatenate([views.maps, np.zeros((n, J, H, W), np.float32)]),
-                    np.concatenate([views.image_to_map, np.tile(np.eye(2, 3), (n, 1, 1))]),
-                    np.concatenate([views.camera, [view_camera(m, rig) for m in missing]]), views.keypoints,
-                    np.concatenate([views.valid, np.zeros((n, J), bool)]), np.concatenate([views.presence, np.full(n, -1.0)]),
-                    views.stamp_ns, np.concatenate([views.visibility, np.ones((n, J))]), views.others, views.person,
-                    views.company)
+    return dataclasses.replace(
+        views, maps=np.concatenate([views.maps, np.zeros((n, J, H, W), np.float32)]),
+        image_to_map=np.concatenate([views.image_to_map, np.tile(np.eye(2, 3), (n, 1, 1))]),
+        camera=np.concatenate([views.camera, [view_camera(m, rig) for m in missing]]),
+        valid=np.concatenate([views.valid, np.zeros((n, J), bool)]), presence=np.concatenate([views.presence, np.full(n, -1.0)]),
+        visibility=np.concatenate([views.visibility, np.ones((n, J))]))
 
 
 def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, dict]]:
@@ -96,9 +99,10 @@ def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, d
     Images carry no `data` but refer to `views` (PCM_VIEW), for receivers in this process
     only (`pcm_views` reads them; CDR would encode them empty)."""
     V, J, H, W = views.maps.shape
-    extra = bool(np.any(views.visibility != 1.0)) or views.others >= 0 or views.person >= 0 or views.company >= 0
+    counts = [getattr(views, name) for name in COUNTS]
+    extra = bool(np.any(views.visibility != 1.0)) or max(counts) >= 0
     N = J + 2 if extra else J + 1
-    if extra and H * W <= J + 2:
+    if extra and H * W < J + len(COUNTS):
         raise HeatmapError(f"{W}x{H} maps cannot carry {J} keypoints' visibility, the others in view, the person and "
                            "their company")
     if data:
@@ -112,9 +116,7 @@ def pcm_msgs(views: PcmViews, rig: Rig, data: bool = True) -> list[tuple[dict, d
         if extra:
             plane = np.zeros((V, H * W), dtype=np.float32)
             plane[:, :J] = views.visibility
-            plane[:, J] = max(views.others, -1) + 1
-            plane[:, J + 1] = max(views.person, -1) + 1
-            plane[:, J + 2] = max(views.company, -1) + 1
+            plane[:, J:J + len(COUNTS)] = np.maximum(counts, -1) + 1
             stack[..., J + 1] = plane.reshape(V, H, W)
     out = []
     for v in range(V):
@@ -162,14 +164,12 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         maps[~np.asarray(views.valid, dtype=bool)] = np.nan
         presence = np.asarray(views.presence, dtype=np.float32).astype(np.float64)
         visibility = np.asarray(views.visibility, dtype=np.float32).astype(np.float64)
-        others, person, company = views.others, views.person, views.company
+        counts = {name: getattr(views, name) for name in COUNTS}
     else:
         maps = np.empty((V, J, H, W), dtype=np.float32)
         presence = np.zeros(V)
         visibility = np.ones((V, J))
-        others = -1  # the most any view says (every view of a frame set carries the same count)
-        person = -1  # as every view of a frame set says
-        company = -1  # the same
+        counts = dict.fromkeys(COUNTS, -1)  # the most any view says (every view of a frame set carries the same)
         for i, ((img, _), source) in enumerate(zip(pairs, sources)):
             if source is None:
                 arr = image_array(img)  # (H, W, J + 1 or J + 2), channels interleaved
@@ -179,21 +179,17 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
                 if arr.shape[-1] == J + 2:
                     extra = arr[..., J + 1].reshape(-1)
                     visibility[i] = extra[:J]
-                    if extra.size > J:
-                        others = max(others, int(extra[J]) - 1)
-                    if extra.size > J + 1:
-                        person = max(person, int(extra[J + 1]) - 1)
-                    if extra.size > J + 2:
-                        company = max(company, int(extra[J + 2]) - 1)
+                    for k, name in enumerate(COUNTS):
+                        if extra.size > J + k:
+                            counts[name] = max(counts[name], int(extra[J + k]) - 1)
             else:
                 views, v = source
                 maps[i] = views.maps[v]
                 maps[i][~np.asarray(views.valid[v], dtype=bool)] = np.nan
                 presence[i] = np.float32(views.presence[v])
                 visibility[i] = views.visibility[v].astype(np.float32)
-                others = max(others, views.others)
-                person = max(person, views.person)
-                company = max(company, views.company)
+                for name in COUNTS:
+                    counts[name] = max(counts[name], getattr(views, name))
     # (V, J): an all-NaN channel says nothing; only a channel whose first cell is NaN can be one
     flat = maps.reshape(V * J, H * W)
     valid: np.ndarray = np.full(V * J, H * W > 0)  # an empty map says nothing either
@@ -217,9 +213,7 @@ def pcm_views(pairs: Sequence[tuple[dict, dict]], rig: Rig, keypoints: np.ndarra
         presence=presence,
         stamp_ns=stamp_ns(pairs[0][0]),
         visibility=visibility,
-        others=others,
-        person=person,
-        company=company,
+        **counts,
     )
     if (presence < 0).any():  # a placeholder view stands for none
         out = out.select(presence >= 0)

@@ -14,7 +14,7 @@ pixels [x*s - 0.5, (x+1)*s - 0.5).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -90,9 +90,9 @@ class PcmViews:
     def select(self, keep: np.ndarray, stamp_ns: int | None = None) -> "PcmViews":
         """The views where `keep` (V,) is True (stamped `stamp_ns` when given)."""
         keep = np.asarray(keep, dtype=bool).reshape(self.n_views)
-        return PcmViews(self.maps[keep], self.image_to_map[keep], self.camera[keep], self.keypoints, self.valid[keep],
-                        self.presence[keep], self.stamp_ns if stamp_ns is None else stamp_ns, self.visibility[keep],
-                        self.others, self.person, self.company)
+        return replace(self, maps=self.maps[keep], image_to_map=self.image_to_map[keep], camera=self.camera[keep],
+                                   valid=self.valid[keep], presence=self.presence[keep], visibility=self.visibility[keep],
+                                   stamp_ns=self.stamp_ns if stamp_ns is None else stamp_ns)
 
     @property
     def n_views(self) -> int:
@@ -112,19 +112,7 @@ class PcmViews:
         finite = np.isfinite(self.maps)
         bad = ~finite.all(axis=(2, 3))  # (V, J)
         maps = np.clip(np.where(finite, self.maps, 0.0), 0.0, 1.0).astype(np.float32)
-        return PcmViews(
-            maps=maps,
-            image_to_map=self.image_to_map,
-            camera=self.camera,
-            keypoints=self.keypoints,
-            valid=self.valid & ~bad,
-            presence=self.presence,
-            stamp_ns=self.stamp_ns,
-            visibility=self.visibility,
-            others=self.others,
-            person=self.person,
-            company=self.company,
-        )
+        return replace(self, maps=maps, valid=self.valid & ~bad)
 
     def corrupted(self) -> dict[int, int]:
         """Per camera index, how many values of its valid channels are not finite or outside
