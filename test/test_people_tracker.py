@@ -467,13 +467,18 @@ def test_two_people_through_the_node_graph_as_ros4hri_bodies(rig, scene, offline
     # /diagnostics: each person tracked at the last report, with what their link lengths are
     lengths = dict(e.split(": ") for e in hri.diag["link_lengths"].split(", ")) if hri.diag["link_lengths"] != "-" else {}
     assert lengths and set(lengths.values()) <= {"provisional", "identified"} and set(lengths) <= set(clouds), hri.diag
-    # the graph's bodies are the offline ones, in the order they were found (their ids are drawn
-    # anew each run): every keypoint the client got is the offline one of that frame set
+    # the graph's bodies are the offline ones (their ids are drawn anew each run; two people found
+    # in one frame set have no order): every keypoint the client got is the offline one of that
+    # frame set
     off = people.body_tracks(offline[0], stamps)
     tracked = {i: np.isfinite(v).all(axis=(1, 2)) for i, v in (bodies | off).items()}
-    first = {i: int(np.argmax(t)) for i, t in tracked.items()}
-    pairs = list(zip(sorted(bodies, key=first.get), sorted(off, key=first.get)))
-    assert len(pairs) == len(bodies) == len(off) == 2, (list(bodies), list(off))
+
+    def apart(g: str, o: str) -> float:
+        both = tracked[g] & tracked[o]
+        return float(np.abs(bodies[g][both] - off[o][both]).max()) if both.any() else np.inf
+
+    pairs = [(g, min(off, key=lambda o: apart(g, o))) for g in bodies]
+    assert len(pairs) == len({o for _, o in pairs}) == len(off) == 2, (list(bodies), list(off))
     for g, o in pairs:
         # the client opens a body's keypoints when its id appears: it may miss the first few
         assert tracked[g].sum() >= tracked[o].sum() - 5 and not (tracked[g] & ~tracked[o]).any(), (g, o)
@@ -598,6 +603,30 @@ def test_two_people_face_to_face(rig, tmp_path_factory, tmp_path):
         assert r["identity_switches"] == 0 and r["mpjpe_mm"] is not None and r["mpjpe_mm"] < 40.0, f
     assert f["persons"][0]["missed_pct"] < 2.0 and f["persons"][1]["missed_pct"] < 25.0, f
     assert f["ghost_frames"] == 0 and f["bodies"] == 2, f
+
+
+@rendering
+def test_people_in_view_from_the_start_are_found_at_the_first_look(rig, tmp_path_factory):
+    """Two people in view from the first frame set, the other standing 1.1 m from the subject,
+    smaller: the detector, a one-person model, draws the nearer and more prominent person in every
+    camera at the first look (twice: a whole body and a part of it). With those just found
+    greyed it looks once more, and both are found in the first frame set, each with crops in
+    two cameras or more, not only after the first one's skeleton (five frame sets later)."""
+    from vmocap_core.apps.bench.people import FACING_X
+    from vmocap_core.method.people_config import PeopleConfig
+    from vmocap_core.method.people_look import PeopleLook
+    from vmocap_core.pcm.pipeline import BlazePosePcm
+
+    rec, stamps, truths, apart = _standing_in_the_way(rig, tmp_path_factory.mktemp("first_look"), FACING_X, frames=10)
+    assert apart[0] > 1.0, apart[0]  # the premise: two bodies apart, each seen whole
+    look = PeopleLook(rig, BlazePosePcm(rig, rotation="all", threads=2, precision=_precision()), PeopleConfig(max_people=2))
+    _, images = next(iter(_frame_sets(rec, rig)))
+    found = look.step(images, int(stamps[0]))
+    seeds = np.array([s.seed for s in look.seats])
+    print(seeds, truths[:, 0, INDEX["pelvis"]])
+    assert len(seeds) == 2 and all(len(v.camera) >= 2 for v in found.views.values()), found.views
+    d = np.linalg.norm(seeds[:, None, :2] - truths[None, :, 0, INDEX["pelvis"], :2], axis=-1)  # (seat, person)
+    assert sorted(d.argmin(axis=1)) == [0, 1] and d.min(axis=1).max() < 0.3, d
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,10 @@ walked in (`_search`: cheap whole-image looks, a closer look where needed), with
 whole images only) every `glance_every_s` in between. A detection that a
 tracked person's pelvis projects onto is theirs; the others are grouped across cameras
 (pcm/choice.py: hip centres triangulated from two cameras that project onto a detection in both)
-into new people, the one seen by the most cameras first. The crops of everyone go through the
+into new people, the one seen by the most cameras first. People found who have no skeleton yet
+are greyed over their detections for a second look in the same search (`detections_greyed`):
+the detector draws the most prominent person of an image, and two people in view from the start
+were otherwise found one after the other's initialization. The crops of everyone go through the
 landmark model together. A view says nothing of a person's keypoints that another tracked body
 covers there (occlusion.py).
 
@@ -25,6 +28,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Literal, Sequence
 
+import cv2
 import numpy as np
 
 from ..cameras.projection import Rig, binning_affine
@@ -33,13 +37,13 @@ from ..pcm.choice import AGREE_FRACTION, choose_subject, detection_arrays
 from ..pcm.crops import BODY_FRACTION, Crops
 from ..pcm.detector import Detection
 from ..pcm.views import PcmViews
-from .occlusion import hidden_keypoints, others_greyed, without_hidden
+from .occlusion import GREY, hidden_keypoints, others_greyed, without_hidden
 from .people_config import PeopleConfig, ended_people
 from .prediction import BodyPredictor
 from .results import seed_of, skeleton_of
 
 PELVIS = INDEX["pelvis"]
-SearchKind = Literal["waiting", "newcomers", "glance", "counting"]  # what a detector search is for (_search)
+SearchKind = Literal["waiting", "newcomers", "glance", "counting", "again"]  # what a detector search is for (_search)
 
 
 @dataclass
@@ -105,6 +109,31 @@ def hidden(rig: Rig, images: Sequence[np.ndarray | None], skeletons: np.ndarray)
         return list(images)
     greyed = others_greyed(rig, images, skeletons, [None])
     return [greyed.get((0, c), im) for c, im in enumerate(images)]
+
+
+BODY_WIDTH = 0.45  # a standing body's half-width over its hip-to-head length, arms down, with room to spare
+
+
+def detections_greyed(images: Sequence[np.ndarray | None], found: Sequence[Sequence[Detection]]) -> list:
+    """The images (copies where drawn on) with each of `found`'s detections (per camera)
+    greyed where the body stands: people found, not tracked yet, have no skeleton whose silhouette
+    `hidden` could grey. An ellipse about the detection's hip centre, along its hip-to-head axis,
+    that axis' length either way and BODY_WIDTH of it across (not the detector's whole circle,
+    which holds whoever stands behind or beside them too)."""
+    out = list(images)
+    for c, dets in enumerate(found):
+        image = out[c]
+        if image is None or not dets:
+            continue
+        im = image.copy()
+        for d in dets:
+            hip, axis = d.keypoints[0], d.keypoints[1] - d.keypoints[0]
+            length = float(np.linalg.norm(axis))
+            angle = float(np.degrees(np.arctan2(axis[1], axis[0])))
+            cv2.ellipse(im, (int(round(hip[0])), int(round(hip[1]))),
+                        (int(np.ceil(length)), int(np.ceil(BODY_WIDTH * length))), angle, 0, 360, (GREY,) * 3, -1)
+        out[c] = im
+    return out
 
 
 class PeopleLook:
@@ -235,24 +264,17 @@ class PeopleLook:
             pelvises = skeletons[:, PELVIS]
             pelvises = pelvises[np.isfinite(pelvises).all(axis=1)]
             left = self._search(images, skeletons, pelvises, search, frozenset(tracked))
-            # the lost first (near where they were), then newcomers, the best seen first
-            for s in waiting:
-                choice = choose_subject(self.seen, left, s.seed)
-                point = choice.point
-                near = point is not None and np.linalg.norm(point - s.seed) <= cfg.reacquire_m
-                crops[s.number] = self._crops(s, choice.index if near else np.full(len(self.rig), -1), left, have,
-                                              stamp_ns)
-                if near and point is not None:
-                    left = explained(self.seen, left, point[None])
-                    if s.seen_ns == s.born_ns:  # not initialized yet: follow their detections
-                        s.seed = point
-            while len(self.seats) < cfg.max_people:
-                choice = choose_subject(self.seen, left, None)
-                if choice.point is None:
-                    break
-                s = self._new_seat(choice.point, stamp_ns)
-                crops[s.number] = self._crops(s, choice.index, left, have, stamp_ns)
-                left = explained(self.seen, left, choice.point[None])
+            left, placed, points, unplaced = self._place(left, waiting, crops, have, stamp_ns)
+            # the detector, a one-person model, draws the most prominent person of an image and
+            # misses a farther or smaller one: before those just found have a skeleton to grey,
+            # look once more with their detections greyed, for whom they hid
+            again = any(s.seen_ns == s.born_ns for s in unplaced) or \
+                (search == "newcomers" and len(self.seats) < cfg.max_people)
+            if search != "glance" and again and any(placed):
+                shown = [im if placed[c] else None for c, im in enumerate(detections_greyed(images, placed))]
+                second = self._search(shown, skeletons, np.concatenate([pelvises, points]), "again")
+                left = [second[c] if placed[c] else d for c, d in enumerate(left)]
+                left = self._place(left, unplaced, crops, have, stamp_ns)[0]
             if search != "glance":  # what the diagnostics say: the full looks' counts
                 self._untracked = np.array([len(d) for d in left])
                 self._left_out = self._people_in(left)
@@ -272,6 +294,43 @@ class PeopleLook:
             company = len(tracked) - (s.number in tracked)  # the others with a skeleton (MarkerSlot)
             views[s.number] = dataclasses.replace(own, person=s.number, company=company)
         return Look(stamp_ns, views, {s.number: s.slot for s in self.seats}, self._untracked.copy(), self._left_out)
+
+    def _place(self, left: list[list[Detection]], waiting: list[Seat], crops: dict[int, Crops], have: np.ndarray,
+               stamp_ns: int) -> tuple[list[list[Detection]], list[list[Detection]], np.ndarray, list[Seat]]:
+        """A search's detections given out: to each waiting person the detections near where they
+        were (their crops; where none, their last ones held), then to new seats, the best seen
+        first. -> the detections left, per camera those given out, the (P, 3) hip centres of
+        those given them, the waiting people given none."""
+        cfg = self.config
+        placed: list[list[Detection]] = [[] for _ in left]
+        unplaced, points = [], []
+
+        def give(index: np.ndarray, point: np.ndarray) -> list[list[Detection]]:
+            for c, i in enumerate(index):
+                if i >= 0:
+                    placed[c].append(left[c][i])
+            points.append(point)
+            return explained(self.seen, left, point[None])
+
+        for s in waiting:  # the lost first (near where they were), then newcomers
+            choice = choose_subject(self.seen, left, s.seed)
+            point = choice.point
+            near = point is not None and np.linalg.norm(point - s.seed) <= cfg.reacquire_m
+            crops[s.number] = self._crops(s, choice.index if near else np.full(len(self.rig), -1), left, have, stamp_ns)
+            if near and point is not None:
+                left = give(choice.index, point)
+                if s.seen_ns == s.born_ns:  # not initialized yet: follow their detections
+                    s.seed = point
+            else:
+                unplaced.append(s)
+        while len(self.seats) < cfg.max_people:
+            choice = choose_subject(self.seen, left, None)
+            if choice.point is None:
+                break
+            s = self._new_seat(choice.point, stamp_ns)
+            crops[s.number] = self._crops(s, choice.index, left, have, stamp_ns)
+            left = give(choice.index, choice.point)
+        return left, placed, np.array(points).reshape(-1, 3), unplaced
 
     def _people_in(self, found: list[list[Detection]]) -> int:
         """How many people the detections make, grouped across cameras as newcomers are."""
@@ -296,13 +355,16 @@ class PeopleLook:
         the first search after someone tracked is hidden who was not at the last such look (the
         detector, a one-person model, drew the most prominent person of an image and missed a
         smaller one beside them; `greyed`: the numbers of the hidden). "glance": the whole
-        images only. "counting" the people left out (every slot taken): as for newcomers, but
+        images only. "again": a second look with the people just found greyed (step), closer
+        but not turned. "counting" the people left out (every slot taken): as for newcomers, but
         never every camera's closer look, which costs more than a frame period."""
         shown = hidden(self.seen, images, skeletons)
         if kind == "waiting":
             return explained(self.seen, self.pcm.detect_people(shown), pelvises)
         if kind == "glance":
             return explained(self.seen, self.pcm.detect_people(shown, turned=False, closer=False), pelvises)
+        if kind == "again":
+            return explained(self.seen, self.pcm.detect_people(shown, turned=False), pelvises)
         periodic = kind == "newcomers" and self._searches % self.config.closer_every == 0  # the first search too
         thorough = periodic or (kind == "newcomers" and not greyed <= self._greyed)
         if kind == "newcomers":
