@@ -39,7 +39,8 @@ def test_bench_graph_json(tmp_path):
 
 def test_bench_graph_people_json(tmp_path):
     """`--people 1`: a rendered person through the graph with max_people 2 and the real CNN;
-    every stage node's figures are reported."""
+    every stage node's figures are reported, and how often the looped scene jumps back (everyone
+    found anew) within the measured window."""
     import ctypes.util
     import importlib.util
 
@@ -54,6 +55,7 @@ def test_bench_graph_people_json(tmp_path):
     out = json.loads(r.stdout.strip().splitlines()[-1])
     m = out["modes"]["default"]
     assert out["people"] == 1 and m["rate_hz"] > 1.0, m
+    assert out["scene_restarts_in_window"] == 2  # a 2 s scene at 30 Hz, measured from 1 s to 4 s
     assert set(m["cpu_pct"]) == {"vmocap_pcm", "vmocap_markers", "vmocap_skeleton"}, m
     assert all(m["stages_ms"][s]["p50"] > 0.0 for s in ("pcm", "markers", "skeleton")), m
     assert not list(tmp_path.glob("vmocap_bench_graph_*"))
