@@ -56,11 +56,10 @@ class Seat:
     predictor: BodyPredictor  # their fed-back skeleton, extrapolated to the frame set (their crops)
     seed: np.ndarray  # (3,) their hip centre when last seen: where to look for them when lost
     seen_ns: int  # stamp of their last frame set with a skeleton (or of their detection)
-    born_ns: int = 0  # stamp of the frame set they were found in (seen_ns stays it until their first skeleton)
     body: np.ndarray | None = None  # their last fed-back skeleton (None: none, or a seed)
     fed_ns: int = -1  # stamp of their last feedback (a latched topic may bring an older one again)
     held: dict[int, tuple[int, Any]] = field(default_factory=dict)  # camera -> (stamp, detector crop) before a skeleton
-    had_body: bool = False  # a skeleton was fed back for them once
+    had_body: bool = False  # a skeleton was fed back for them once (False: found, not initialized yet)
 
 
 @dataclass
@@ -193,7 +192,7 @@ class PeopleLook:
         taken = {s.slot for s in self.seats}
         slot = next(k for k in range(self.config.max_people) if k not in taken)
         s = Seat(self._next, slot, BodyPredictor(enabled=self.crop_prediction == "rigid"),
-                 np.asarray(seed, dtype=np.float64), stamp_ns, stamp_ns)
+                 np.asarray(seed, dtype=np.float64), stamp_ns)
         self._next += 1
         self.seats.append(s)
         return s
@@ -214,7 +213,7 @@ class PeopleLook:
         if waiting:
             # a person found and not yet initialized gets fresh detections every frame set: the
             # initialization triangulates consecutive frame sets of a body that may walk fast
-            every = 0.0 if any(s.seen_ns == s.born_ns for s in waiting) else cfg.wait_search_s
+            every = 0.0 if any(not s.had_body for s in waiting) else cfg.wait_search_s
             return "waiting" if due(self._last_detection_ns, every) else None
         if len(self.seats) < cfg.max_people:
             if self._newly_tracked or due(self._last_full_ns, cfg.detect_every_s):
@@ -268,7 +267,7 @@ class PeopleLook:
             # the detector, a one-person model, draws the most prominent person of an image and
             # misses a farther or smaller one: before those just found have a skeleton to grey,
             # look once more with their detections greyed, for whom they hid
-            again = any(s.seen_ns == s.born_ns for s in unplaced) or \
+            again = any(not s.had_body for s in unplaced) or \
                 (search == "newcomers" and len(self.seats) < cfg.max_people)
             if search != "glance" and again and any(placed):
                 shown = [im if placed[c] else None for c, im in enumerate(detections_greyed(images, placed))]
@@ -319,7 +318,7 @@ class PeopleLook:
             crops[s.number] = self._crops(s, choice.index if near else np.full(len(self.rig), -1), left, have, stamp_ns)
             if near and point is not None:
                 left = give(choice.index, point)
-                if s.seen_ns == s.born_ns:  # not initialized yet: follow their detections
+                if not s.had_body:  # not initialized yet: follow their detections
                     s.seed = point
             else:
                 unplaced.append(s)
