@@ -91,8 +91,8 @@ class PcmViews:
         """The views where `keep` (V,) is True (stamped `stamp_ns` when given)."""
         keep = np.asarray(keep, dtype=bool).reshape(self.n_views)
         return replace(self, maps=self.maps[keep], image_to_map=self.image_to_map[keep], camera=self.camera[keep],
-                                   valid=self.valid[keep], presence=self.presence[keep], visibility=self.visibility[keep],
-                                   stamp_ns=self.stamp_ns if stamp_ns is None else stamp_ns)
+                       valid=self.valid[keep], presence=self.presence[keep], visibility=self.visibility[keep],
+                       stamp_ns=self.stamp_ns if stamp_ns is None else stamp_ns)
 
     @property
     def n_views(self) -> int:
