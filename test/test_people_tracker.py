@@ -68,7 +68,7 @@ def _detection(rig, camera: int, pelvis: np.ndarray) -> Detection:
 def test_detections_of_tracked_people_are_theirs(rig):
     """A detection whose hip a tracked pelvis projects onto is that person's; one of someone
     standing 1.5 m away is left for a new person."""
-    from vmocap_core.method.people_look import explained
+    from vmocap_core.method.people_search import explained
 
     tracked, other = np.array([0.0, 0.0, 1.0]), np.array([1.5, 0.0, 1.0])
     found = [[_detection(rig, c, tracked), _detection(rig, c, other)] for c in range(len(rig))]
@@ -82,7 +82,7 @@ def test_tracked_bodies_are_hidden_from_the_detector(rig):
     """The search for others greys out each tracked body's silhouette and leaves the rest of
     the image, and the input images, as they were: a person standing 0.45 m beside it (in
     its box from most cameras) stays in view for the detector."""
-    from vmocap_core.method.people_look import hidden
+    from vmocap_core.method.people_search import hidden
 
     images = [np.full((c.height, c.width, 3), 30, np.uint8) for c in rig]
     body = np.full((25, 3), np.nan)
@@ -622,6 +622,44 @@ def test_people_in_view_from_the_start_are_found_at_the_first_look(rig, tmp_path
     look = PeopleLook(rig, BlazePosePcm(rig, rotation="all", threads=2, precision=_precision()), PeopleConfig(max_people=2))
     _, images = next(iter(_frame_sets(rec, rig)))
     found = look.step(images, int(stamps[0]))
+    seeds = np.array([s.seed for s in look.seats])
+    print(seeds, truths[:, 0, INDEX["pelvis"]])
+    assert len(seeds) == 2 and all(len(v.camera) >= 2 for v in found.views.values()), found.views
+    d = np.linalg.norm(seeds[:, None, :2] - truths[None, :, 0, INDEX["pelvis"], :2], axis=-1)  # (seat, person)
+    assert sorted(d.argmin(axis=1)) == [0, 1] and d.min(axis=1).max() < 0.3, d
+
+
+@rendering
+def test_searches_beside_the_frame_sets_find_both_without_holding_them(rig, tmp_path_factory, monkeypatch):
+    """A free-running graph's look (`beside`): the detector searches in a thread of its own, on
+    copies of the images of the frame set it was due at, and the frame sets never run it. The
+    first frame set is looked at before any search ended (nobody seated yet); the next two are
+    looked at once the searches of the first ended (the first look, then the second with the
+    person it found greyed): both people are seated, each with crops in two cameras or more, each seed within 0.3 m of
+    a different person."""
+    from vmocap_core.apps.bench.people import FACING_X
+    from vmocap_core.method.people_config import PeopleConfig
+    from vmocap_core.method.people_look import PeopleLook
+    from vmocap_core.pcm.pipeline import BlazePosePcm
+
+    rec, stamps, truths, _ = _standing_in_the_way(rig, tmp_path_factory.mktemp("beside"), FACING_X, frames=10)
+    pcm = BlazePosePcm(rig, rotation="all", threads=2, precision=_precision())
+
+    def in_the_frame_set(*args, **kwargs):
+        raise AssertionError("a frame set ran the detector")
+
+    monkeypatch.setattr(pcm, "detect_people", in_the_frame_set)
+    look = PeopleLook(rig, pcm, PeopleConfig(max_people=2), beside=True)
+    try:
+        sets = iter(_frame_sets(rec, rig))
+        _, images = next(sets)
+        assert look.step(images, int(stamps[0])).views == {}  # the search runs beside: nobody yet
+        for k, (_, images) in zip((1, 2), sets):  # the first look's finds, then the second's
+            assert look.wait_search(120), "the search did not end"
+            found = look.step(images, int(stamps[k]))
+        assert look.search_error == ""
+    finally:
+        look.close()
     seeds = np.array([s.seed for s in look.seats])
     print(seeds, truths[:, 0, INDEX["pelvis"]])
     assert len(seeds) == 2 and all(len(v.camera) >= 2 for v in found.views.values()), found.views

@@ -6,8 +6,9 @@ each lattice search reads maps of its own person. The detector runs on images wi
 bodies' silhouettes greyed (`hidden`): every frame set while someone found is not initialized yet
 (their crops come from it), every wait_search_s while someone lost waits (their last crops held in
 between), and every `detect_every_s` while fewer than `max_people` are tracked, to find people who
-walked in (`_search`: cheap whole-image looks, a closer look where needed), with glances (the
-whole images only) every `glance_every_s` in between. A detection that a
+walked in (`_plan`: cheap whole-image looks, a closer look where needed), with glances (the
+whole images only) every `glance_every_s` in between; in a free-running graph beside the frame
+sets (`beside`, pcm/background.py), otherwise in the frame set's own time. A detection that a
 tracked person's pelvis projects onto is theirs; the others are grouped across cameras
 (pcm/choice.py: hip centres triangulated from two cameras that project onto a detection in both)
 into new people, the one seen by the most cameras first. People found who have no skeleton yet
@@ -26,24 +27,27 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Literal, Sequence
+from typing import Any, Sequence
 
-import cv2
 import numpy as np
 
 from ..cameras.projection import Rig, binning_affine
 from ..keypoints import INDEX, KEYPOINTS
-from ..pcm.choice import AGREE_FRACTION, choose_subject, detection_arrays
+from ..pcm.background import Background
+from ..pcm.choice import choose_subject
 from ..pcm.crops import BODY_FRACTION, Crops
-from ..pcm.detector import Detection
+from ..pcm.detector import Detection, PoseDetector
 from ..pcm.views import PcmViews
-from .occlusion import GREY, hidden_keypoints, others_greyed, without_hidden
+from .occlusion import hidden_keypoints, others_greyed, without_hidden
 from .people_config import PeopleConfig, ended_people
+from .people_search import Search, SearchKind, detections_greyed, explained, run_search
 from .prediction import BodyPredictor
 from .results import seed_of, skeleton_of
 
 PELVIS = INDEX["pelvis"]
-SearchKind = Literal["waiting", "newcomers", "glance", "counting", "again"]  # what a detector search is for (_search)
+# nice of the thread that searches beside the frame sets: below the frame sets, which must not
+# wait, but not the census' lowest, which a saturated CPU starves (a newcomer would never be found)
+SEARCH_NICE = 10
 
 
 @dataclass
@@ -80,68 +84,13 @@ def _concat(crops: Sequence[Crops]) -> Crops:
                  np.concatenate([c.valid for c in crops if c.valid is not None]))
 
 
-def explained(rig: Rig, found: Sequence[Sequence[Detection]], pelvises: np.ndarray) -> list[list[Detection]]:
-    """Per camera, the detections no tracked person (pelvises (P, 3)) projects onto: the
-    detection's hip within AGREE_FRACTION of its hip-to-head length of a projected pelvis
-    (pcm/choice.py's rule for one person's detections in two cameras)."""
-    if len(pelvises) == 0:
-        return [list(d) for d in found]
-    uv, front = rig.project(np.asarray(pelvises, dtype=np.float64))  # (C, P, 2), (C, P)
-    out: list[list[Detection]] = []
-    for c, (dets, hips, reach) in enumerate(zip(found, *detection_arrays(found)[:2])):
-        if not dets:
-            out.append([])
-            continue
-        dist = np.linalg.norm(hips[:, None] - uv[c][None], axis=-1)  # (n, P)
-        taken = (front[c][None] & (dist < AGREE_FRACTION * np.maximum(reach[:, None], 1e-6))).any(axis=1)
-        out.append([d for d, t in zip(dets, taken) if not t])
-    return out
-
-
-def hidden(rig: Rig, images: Sequence[np.ndarray | None], skeletons: np.ndarray) -> list:
-    """The images with each skeleton's ((P, 25, 3) keypoints) silhouette greyed
-    (occlusion.others_greyed): the person detector finds the most prominent people of an image
-    and misses a smaller one beside them (the BlazePose detector is a one-person model), so the
-    people already tracked are taken out of the search for others. Their silhouettes, not their
-    boxes: from most cameras a person standing beside a tracked one lies inside that one's box."""
-    if len(skeletons) == 0:
-        return list(images)
-    greyed = others_greyed(rig, images, skeletons, [None])
-    return [greyed.get((0, c), im) for c, im in enumerate(images)]
-
-
-BODY_WIDTH = 0.45  # a standing body's half-width over its hip-to-head length, arms down, with room to spare
-
-
-def detections_greyed(images: Sequence[np.ndarray | None], found: Sequence[Sequence[Detection]]) -> list:
-    """The images (copies where drawn on) with each of `found`'s detections (per camera)
-    greyed where the body stands: people found, not tracked yet, have no skeleton whose silhouette
-    `hidden` could grey. An ellipse about the detection's hip centre, along its hip-to-head axis,
-    that axis' length either way and BODY_WIDTH of it across (not the detector's whole circle,
-    which holds whoever stands behind or beside them too)."""
-    out = list(images)
-    for c, dets in enumerate(found):
-        image = out[c]
-        if image is None or not dets:
-            continue
-        im = image.copy()
-        for d in dets:
-            hip, axis = d.keypoints[0], d.keypoints[1] - d.keypoints[0]
-            length = float(np.linalg.norm(axis))
-            angle = float(np.degrees(np.arctan2(axis[1], axis[0])))
-            cv2.ellipse(im, (int(round(hip[0])), int(round(hip[1]))),
-                        (int(np.ceil(length)), int(np.ceil(BODY_WIDTH * length))), angle, 0, 360, (GREY,) * 3, -1)
-        out[c] = im
-    return out
-
-
 class PeopleLook:
     """Up to `people.max_people` people through one BlazePose PCM source (pcm.pipeline.BlazePosePcm:
     `detect_people`, `crops_from_skeleton`, `landmark`): `step(images, stamp_ns)` per frame set,
     then each person's `feedback`, and `end` for the people who ended (module doc)."""
 
     def __init__(self, rig: Rig, pcm: Any, people: PeopleConfig | None = None, crop_prediction: str = "rigid",
-                 binning: int = 1) -> None:
+                 binning: int = 1, beside: bool = False) -> None:
         self.rig, self.pcm = rig, pcm
         # binning > 1: the images come reduced that many times (REP 104) and `pcm` works on the
         # rig as they show it; the detections are read with that rig, and the views' affines
@@ -159,6 +108,30 @@ class PeopleLook:
         self._untracked = np.full(len(rig), -1)  # per camera, the detections nobody tracks at the last full look
         self._left_out = 0  # people (seen by two cameras) not tracked for want of a slot, at the last full look
         self._newly_tracked = False  # someone got their first skeleton since the last search for newcomers
+        # beside: the searches run beside the frame sets (a free-running graph: a search costs
+        # several frame periods, which every tracked person's frame sets would otherwise wait
+        # for), on copies of the images of the frame set they were due at; their finds are given
+        # out at the first frame set after they end. Otherwise in the frame set's own time
+        # (offline, lockstep: the same result on every machine)
+        self._beside: Background[Search] | None = None
+        if beside:
+            self._beside = Background("vmocap-people-search", pcm.new_detector, self._search_beside, SEARCH_NICE)
+
+    def _search_beside(self, detector: PoseDetector, search: Search) -> list[list[Detection]]:
+        return run_search(self.seen, detector.find_people, search)
+
+    def wait_search(self, timeout: float | None = None) -> bool:
+        """Until no search runs beside the frame sets; False when the timeout came first."""
+        return True if self._beside is None else self._beside.wait(timeout)
+
+    @property
+    def search_error(self) -> str:
+        """Why the last search beside the frame sets failed ("" none)."""
+        return "" if self._beside is None else self._beside.error
+
+    def close(self) -> None:
+        if self._beside is not None:
+            self._beside.close()
 
     def feedback(self, number: int, stamp_ns: int, feedback: np.ndarray | None, tracking: bool = True) -> None:
         """A person's fed-back skeleton of the frame set stamped `stamp_ns` (results.feedback_of):
@@ -198,7 +171,7 @@ class PeopleLook:
         return s
 
     def _search_due(self, stamp_ns: int, waiting: list[Seat]) -> SearchKind | None:
-        """Which search this frame set runs (_search), if any: "waiting" every frame set while
+        """Which search this frame set runs (_plan), if any: "waiting" every frame set while
         someone found is not initialized yet, every wait_search_s while someone lost waits (their
         last detector crops are held in between: a full search costs several frame periods);
         "newcomers" every detect_every_s while fewer than max_people are tracked, and at once
@@ -243,7 +216,6 @@ class PeopleLook:
         return Crops.from_rectangles(cams, [s.held[c][1] for c in cams])
 
     def step(self, images: Sequence[np.ndarray | None], stamp_ns: int) -> Look:
-        cfg = self.config
         have = np.array([im is not None for im in images], dtype=bool)
         crops: dict[int, Crops] = {}
         tracked: dict[int, np.ndarray] = {}
@@ -254,29 +226,23 @@ class PeopleLook:
                 c = self.pcm.crops_from_skeleton(kp, turned_fraction=BODY_FRACTION)
                 crops[s.number] = c.select(have[c.camera])
         waiting = [s for s in self.seats if s.number not in tracked]
-        search = self._search_due(stamp_ns, waiting)
-        if search is not None:
-            self._last_detection_ns = stamp_ns
-            if search != "glance":
-                self._last_full_ns = stamp_ns
-            skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
-            pelvises = skeletons[:, PELVIS]
-            pelvises = pelvises[np.isfinite(pelvises).all(axis=1)]
-            left = self._search(images, skeletons, pelvises, search, frozenset(tracked))
-            left, placed, points, unplaced = self._place(left, waiting, crops, have, stamp_ns)
-            # the detector, a one-person model, draws the most prominent person of an image and
-            # misses a farther or smaller one: before those just found have a skeleton to grey,
-            # look once more with their detections greyed, for whom they hid
-            again = any(not s.had_body for s in unplaced) or \
-                (search == "newcomers" and len(self.seats) < cfg.max_people)
-            if search != "glance" and again and any(placed):
-                shown = [im if placed[c] else None for c, im in enumerate(detections_greyed(images, placed))]
-                second = self._search(shown, skeletons, np.concatenate([pelvises, points]), "again")
-                left = [second[c] if placed[c] else d for c, d in enumerate(left)]
-                left = self._place(left, unplaced, crops, have, stamp_ns)[0]
-            if search != "glance":  # what the diagnostics say: the full looks' counts
-                self._untracked = np.array([len(d) for d in left])
-                self._left_out = self._people_in(left)
+        pelvises = np.array([kp[PELVIS] for kp in tracked.values()]).reshape(-1, 3)
+        pelvises = pelvises[np.isfinite(pelvises).all(axis=1)]
+        if self._beside is None:
+            search = self._plan(images, stamp_ns, tracked, pelvises, waiting)
+            while search is not None:  # a search, then perhaps a second look ("again")
+                found = run_search(self.seen, self.pcm.detect_people, search)
+                search = self._found(search, found, waiting, pelvises, crops, have, stamp_ns)
+        else:
+            done = self._beside.take()
+            if done is not None:
+                again = self._found(*done, waiting, pelvises, crops, have, stamp_ns)
+                if again is not None:
+                    self._beside.offer(again)
+            if self._beside.idle:
+                search = self._plan(images, stamp_ns, tracked, pelvises, waiting)
+                if search is not None:
+                    self._beside.offer(search)
         for s in waiting:  # between searches: their held detector crops
             if s.number not in crops:
                 crops[s.number] = self._crops(s, np.full(len(self.rig), -1), [[] for _ in self.rig], have, stamp_ns)
@@ -342,41 +308,71 @@ class PeopleLook:
             found = explained(self.seen, found, point[None])
         return n
 
-    def _search(self, images: Sequence[np.ndarray | None], skeletons: np.ndarray, pelvises: np.ndarray,
-                kind: SearchKind, greyed: frozenset[int] = frozenset()) -> list[list[Detection]]:
-        """Per camera, the detections no tracked person explains, with the tracked bodies hidden.
-        For someone "waiting": every look of detect_people. For "newcomers": the
-        whole images, and the closer look only in the cameras that found nobody while another
-        one found someone (a newcomer in the room is seen whole by some camera; the closer look
-        in every camera of an empty room costs 110 ms against 4 x 4 ms), and in every camera on
-        every closer_every-th search (a person small in every view: far, or a low-resolution
-        rig), with a turned look too (a lying newcomer); and the closer look in every camera in
-        the first search after someone tracked is hidden who was not at the last such look (the
-        detector, a one-person model, drew the most prominent person of an image and missed a
-        smaller one beside them; `greyed`: the numbers of the hidden). "glance": the whole
-        images only. "again": a second look with the people just found greyed (step), closer
-        but not turned. "counting" the people left out (every slot taken): as for newcomers, but
-        never every camera's closer look, which costs more than a frame period."""
-        shown = hidden(self.seen, images, skeletons)
+    def _plan(self, images: Sequence[np.ndarray | None], stamp_ns: int, tracked: dict[int, np.ndarray],
+              pelvises: np.ndarray, waiting: list[Seat]) -> Search | None:
+        """The search due at this frame set (_search_due), if any, and how closely it looks. For
+        someone "waiting": every look of detect_people. For "newcomers": the whole images, and
+        the closer look only in the cameras that found nobody while another one found someone (a
+        newcomer in the room is seen whole by some camera; the closer look in every camera of an
+        empty room costs 110 ms against 4 x 4 ms), and in every camera on every closer_every-th
+        search (a person small in every view: far, or a low-resolution rig), with a turned look
+        too (a lying newcomer); and the closer look in every camera in the first search after
+        someone tracked is hidden who was not at the last such look (the detector, a one-person
+        model, drew the most prominent person of an image and missed a smaller one beside them).
+        "glance": the whole images only. "counting" the people left out (every slot taken): as
+        for newcomers, but never every camera's closer look, which costs more than a frame period."""
+        kind = self._search_due(stamp_ns, waiting)
+        if kind is None:
+            return None
+        self._last_detection_ns = stamp_ns
+        if kind != "glance":
+            self._last_full_ns = stamp_ns
+        skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
+        if self._beside is not None:  # the frame's buffer may be reused (shared memory) once the frame set is done
+            images = [None if im is None else np.array(im, copy=True) for im in images]
         if kind == "waiting":
-            return explained(self.seen, self.pcm.detect_people(shown), pelvises)
+            return Search(kind, stamp_ns, list(images), skeletons, pelvises, turned=True, closer=True)
         if kind == "glance":
-            return explained(self.seen, self.pcm.detect_people(shown, turned=False, closer=False), pelvises)
-        if kind == "again":
-            return explained(self.seen, self.pcm.detect_people(shown, turned=False), pelvises)
+            return Search(kind, stamp_ns, list(images), skeletons, pelvises, turned=False, closer=False)
+        greyed = frozenset(tracked)
         periodic = kind == "newcomers" and self._searches % self.config.closer_every == 0  # the first search too
         thorough = periodic or (kind == "newcomers" and not greyed <= self._greyed)
         if kind == "newcomers":
             self._searches += 1
         if thorough:
             self._greyed = greyed
-        left = explained(self.seen, self.pcm.detect_people(shown, turned=periodic, closer=thorough), pelvises)
-        empty = [c for c, d in enumerate(left) if not d and shown[c] is not None]
-        if not thorough and empty and len(empty) < sum(im is not None for im in shown):
-            again = self.pcm.detect_people([shown[c] if c in empty else None for c in range(len(shown))], turned=False)
-            closer = explained(self.seen, again, pelvises)
-            left = [closer[c] if c in empty else d for c, d in enumerate(left)]
-        return left
+        return Search(kind, stamp_ns, list(images), skeletons, pelvises, turned=periodic, closer=thorough,
+                      fill=not thorough)
+
+    def _found(self, search: Search, left: list[list[Detection]], waiting: list[Seat], pelvises: np.ndarray,
+               crops: dict[int, Crops], have: np.ndarray, stamp_ns: int) -> Search | None:
+        """A search's detections given out at the frame set stamped stamp_ns (_place) -> the
+        second look it calls for, if any: the detector, a one-person model, draws the most
+        prominent person of an image and misses a farther or smaller one, so before those just
+        found have a skeleton to grey it looks once more with their detections greyed, for whom
+        they hid ("again", closer but not turned)."""
+        if search.stamp_ns != stamp_ns:  # made at an earlier frame set: people tracked since are theirs too
+            left = explained(self.seen, left, pelvises)
+        if search.kind == "again":
+            left = self._place(left, [s for s in waiting if s.number in search.unplaced], crops, have, stamp_ns)[0]
+            self._count(left)
+            return None
+        left, placed, points, unplaced = self._place(left, waiting, crops, have, stamp_ns)
+        again = any(not s.had_body for s in unplaced) or \
+            (search.kind == "newcomers" and len(self.seats) < self.config.max_people)
+        if search.kind != "glance" and again and any(placed):
+            shown = [im if placed[c] else None for c, im in enumerate(detections_greyed(search.images, placed))]
+            return Search("again", search.stamp_ns, shown, search.skeletons, np.concatenate([search.pelvises, points]),
+                          turned=False, closer=True, first=left, placed=placed,
+                          unplaced=frozenset(s.number for s in unplaced))
+        if search.kind != "glance":
+            self._count(left)
+        return None
+
+    def _count(self, left: list[list[Detection]]) -> None:
+        """What the diagnostics say: the full looks' counts of whom nobody tracks."""
+        self._untracked = np.array([len(d) for d in left])
+        self._left_out = self._people_in(left)
 
     def _infer(self, images: Sequence[np.ndarray | None], crops: dict[int, Crops], tracked: dict[int, np.ndarray],
                stamp_ns: int) -> dict[int, PcmViews]:

@@ -12,13 +12,12 @@ and on a saturated CPU the looks come less often. The crops and heatmaps never d
 
 from __future__ import annotations
 
-import os
-import threading
 from typing import Callable, Sequence
 
 import numpy as np
 
 from ..cameras.projection import Rig
+from .background import Background
 from .choice import others_near
 from .detector import Detection, PoseDetector
 
@@ -50,15 +49,16 @@ class Census:
         self._looked_ns = np.full(len(rig), np.iinfo(np.int64).min // 2, dtype=np.int64)  # capture stamp of each camera's last look
         self.looks = 0  # looks finished
         self._find = find
-        self._background = background
-        self._make_detector = make_detector
         self._count = 0
         self._turn = 0
-        self._job: tuple[int, np.ndarray, np.ndarray, int] | None = None
-        self._cv = threading.Condition()
-        self._thread: threading.Thread | None = None
-        self._closed = False
-        self.error = ""  # why the last background look failed ("" none)
+        self._thread: Background[tuple[int, np.ndarray, np.ndarray, int]] | None = None
+        if background and make_detector is not None:
+            self._thread = Background("vmocap-census", make_detector, self._look_with, LOWEST_PRIORITY)
+
+    @property
+    def error(self) -> str:
+        """Why the last background look failed ("" none)."""
+        return "" if self._thread is None else self._thread.error
 
     def found(self, others: np.ndarray, stamp_ns: int = 0) -> None:
         """(C,) counts of a detector run on every camera made elsewhere (initialization) on the
@@ -84,20 +84,18 @@ class Census:
         if self._count % self.every or not have:
             return
         c = have[self._turn % len(have)]
-        if not self._background:
+        if self._thread is None:
             self._turn += 1
             self._look(c, images[c], pelvis, stamp_ns, self._find)
             return
-        with self._cv:
-            if self._job is not None or self._closed:
-                return  # the last look still runs: this one is skipped, the camera keeps its turn
+        # the frame's buffer may be reused (shared memory) once the frame set is done; a look
+        # offered while the last one runs is skipped and the camera keeps its turn
+        if self._thread.offer((c, np.array(images[c], copy=True), np.array(pelvis, dtype=np.float64), int(stamp_ns))):
             self._turn += 1
-            # the frame's buffer may be reused (shared memory) once the frame set is done
-            self._job = (c, np.array(images[c], copy=True), np.array(pelvis, dtype=np.float64), int(stamp_ns))
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._run, name="vmocap-census", daemon=True)
-                self._thread.start()
-            self._cv.notify()
+
+    def _look_with(self, detector: PoseDetector, job: tuple[int, np.ndarray, np.ndarray, int]) -> None:
+        c, image, pelvis, stamp_ns = job
+        self._look(c, image, pelvis, stamp_ns, lambda images: detector.find_people(images, turned=False))
 
     def _look(self, c: int, image: np.ndarray, pelvis: np.ndarray, stamp_ns: int, find: Find) -> None:
         # The detector merges two people who stand close (one box): a look at the person beside
@@ -109,48 +107,11 @@ class Census:
         self._looked_ns[c] = stamp_ns
         self.looks += 1
 
-    def _run(self) -> None:
-        try:  # this thread only (Linux: a thread id is a process id for setpriority)
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), LOWEST_PRIORITY)
-        except (AttributeError, OSError):
-            pass  # not Linux, or not allowed: it still never blocks a frame set
-        make = self._make_detector
-        assert make is not None  # checked in __init__
-        detector: PoseDetector | None = None
-
-        def find(images: Sequence[np.ndarray | None]) -> list[list[Detection]]:
-            nonlocal detector
-            detector = detector or make()  # loaded by the first look, in this thread
-            return detector.find_people(images, turned=False)
-
-        while True:
-            with self._cv:
-                while self._job is None and not self._closed:
-                    self._cv.wait()
-                job = self._job
-                if self._closed or job is None:
-                    return
-                c, image, pelvis, stamp_ns = job
-            try:
-                self._look(c, image, pelvis, stamp_ns, find)
-                self.error = ""
-            except Exception as exc:  # a diagnostic, never the frame sets' failure
-                self.error = f"{type(exc).__name__}: {exc}"
-            finally:
-                with self._cv:
-                    self._job = None
-                    self._cv.notify_all()
-
     def wait(self, timeout: float | None = None) -> bool:
         """Until no look runs (background); False when the timeout came first."""
-        with self._cv:
-            return self._cv.wait_for(lambda: self._job is None, timeout)
+        return True if self._thread is None else self._thread.wait(timeout)
 
     def close(self, timeout: float = 5.0) -> None:
-        """Ends the background thread after the look it runs (if any; on a saturated CPU a
-        lowest-priority look can take long: a daemon thread, it is not waited for beyond timeout)."""
-        with self._cv:
-            self._closed = True
-            self._cv.notify_all()
+        """Ends the background thread after the look it runs (background.Background.close)."""
         if self._thread is not None:
-            self._thread.join(timeout)
+            self._thread.close(timeout)

@@ -77,7 +77,7 @@ class BlazePosePcm:
         self.last_subject: np.ndarray | None = None  # (3,) pelvis of the last skeleton given to infer
         # per camera, detections that are not the subject at the last detector run on it
         self.census = Census(rig, census_every, lambda images: self.detect_people(images, turned=False),
-                             census_background, lambda: PoseDetector(detector_path, threads=1))
+                             census_background, self.new_detector)
         rotated_crops([], np.zeros((0, 2)), [], [], rotation)  # validates the mode now
 
     @property
@@ -93,6 +93,10 @@ class BlazePosePcm:
         if self._detector is None:
             self._detector = PoseDetector(self._detector_path, self._threads, parallel=self._parallel)
         return self._detector
+
+    def new_detector(self) -> PoseDetector:
+        """A detector of its own, on one thread, for work beside the frame sets (background.py)."""
+        return PoseDetector(self._detector_path, threads=1)
 
     def detect_people(self, images: Sequence[np.ndarray], turned: bool = True, closer: bool = True) -> list[list[Detection]]:
         """PoseDetector.find_people with this pipeline's detector."""

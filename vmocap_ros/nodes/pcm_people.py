@@ -44,7 +44,9 @@ class PeoplePcmNode(PcmNode):
         provider.warm_up()  # before READY: the first frame set would wait for it
         self.look = PeopleLook(self.rig, provider.pcm, PeopleConfig(
             max_people=p["max_people"], detect_every_s=p["detect_every_s"], glance_every_s=p["glance_every_s"],
-            count_every_s=p["count_every_s"], end_after_s=p["end_after_s"]), p["crop_prediction"], p["binning"])
+            count_every_s=p["count_every_s"], end_after_s=p["end_after_s"]), p["crop_prediction"], p["binning"],
+            # free-running, the detector searches beside the frame sets; in lockstep in their own time
+            beside=p["feedback_wait_ms"] == 0)
         self.seated: dict[int, dict[int, int]] = {}  # frame set stamp -> slot -> person number
         self.fed: list[tuple[int, dict]] = []  # slot feedback not yet given to the look (it may be looking)
         self.pending: set[int] = set()  # slots whose feedback of the awaited frame set has not come
@@ -119,8 +121,14 @@ class PeoplePcmNode(PcmNode):
     def _publish_keypoints(self, pcm: Any, cams: Any, stamp_ns: int) -> None:
         """Each camera's 2D keypoints are one person's: not published with several."""
 
+    def close(self) -> None:
+        self.look.close()
+        super().close()
+
     def status(self) -> dict[str, Any]:
         out = super().status()
+        if self.look.search_error:
+            self.warn_for("search", f"the detector's search for people failed: {self.look.search_error}")
         look = self.last_look
         if look is not None and look.left_out:
             self.warn_for("people", f"{look.left_out} more people in view than max_people {self.p['max_people']} "
