@@ -36,15 +36,21 @@ from ..keypoints import INDEX, KEYPOINTS
 from ..pcm.background import Background
 from ..pcm.choice import choose_subject
 from ..pcm.crops import BODY_FRACTION, Crops
-from ..pcm.detector import Detection, PoseDetector
+from ..pcm.detector import Detection, PoseDetector, nms
+from ..pcm.peaks import camera_keypoints
 from ..pcm.views import PcmViews
 from .occlusion import hidden_keypoints, others_greyed, without_hidden
 from .people_config import PeopleConfig, ended_people
-from .people_search import Search, SearchKind, detections_greyed, explained, run_search
+from .people_search import Search, SearchKind, detections_greyed, explained, hidden, run_search
 from .prediction import BodyPredictor
 from .results import seed_of, skeleton_of
 
 PELVIS = INDEX["pelvis"]
+HIPS = [INDEX["left_hip"], INDEX["right_hip"]]
+# a detection found again in a later frame set (_refound) lies within this many of its hip-to-head
+# lengths (about half a body height) of where it was: a walker's half second, not the next person
+REFIND_REACH = 1.5
+FOLLOW_MIN_WEIGHT = 0.5  # a hip's heatmap peak a crop follows (_follow): seen, not guessed
 # nice of the thread that searches beside the frame sets: below the frame sets, which must not
 # wait, but not the census' lowest, which a saturated CPU starves (a newcomer would never be found)
 SEARCH_NICE = 10
@@ -76,6 +82,27 @@ class Look:
     slots: dict[int, int]  # person number -> slot
     untracked: np.ndarray  # (C,) detections per camera nobody's skeleton explains, at the last look (-1: none yet)
     left_out: int = 0  # people two cameras see whom nobody tracks for want of a slot, at the last look
+
+
+@dataclass
+class _Now:
+    """The frame set a search is planned at or its finds are given out at (PeopleLook.step)."""
+
+    images: Sequence[np.ndarray | None]
+    stamp_ns: int
+    have: np.ndarray  # (C,) cameras with an image
+    tracked: dict[int, np.ndarray]  # person number -> their skeleton (25, 3) predicted to this frame set
+    waiting: list[Seat]  # the seated people without one
+    crops: dict[int, Crops]  # person number -> their crops so far
+
+    @property
+    def skeletons(self) -> np.ndarray:
+        return np.array(list(self.tracked.values())).reshape(-1, len(KEYPOINTS), 3)
+
+    @property
+    def pelvises(self) -> np.ndarray:
+        p = self.skeletons[:, PELVIS]
+        return p[np.isfinite(p).all(axis=1)]
 
 
 def _concat(crops: Sequence[Crops]) -> Crops:
@@ -226,27 +253,28 @@ class PeopleLook:
                 c = self.pcm.crops_from_skeleton(kp, turned_fraction=BODY_FRACTION)
                 crops[s.number] = c.select(have[c.camera])
         waiting = [s for s in self.seats if s.number not in tracked]
-        pelvises = np.array([kp[PELVIS] for kp in tracked.values()]).reshape(-1, 3)
-        pelvises = pelvises[np.isfinite(pelvises).all(axis=1)]
+        now = _Now(images, stamp_ns, have, tracked, waiting, crops)
         if self._beside is None:
-            search = self._plan(images, stamp_ns, tracked, pelvises, waiting)
+            search = self._plan(now)
             while search is not None:  # a search, then perhaps a second look ("again")
-                found = run_search(self.seen, self.pcm.detect_people, search)
-                search = self._found(search, found, waiting, pelvises, crops, have, stamp_ns)
+                search = self._found(search, run_search(self.seen, self.pcm.detect_people, search), now)
         else:
             done = self._beside.take()
             if done is not None:
-                again = self._found(*done, waiting, pelvises, crops, have, stamp_ns)
+                again = self._found(*done, now)
                 if again is not None:
                     self._beside.offer(again)
             if self._beside.idle:
-                search = self._plan(images, stamp_ns, tracked, pelvises, waiting)
+                search = self._plan(now)
                 if search is not None:
                     self._beside.offer(search)
         for s in waiting:  # between searches: their held detector crops
             if s.number not in crops:
                 crops[s.number] = self._crops(s, np.full(len(self.rig), -1), [[] for _ in self.rig], have, stamp_ns)
         pcm = self._infer(images, crops, tracked, stamp_ns)
+        for s in waiting:
+            if not s.had_body and s.number in pcm:
+                self._follow(s, pcm[s.number], stamp_ns)
         order = [n for n in tracked if n in pcm]
         if len(order) > 1:  # a view says nothing of a person's keypoints another body covers
             covered = hidden_keypoints(self.rig, np.stack([tracked[n] for n in order]))
@@ -259,6 +287,21 @@ class PeopleLook:
             company = len(tracked) - (s.number in tracked)  # the others with a skeleton (MarkerSlot)
             views[s.number] = dataclasses.replace(own, person=s.number, company=company)
         return Look(stamp_ns, views, {s.number: s.slot for s in self.seats}, self._untracked.copy(), self._left_out)
+
+    def _follow(self, s: Seat, views: PcmViews, stamp_ns: int) -> None:
+        """Before their skeleton, a person's held detector crops follow their hips as the
+        landmark model sees them in the crops (MediaPipe's tracking: a detection once, then the
+        landmarks place the next crop), where both hips are seen well and stay inside the crop:
+        the initialization needs consecutive frame sets of crops on them, and a search (several
+        frame periods beside a free-running graph's frame sets) finds them only now and then."""
+        uv, w = camera_keypoints(views, len(self.rig))  # full-resolution pixels
+        hips = uv[:, HIPS].mean(axis=1)  # (C, 2)
+        if self._to_binned is not None:  # the crops are in the pixels the detector saw
+            hips = hips @ self._to_binned[:2, :2].T + self._to_binned[:2, 2]
+        seen = np.all(w[:, HIPS] >= FOLLOW_MIN_WEIGHT, axis=1)
+        for c, (t, (centre, side, rotation)) in list(s.held.items()):
+            if seen[c] and t < stamp_ns and np.linalg.norm(hips[c] - centre) < side / 2:
+                s.held[c] = (stamp_ns, (hips[c].copy(), side, rotation))
 
     def _place(self, left: list[list[Detection]], waiting: list[Seat], crops: dict[int, Crops], have: np.ndarray,
                stamp_ns: int) -> tuple[list[list[Detection]], list[list[Detection]], np.ndarray, list[Seat]]:
@@ -308,8 +351,7 @@ class PeopleLook:
             found = explained(self.seen, found, point[None])
         return n
 
-    def _plan(self, images: Sequence[np.ndarray | None], stamp_ns: int, tracked: dict[int, np.ndarray],
-              pelvises: np.ndarray, waiting: list[Seat]) -> Search | None:
+    def _plan(self, now: _Now) -> Search | None:
         """The search due at this frame set (_search_due), if any, and how closely it looks. For
         someone "waiting": every look of detect_people. For "newcomers": the whole images, and
         the closer look only in the cameras that found nobody while another one found someone (a
@@ -321,20 +363,21 @@ class PeopleLook:
         model, drew the most prominent person of an image and missed a smaller one beside them).
         "glance": the whole images only. "counting" the people left out (every slot taken): as
         for newcomers, but never every camera's closer look, which costs more than a frame period."""
-        kind = self._search_due(stamp_ns, waiting)
+        stamp_ns = now.stamp_ns
+        kind = self._search_due(stamp_ns, now.waiting)
         if kind is None:
             return None
         self._last_detection_ns = stamp_ns
         if kind != "glance":
             self._last_full_ns = stamp_ns
-        skeletons = np.array(list(tracked.values())).reshape(-1, len(KEYPOINTS), 3)
+        skeletons, pelvises, images = now.skeletons, now.pelvises, list(now.images)
         if self._beside is not None:  # the frame's buffer may be reused (shared memory) once the frame set is done
             images = [None if im is None else np.array(im, copy=True) for im in images]
         if kind == "waiting":
             return Search(kind, stamp_ns, list(images), skeletons, pelvises, turned=True, closer=True)
         if kind == "glance":
             return Search(kind, stamp_ns, list(images), skeletons, pelvises, turned=False, closer=False)
-        greyed = frozenset(tracked)
+        greyed = frozenset(now.tracked)
         periodic = kind == "newcomers" and self._searches % self.config.closer_every == 0  # the first search too
         thorough = periodic or (kind == "newcomers" and not greyed <= self._greyed)
         if kind == "newcomers":
@@ -344,15 +387,15 @@ class PeopleLook:
         return Search(kind, stamp_ns, list(images), skeletons, pelvises, turned=periodic, closer=thorough,
                       fill=not thorough)
 
-    def _found(self, search: Search, left: list[list[Detection]], waiting: list[Seat], pelvises: np.ndarray,
-               crops: dict[int, Crops], have: np.ndarray, stamp_ns: int) -> Search | None:
+    def _found(self, search: Search, left: list[list[Detection]], now: _Now) -> Search | None:
         """A search's detections given out at the frame set stamped stamp_ns (_place) -> the
         second look it calls for, if any: the detector, a one-person model, draws the most
         prominent person of an image and misses a farther or smaller one, so before those just
         found have a skeleton to grey it looks once more with their detections greyed, for whom
         they hid ("again", closer but not turned)."""
-        if search.stamp_ns != stamp_ns:  # made at an earlier frame set: people tracked since are theirs too
-            left = explained(self.seen, left, pelvises)
+        waiting, crops, have, stamp_ns = now.waiting, now.crops, now.have, now.stamp_ns
+        if search.stamp_ns != stamp_ns:  # made at an earlier frame set: where are they now?
+            left = self._refound(left, now, search.placed if search.kind == "again" else None)
         if search.kind == "again":
             left = self._place(left, [s for s in waiting if s.number in search.unplaced], crops, have, stamp_ns)[0]
             self._count(left)
@@ -360,14 +403,47 @@ class PeopleLook:
         left, placed, points, unplaced = self._place(left, waiting, crops, have, stamp_ns)
         again = any(not s.had_body for s in unplaced) or \
             (search.kind == "newcomers" and len(self.seats) < self.config.max_people)
-        if search.kind != "glance" and again and any(placed):
-            shown = [im if placed[c] else None for c, im in enumerate(detections_greyed(search.images, placed))]
-            return Search("again", search.stamp_ns, shown, search.skeletons, np.concatenate([search.pelvises, points]),
+        if search.kind != "glance" and again and any(placed):  # on this frame set: `placed` are in it
+            shown = [im if placed[c] else None for c, im in enumerate(detections_greyed(now.images, placed))]
+            if self._beside is not None:
+                shown = [None if im is None else np.array(im, copy=True) for im in shown]
+            return Search("again", stamp_ns, shown, now.skeletons, np.concatenate([now.pelvises, points]),
                           turned=False, closer=True, first=left, placed=placed,
                           unplaced=frozenset(s.number for s in unplaced))
         if search.kind != "glance":
             self._count(left)
         return None
+
+    def _refound(self, left: list[list[Detection]], now: _Now, greyed: list | None = None) -> list[list[Detection]]:
+        """A search's detections of an earlier frame set (made beside the frame sets), found again
+        in this one: one zoomed detector run per detection, in a region centred on it (a person
+        walks out of a crop placed where they were a few frame periods ago; the whole search
+        again would cost those periods again), the tracked bodies greyed and the detections
+        `greyed` (per camera: those a second look was made without). The detection nearest where
+        it was, within REFIND_REACH of its hip-to-head length, is theirs; one not found again is
+        dropped (the next search looks again)."""
+        shown = hidden(self.seen, now.images, now.skeletons)
+        if greyed is not None:
+            shown = detections_greyed(shown, greyed)
+        cams = [c for c, dets in enumerate(left) for _ in dets if shown[c] is not None]
+        was = [d for c, dets in enumerate(left) for d in dets if shown[c] is not None]
+        out: list[list[Detection]] = [[] for _ in left]
+        if not cams:
+            return out
+        detector = self.pcm.detector
+        for c, d, dets in zip(cams, was, detector.detect_zoomed([shown[c] for c in cams], [d.keypoints[0] for d in was])):
+            if not dets:
+                continue
+            hips = np.array([e.keypoints[0] for e in dets])
+            moved = np.linalg.norm(hips - d.keypoints[0], axis=1)
+            best = int(np.argmin(moved))
+            if moved[best] <= REFIND_REACH * np.linalg.norm(d.keypoints[1] - d.keypoints[0]):
+                out[c].append(dets[best])
+        for c, dets in enumerate(out):  # two regions of a camera may find one person
+            if len(dets) > 1:
+                keep = nms(np.array([d.box for d in dets]), np.array([d.score for d in dets]), detector.iou_threshold)
+                out[c] = [dets[i] for i in keep]
+        return explained(self.seen, out, now.pelvises)
 
     def _count(self, left: list[list[Detection]]) -> None:
         """What the diagnostics say: the full looks' counts of whom nobody tracks."""
