@@ -117,8 +117,9 @@ NODE_PARAMS: dict[str, list[Param]] = {
         Param("min_cameras", 2, "fewest cameras a frame set needs", 1, 64),
         Param("silent_after_ms", 500.0, "a camera without frames this long is reported silent", 1.0, 1e6),
         Param("use_feedback", True, "crop/rotate with the skeleton of the previous frame"),
-        Param("feedback_wait_ms", 0.0, "0: crop with the latest skeleton (pipelined, fastest); > 0: frame t waits "
-              "(at most this long) for the skeleton of frame t-1, exactly as offline (deterministic)", 0.0, 1e5),
+        Param("feedback_wait_ms", 0.0, "0: crop with the latest skeleton (pipelined, fastest; several people: the "
+              "detector's searches run beside the frame sets); > 0: frame t waits (at most this long) for the "
+              "skeleton of frame t-1, exactly as offline (deterministic)", 0.0, 1e5),
         Param("queue_depth", 2, "frame sets waiting for the CNN (at least 2 images per camera topic are kept); when "
               "the node falls behind, older frame sets are dropped (2: a frame set that took longer than a period "
               "costs no frame set; 1 keeps only the newest: lower latency under overload, drops at the edge)", 1, 1000),
