@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Sequence
 
 import numpy as np
@@ -36,20 +37,17 @@ from ..keypoints import INDEX, KEYPOINTS
 from ..pcm.background import Background
 from ..pcm.choice import choose_subject
 from ..pcm.crops import BODY_FRACTION, Crops
-from ..pcm.detector import Detection, PoseDetector, nms
+from ..pcm.detector import Detection, PoseDetector
 from ..pcm.peaks import camera_keypoints
 from ..pcm.views import PcmViews
 from .occlusion import hidden_keypoints, others_greyed, without_hidden
 from .people_config import PeopleConfig, ended_people
-from .people_search import Search, SearchKind, detections_greyed, explained, hidden, run_search
+from .people_search import Search, SearchKind, detections_greyed, explained, found_again, people_in, run_search
 from .prediction import BodyPredictor
 from .results import seed_of, skeleton_of
 
 PELVIS = INDEX["pelvis"]
 HIPS = [INDEX["left_hip"], INDEX["right_hip"]]
-# a detection found again in a later frame set (_refound) lies within this many of its hip-to-head
-# lengths (about half a body height) of where it was: a walker's half second, not the next person
-REFIND_REACH = 1.5
 FOLLOW_MIN_WEIGHT = 0.5  # a hip's heatmap peak a crop follows (_follow): seen, not guessed
 # nice of the thread that searches beside the frame sets: below the frame sets, which must not
 # wait, but not the census' lowest, which a saturated CPU starves (a newcomer would never be found)
@@ -95,11 +93,11 @@ class _Now:
     waiting: list[Seat]  # the seated people without one
     crops: dict[int, Crops]  # person number -> their crops so far
 
-    @property
+    @cached_property
     def skeletons(self) -> np.ndarray:
         return np.array(list(self.tracked.values())).reshape(-1, len(KEYPOINTS), 3)
 
-    @property
+    @cached_property
     def pelvises(self) -> np.ndarray:
         p = self.skeletons[:, PELVIS]
         return p[np.isfinite(p).all(axis=1)]
@@ -340,17 +338,6 @@ class PeopleLook:
             left = give(choice.index, choice.point)
         return left, placed, np.array(points).reshape(-1, 3), unplaced
 
-    def _people_in(self, found: list[list[Detection]]) -> int:
-        """How many people the detections make, grouped across cameras as newcomers are."""
-        n = 0
-        for _ in range(sum(len(d) for d in found)):  # each person takes at least one detection
-            point = choose_subject(self.seen, found, None).point
-            if point is None:
-                break
-            n += 1
-            found = explained(self.seen, found, point[None])
-        return n
-
     def _plan(self, now: _Now) -> Search | None:
         """The search due at this frame set (_search_due), if any, and how closely it looks. For
         someone "waiting": every look of detect_people. For "newcomers": the whole images, and
@@ -395,7 +382,8 @@ class PeopleLook:
         they hid ("again", closer but not turned)."""
         waiting, crops, have, stamp_ns = now.waiting, now.crops, now.have, now.stamp_ns
         if search.stamp_ns != stamp_ns:  # made at an earlier frame set: where are they now?
-            left = self._refound(left, now, search.placed if search.kind == "again" else None)
+            left = found_again(self.seen, self.pcm.detector, now.images, now.skeletons, now.pelvises, left,
+                               search.placed if search.kind == "again" else None)
         if search.kind == "again":
             left = self._place(left, [s for s in waiting if s.number in search.unplaced], crops, have, stamp_ns)[0]
             self._count(left)
@@ -414,41 +402,10 @@ class PeopleLook:
             self._count(left)
         return None
 
-    def _refound(self, left: list[list[Detection]], now: _Now, greyed: list | None = None) -> list[list[Detection]]:
-        """A search's detections of an earlier frame set (made beside the frame sets), found again
-        in this one: one zoomed detector run per detection, in a region centred on it (a person
-        walks out of a crop placed where they were a few frame periods ago; the whole search
-        again would cost those periods again), the tracked bodies greyed and the detections
-        `greyed` (per camera: those a second look was made without). The detection nearest where
-        it was, within REFIND_REACH of its hip-to-head length, is theirs; one not found again is
-        dropped (the next search looks again)."""
-        shown = hidden(self.seen, now.images, now.skeletons)
-        if greyed is not None:
-            shown = detections_greyed(shown, greyed)
-        cams = [c for c, dets in enumerate(left) for _ in dets if shown[c] is not None]
-        was = [d for c, dets in enumerate(left) for d in dets if shown[c] is not None]
-        out: list[list[Detection]] = [[] for _ in left]
-        if not cams:
-            return out
-        detector = self.pcm.detector
-        for c, d, dets in zip(cams, was, detector.detect_zoomed([shown[c] for c in cams], [d.keypoints[0] for d in was])):
-            if not dets:
-                continue
-            hips = np.array([e.keypoints[0] for e in dets])
-            moved = np.linalg.norm(hips - d.keypoints[0], axis=1)
-            best = int(np.argmin(moved))
-            if moved[best] <= REFIND_REACH * np.linalg.norm(d.keypoints[1] - d.keypoints[0]):
-                out[c].append(dets[best])
-        for c, dets in enumerate(out):  # two regions of a camera may find one person
-            if len(dets) > 1:
-                keep = nms(np.array([d.box for d in dets]), np.array([d.score for d in dets]), detector.iou_threshold)
-                out[c] = [dets[i] for i in keep]
-        return explained(self.seen, out, now.pelvises)
-
     def _count(self, left: list[list[Detection]]) -> None:
         """What the diagnostics say: the full looks' counts of whom nobody tracks."""
         self._untracked = np.array([len(d) for d in left])
-        self._left_out = self._people_in(left)
+        self._left_out = people_in(self.seen, left)
 
     def _infer(self, images: Sequence[np.ndarray | None], crops: dict[int, Crops], tracked: dict[int, np.ndarray],
                stamp_ns: int) -> dict[int, PcmViews]:

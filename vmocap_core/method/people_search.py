@@ -17,11 +17,14 @@ import cv2
 import numpy as np
 
 from ..cameras.projection import Rig
-from ..pcm.choice import AGREE_FRACTION, detection_arrays
-from ..pcm.detector import Detection
+from ..pcm.choice import AGREE_FRACTION, choose_subject, detection_arrays
+from ..pcm.detector import Detection, PoseDetector, nms
 from .occlusion import GREY, others_greyed
 
 SearchKind = Literal["waiting", "newcomers", "glance", "counting", "again"]  # what a search is for (PeopleLook._plan)
+# a detection found again in a later frame set (found_again) lies within this many of its hip-to-head
+# lengths (about half a body height) of where it was: a walker's half second, not the next person
+REFIND_REACH = 1.5
 # images, turned, closer -> per image the people found (PoseDetector.find_people)
 Detect = Callable[[Sequence[np.ndarray | None], bool, bool], list[list[Detection]]]
 
@@ -114,3 +117,46 @@ def detections_greyed(images: Sequence[np.ndarray | None], found: Sequence[Seque
                         (int(np.ceil(length)), int(np.ceil(BODY_WIDTH * length))), angle, 0, 360, (GREY,) * 3, -1)
         out[c] = im
     return out
+
+
+def found_again(seen: Rig, detector: PoseDetector, images: Sequence[np.ndarray | None], skeletons: np.ndarray,
+                pelvises: np.ndarray, left: list[list[Detection]], greyed: list | None = None) -> list[list[Detection]]:
+    """A search's detections of an earlier frame set (made beside the frame sets), found again
+    in `images`: one zoomed detector run per detection, in a region centred on it (a person
+    walks out of a crop placed where they were a few frame periods ago; the whole search again
+    would cost those periods again), the tracked bodies (`skeletons`) greyed and the detections
+    `greyed` (per camera: those a second look was made without). The detection nearest where
+    it was, within REFIND_REACH of its hip-to-head length, is theirs; one not found again is
+    dropped (the next search looks again); those the tracked `pelvises` explain are theirs."""
+    shown = hidden(seen, images, skeletons)
+    if greyed is not None:
+        shown = detections_greyed(shown, greyed)
+    cams = [c for c, dets in enumerate(left) for _ in dets if shown[c] is not None]
+    was = [d for c, dets in enumerate(left) for d in dets if shown[c] is not None]
+    out: list[list[Detection]] = [[] for _ in left]
+    if not cams:
+        return out
+    for c, d, dets in zip(cams, was, detector.detect_zoomed([shown[c] for c in cams], [d.keypoints[0] for d in was])):
+        if not dets:
+            continue
+        moved = np.linalg.norm(np.array([e.keypoints[0] for e in dets]) - d.keypoints[0], axis=1)
+        best = int(np.argmin(moved))
+        if moved[best] <= REFIND_REACH * np.linalg.norm(d.keypoints[1] - d.keypoints[0]):
+            out[c].append(dets[best])
+    for c, dets in enumerate(out):  # two regions of a camera may find one person
+        if len(dets) > 1:
+            keep = nms(np.array([d.box for d in dets]), np.array([d.score for d in dets]), detector.iou_threshold)
+            out[c] = [dets[i] for i in keep]
+    return explained(seen, out, pelvises)
+
+
+def people_in(seen: Rig, found: list[list[Detection]]) -> int:
+    """How many people the detections make, grouped across cameras as newcomers are."""
+    n = 0
+    for _ in range(sum(len(d) for d in found)):  # each person takes at least one detection
+        point = choose_subject(seen, found, None).point
+        if point is None:
+            break
+        n += 1
+        found = explained(seen, found, point[None])
+    return n

@@ -30,11 +30,6 @@ class Background(Generic[Job]):
         self.error = ""
 
     @property
-    def busy(self) -> bool:
-        with self._cv:
-            return self._job is not None
-
-    @property
     def idle(self) -> bool:
         """No job runs and no result waits: a job offered now is taken."""
         with self._cv:
