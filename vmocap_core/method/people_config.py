@@ -29,6 +29,7 @@ class PeopleConfig:
     end_after_s: float = 1.0  # a person without a skeleton for this long is ended
     reacquire_m: float = 1.0  # a lost person is found again within this of their last hip centre
     same_body_m: float = 0.15  # two skeletons whose keypoints lie this close (median): one body
+    contested_m: float = 0.1  # two people's markers this close: one body part, neither IK uses it (contested.py; 0: off)
     hold_s: float = 0.25  # before their skeleton: a camera that lost a person's detection keeps its last crop this long
     wait_search_s: float = 0.1  # while someone waits for crops (found, lost): the detector runs this often
     closer_every: int = 4  # every this many searches for newcomers look closer in every camera (people_look.py)
@@ -43,6 +44,8 @@ class PeopleConfig:
             raise PeopleError(f"max_people must be at least 1, got {self.max_people}")
         if min(self.detect_every_s, self.glance_every_s, self.count_every_s) < 0:
             raise PeopleError("detect_every_s, glance_every_s and count_every_s must be >= 0")
+        if self.contested_m < 0:
+            raise PeopleError(f"contested_m must be >= 0 (0: off), got {self.contested_m}")
         if int(self.confirm_frames) < 0:
             raise PeopleError(f"confirm_frames must be >= 0, got {self.confirm_frames}")
 

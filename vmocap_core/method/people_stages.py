@@ -6,11 +6,13 @@ vmocap_skeleton runs; people_tracker.py composes both with people_look.py offlin
 side ends people by the rule the CNN's side applies too (people_config.ended_people), and keeps
 the skeletons identified for people who ended for `remember_s`: a newcomer whose first fit has
 one's link lengths is that person come back and is tracked at once (skeleton_stage.py,
-REMEMBERED_LENGTHS), without the identification phase; they get a new id.
+REMEMBERED_LENGTHS), without the identification phase; they get a new id. A marker two people
+found in one place is one body part of either: neither IK uses it (contested.py).
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Iterable
 
 import numpy as np
@@ -18,6 +20,7 @@ import numpy as np
 from ..cameras.projection import Rig
 from ..pcm.views import PcmViews
 from .config import MarkersConfig, SkeletonConfig
+from .contested import contested
 from .markers import MarkerStage
 from .people_config import PeopleConfig, ended_people
 from .results import Markers, TrackResult, feedback_of, nan_markers, skeleton_of
@@ -87,12 +90,20 @@ class PeopleSkeletons:
             self.seen_ns[number] = stamp_ns
         return stage
 
+    def _uncontested(self, markers: dict[int, Markers]) -> dict[int, Markers]:
+        """Each person's markers without those another person found in the same place (contested.py)."""
+        both = contested(markers, self.people.contested_m)
+        return {n: replace(m, weights=np.where(both[n], 0.0, m.weights)) if both[n].any() else m
+                for n, m in markers.items()}
+
     def step(self, stamp_ns: int, markers: dict[int, Markers], gone: Iterable[int] = ()) -> tuple[dict[int, TrackResult], list[int]]:
         """The results of the people whose `markers` came (in their order; a person without
         markers in a frame set keeps their stage as it was) and the numbers of those ended now:
         by the end rule, or in `gone` (the CNN's side ended them first)."""
         results = {}
         markers = {n: m for n, m in markers.items() if n not in self._over}
+        if self.people.contested_m > 0 and len(markers) > 1:
+            markers = self._uncontested(markers)
         for n, m in markers.items():
             results[n] = r = self._stage(n, stamp_ns).step(m)
             self.bodies[n] = body = skeleton_of(feedback_of(r))
