@@ -306,6 +306,14 @@ def test_a_body_walking_out_of_two_images_is_not_fading():
     outside = np.zeros(25, np.uint32)  # no view can see a keypoint: not judged by it
     trend = WeightTrend(30)
     assert trend.ratio(np.zeros(25), check, outside) is None
+    # markers another person found in the same place (contested.py) were set to 0, not faded
+    trend = WeightTrend(30)
+    for _ in range(20):
+        trend.ratio(np.full(25, 3.2), check, every)
+    weights, contested = np.full(25, 3.2), np.zeros(25, bool)
+    weights[:13], contested[:13] = 0.0, True
+    assert np.isclose(trend.ratio(weights, check, every, contested), 1.0)
+    assert trend.ratio(weights, check, every) < limit
 
 
 def test_a_view_says_nothing_of_keypoints_predicted_outside_its_image():

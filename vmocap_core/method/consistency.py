@@ -149,15 +149,20 @@ class WeightTrend:
     def reset(self) -> None:
         self._history.clear()
 
-    def ratio(self, weights: np.ndarray, check: ViewCheck | None, inside: np.ndarray | None = None) -> float | None:
+    def ratio(self, weights: np.ndarray, check: ViewCheck | None, inside: np.ndarray | None = None,
+              contested: np.ndarray | None = None) -> float | None:
         """This frame set's weight level (weights (25,) of its lattice markers) over the track's
         median (None: not judged: too little history, or no keypoint seen: the check's); the
         level joins the history. With `inside` (Markers.inside) the level is per view that can
         see the keypoint: a body walking out of two cameras' images at once halves the summed
-        weights (eq. 3) while the maps of the views left are as strong as before."""
+        weights (eq. 3) while the maps of the views left are as strong as before. `contested`
+        (25,) keypoints are left out: their weight was set to 0 for a marker another person
+        found in the same place (contested.py), not because their maps faded."""
         if check is None:
             return None
         seen = np.isfinite(check.confidence)
+        if contested is not None:
+            seen &= ~contested
         if inside is not None:
             views = np.bitwise_count(np.asarray(inside, dtype=np.uint32))
             seen &= views > 0

@@ -79,6 +79,8 @@ class PeopleSkeletons:
         self.seen_ns: dict[int, int] = {}  # person -> stamp of their last frame set with a skeleton (first: found)
         self.bodies: dict[int, np.ndarray | None] = {}  # person -> their last fed-back skeleton
         self._remembered: list[tuple[int, Skeleton]] = []  # (stamp ended, identified skeleton) of people who left
+        self.subject: int | None = None  # the person on the subject topics (None: nobody now)
+        self._subject_body: Skeleton | None = None  # their identified skeleton: who the subject is
 
     def _stage(self, number: int, stamp_ns: int) -> SkeletonStage:
         stage = self.stages.get(number)
@@ -93,7 +95,7 @@ class PeopleSkeletons:
     def _uncontested(self, markers: dict[int, Markers]) -> dict[int, Markers]:
         """Each person's markers without those another person found in the same place (contested.py)."""
         both = contested(markers, self.people.contested_m)
-        return {n: replace(m, weights=np.where(both[n], 0.0, m.weights)) if both[n].any() else m
+        return {n: replace(m, weights=np.where(both[n], 0.0, m.weights), contested=both[n]) if both[n].any() else m
                 for n, m in markers.items()}
 
     def step(self, stamp_ns: int, markers: dict[int, Markers], gone: Iterable[int] = ()) -> tuple[dict[int, TrackResult], list[int]]:
@@ -121,4 +123,24 @@ class PeopleSkeletons:
             self.stages.pop(n)
             self.seen_ns.pop(n, None)
             self.bodies.pop(n, None)
+        self._choose_subject(stamp_ns, [n for n in results if n not in ended])
         return results, ended
+
+    def _choose_subject(self, stamp_ns: int, stepped: list[int]) -> None:
+        """The subject topics carry the first person found, and stay with them: once their link
+        lengths are identified, a track of theirs that ended is waited for (their remembered
+        skeleton recognized in a newcomer, `remember_s`) rather than handed to whoever else has a
+        body, which a controller on the subject topics would take for the subject. Without an
+        identified skeleton to wait for, the first found of those stepped in this frame set."""
+        n = self.subject
+        if n is not None and n in self.stages:
+            if self.stages[n].identified is not None:
+                self._subject_body = self.stages[n].identified
+            return
+        body = self._subject_body
+        keep = self.people.remember_s * 1e9
+        if body is not None and any(sk is body and stamp_ns - t <= keep for t, sk in self._remembered):
+            self.subject = next((m for m, st in sorted(self.stages.items()) if st.identified is body), None)
+            return
+        self._subject_body = None
+        self.subject = min(stepped, default=None)

@@ -59,11 +59,12 @@ class PeopleFrame:
     untracked: np.ndarray  # (C,) detections per camera nobody's skeleton explains, at the last look (-1: none yet)
     ended: list[int] = field(default_factory=list)  # numbers of the people ended in this frame set
     left_out: int = 0  # people two cameras see whom nobody tracks for want of a slot, at the last look
+    subject: int | None = None  # the number of the person on the subject topics (PeopleSkeletons.subject)
 
     @property
     def first(self) -> Person | None:
-        """The person found first among those with a result: the one on the subject topics."""
-        return min((p for p in self.people if p.last is not None), key=lambda p: p.number, default=None)
+        """The one on the subject topics, when stepped in this frame set with a result."""
+        return next((p for p in self.people if p.number == self.subject and p.last is not None), None)
 
     @property
     def others_in_view(self) -> int:
@@ -110,4 +111,4 @@ class PeopleTracker:
         for n in ended:
             self.people.pop(n, None)
         stepped = [p for n, p in self.people.items() if n in results]
-        return PeopleFrame(stamp_ns, stepped, look.untracked, ended, look.left_out)
+        return PeopleFrame(stamp_ns, stepped, look.untracked, ended, look.left_out, self.skeletons.subject)

@@ -45,6 +45,8 @@ class Markers:
     person: int = -1
     # lattice markers: bit mask of the cameras whose maps were read with a limb group's sides swapped (mirror.py)
     mirrored: int = 0
+    # several people (contested.py): (25,) True where another person's marker lies in the same place (weight set to 0)
+    contested: np.ndarray | None = None
 
     @property
     def trunk_views(self) -> int | None:

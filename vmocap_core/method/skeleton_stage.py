@@ -137,7 +137,7 @@ class SkeletonStage:
             # the skeleton slides with it while the views left agree
             trunk = markers.trunk_views
             outside = judged and trunk is not None and trunk < 2
-            ratio = self.weights.ratio(markers.weights, markers.check, markers.inside)
+            ratio = self.weights.ratio(markers.weights, markers.check, markers.inside, markers.contested)
             faded = judged and ratio is not None and ratio < self.config.check_min_weight_ratio
             if verdict == "ok" and unsupported:
                 verdict, self.unsupported = "uncertain", support

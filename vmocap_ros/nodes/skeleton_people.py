@@ -92,7 +92,8 @@ class PeopleSkeletonNode(VmocapNode):
             self.pubs[self.topics.slot(k).feedback](M.keypoint_cloud(stamp_ns if r is None else r.feedback_stamp, fb))
             if r is not None and m.person not in ended:
                 people.append(Person(m.person, FrameResult(PcmViews.empty(len(KEYPOINTS), 1, stamp_ns), m, r, fb)))
-        frame = PeopleFrame(stamp_ns, sorted(people, key=lambda p: p.number), np.full(len(self.rig or []), -1), ended)
+        frame = PeopleFrame(stamp_ns, sorted(people, key=lambda p: p.number), np.full(len(self.rig or []), -1), ended,
+                            subject=self.skeletons.subject)
         first = frame.first
         pubs = self.pubs
         if first is not None and first.result is not None:
