@@ -86,11 +86,15 @@ class PeopleSkeletons:
         stage = self.stages.get(number)
         if stage is None:
             stage = self.stages[number] = SkeletonStage(self.config)
-            keep = self.people.remember_s * 1e9
-            self._remembered = [(t, sk) for t, sk in self._remembered if 0 <= stamp_ns - t <= keep]
-            stage.known = [sk for _, sk in self._remembered]
+            stage.known = self._remembered_at(stamp_ns)
             self.seen_ns[number] = stamp_ns
         return stage
+
+    def _remembered_at(self, stamp_ns: int) -> list[Skeleton]:
+        """The identified skeletons of the people who ended within `remember_s` (older ones forgotten)."""
+        keep = self.people.remember_s * 1e9
+        self._remembered = [(t, sk) for t, sk in self._remembered if 0 <= stamp_ns - t <= keep]
+        return [sk for _, sk in self._remembered]
 
     def _uncontested(self, markers: dict[int, Markers]) -> dict[int, Markers]:
         """Each person's markers without those another person found in the same place (contested.py)."""
@@ -138,8 +142,7 @@ class PeopleSkeletons:
                 self._subject_body = self.stages[n].identified
             return
         body = self._subject_body
-        keep = self.people.remember_s * 1e9
-        if body is not None and any(sk is body and stamp_ns - t <= keep for t, sk in self._remembered):
+        if body is not None and any(sk is body for sk in self._remembered_at(stamp_ns)):
             self.subject = next((m for m, st in sorted(self.stages.items()) if st.identified is body), None)
             return
         self._subject_body = None
