@@ -84,7 +84,7 @@ def test_the_expectation_keeps_a_short_window_and_two_points():
 
 def test_the_place_the_subject_can_be_grows_once_the_path_is_old():
     """An overloaded graph keeps few frame sets: a track back 1.4 s after the last confirmed
-    one may find a walker that turned round 0.6 m from where it was heading. Within the
+    one may find a walker that turned aside 0.6 m from where it was heading. Within the
     horizon the same 0.6 m is another body; past it, the bound grows at a brisk walk."""
     gate = PathGate(max_m=0.3, horizon_s=0.4)
     _confirmed_walk(gate, 30, 0)
@@ -93,8 +93,23 @@ def test_the_place_the_subject_can_be_grows_once_the_path_is_old():
         k = 29 + int(round(back_s * RATE))
         exp = gate.expected(_ns(k))
         assert exp is not None
-        turned = exp + [0.6, 0.0, 0.0]  # walked back the other way
+        turned = exp + [0.0, 0.6, 0.0]  # walked off to the side
         assert (gate.strayed(_ns(k), turned) is not None) is strays, back_s
     one = PathGate(max_m=0.3, horizon_s=0.4)
     one.add(_ns(0), _walker(0))
     assert one.bound(_ns(24)) == 0.3 and abs(one.bound(_ns(84)) - (0.3 + 1.5 * 1.0)) < 1e-6
+
+
+def test_a_walker_who_stops_is_not_strayed_but_a_body_beside_the_stop_is():
+    """A walker stops in front of someone (face to face, a hand-over) while the views
+    disagree: the track comes back where they stopped, 0.37 m short of where their velocity
+    would have carried them. That is the subject; 0.4 m to the side of it is not."""
+    gate = PathGate(max_m=0.3, horizon_s=0.4)
+    _confirmed_walk(gate, 30, 0)
+    gate.doubt(_ns(30))
+    k = 30 + 18
+    stop = _walker(26)  # stopped as the views began to disagree
+    assert np.linalg.norm(gate.expected(_ns(k))[:2] - stop[:2]) > 0.35
+    assert gate.strayed(_ns(k), stop) is None
+    assert gate.strayed(_ns(k), stop + [0.0, 0.4, 0.0]) is not None
+    assert gate.strayed(_ns(k), stop - WALK * 0.4) is not None  # back the way they came

@@ -192,8 +192,8 @@ class SkeletonConfig(_Stage):
     check_min_weight_ratio: float = 0.55
     check_weight_window: int = 30
     # A track back from "uncertain" whose hip centre lies horizontally farther than
-    # `check_resume_max_m` from where the confirmed track was heading (its velocity carried for
-    # at most `check_resume_horizon_s`) has slid onto another body: lost, and the detector
+    # `check_resume_max_m` from where the confirmed track stopped or was heading (its velocity
+    # carried for at most `check_resume_horizon_s`) has slid onto another body: lost, and the detector
     # looks for the subject at the expected place (path_gate.py; 0: off). Not while the
     # detector's census counts nobody else in view (Markers.others 0): then it is the subject.
     check_resume_max_m: float = 0.3

@@ -6,10 +6,12 @@ the track. Beside another person (shoulder to shoulder, a hug, a hand-over) thos
 the other body's: the track slides onto it, the images agree again, and without this gate it
 would resume as "tracking" on the wrong person. A person does not jump: where the subject
 can be when the images agree again follows from where its hip centre was heading on the
-last frame sets the images confirmed. A track that comes back farther than `max_m` from that
-(more when those frame sets are old: `bound`) has left the subject: the skeleton stage starts
-over, and the detector looks for the subject at the expected place (`expected`), not where the
-track went.
+last frame sets the images confirmed. A walker keeps going or stops (in front of someone: face
+to face, a hand-over), so the subject can be anywhere from where it was last confirmed to where
+its velocity carries it: a track that comes back farther than `max_m` from that stretch (more
+when those frame sets are old: `bound`) has left the subject: the skeleton stage starts over,
+and the detector looks for the subject at the expected place (`expected`), not where the track
+went.
 
 Only the horizontal place counts (world Z is up): another body stands beside the subject, and
 the subject's own hip centre moves fast vertically (a jump, a fall, a backflip, getting up),
@@ -69,11 +71,18 @@ class PathGate:
         horizontally with the velocity over the confirmed window, for horizon_s at most (a
         walker keeps going, nobody keeps a velocity for long); None before any confirmed
         frame set."""
+        reach = self._reach(stamp_ns)
+        return None if reach is None else reach[1]
+
+    def _reach(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Where the hip centre is if the subject stopped at the last confirmed frame set, and
+        where it is if it kept going until stamp_ns (`expected`); None before any confirmed
+        frame set."""
         if not self._path:
             return None
         t1, p1 = self._path[-1]
         if len(self._path) < 2:
-            return p1.copy()
+            return p1.copy(), p1.copy()
         t = np.array([s for s, _ in self._path], dtype=np.float64) * 1e-9
         p = np.array([q for _, q in self._path])
         # Medians of the steps and of the points moved on: the first frame sets of a slide onto
@@ -81,8 +90,10 @@ class PathGate:
         # the last point or step alone would carry the expectation towards that body.
         velocity = np.median(np.diff(p, axis=0) / np.maximum(np.diff(t), 1e-3)[:, None], axis=0)
         velocity[2] = 0.0
-        ahead = t[-1] - t + min(max((stamp_ns - t1) * 1e-9, 0.0), self.horizon_s)
-        return np.median(p + ahead[:, None] * velocity, axis=0)
+        ahead = t[-1] - t
+        stopped = np.median(p + ahead[:, None] * velocity, axis=0)
+        ahead = ahead + min(max((stamp_ns - t1) * 1e-9, 0.0), self.horizon_s)
+        return stopped, np.median(p + ahead[:, None] * velocity, axis=0)
 
     def bound(self, stamp_ns: int) -> float:
         """How far from the expected place the subject can be at stamp_ns: max_m, growing at
@@ -94,10 +105,17 @@ class PathGate:
 
     def strayed(self, stamp_ns: int, pelvis: np.ndarray) -> np.ndarray | None:
         """Where the subject was heading, when the hip centre lies horizontally farther than
-        `bound` from it (the track has left the subject); None otherwise."""
+        `bound` from the stretch between stopping and keeping going (the track has left the
+        subject); None otherwise."""
         if self.max_m <= 0 or not np.isfinite(pelvis).all():
             return None
-        exp = self.expected(stamp_ns)
-        if exp is None or np.linalg.norm(np.asarray(pelvis, dtype=np.float64)[:2] - exp[:2]) <= self.bound(stamp_ns):
+        reach = self._reach(stamp_ns)
+        if reach is None:
+            return None
+        stopped, exp = reach
+        a, d = stopped[:2], exp[:2] - stopped[:2]
+        x = np.asarray(pelvis, dtype=np.float64)[:2] - a
+        s = float(np.clip((x @ d) / (d @ d), 0.0, 1.0)) if d @ d > 0 else 0.0
+        if np.linalg.norm(x - s * d) <= self.bound(stamp_ns):
             return None
         return exp
