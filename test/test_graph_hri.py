@@ -292,3 +292,29 @@ def test_skeleton_node_without_hri_msgs_warns_naming_the_build(case: str, tmp_pa
         assert got[-1][0] == 1 and "hri_msgs" in got[-1][1] and "bash scripts/build_ros_msgs.sh" in got[-1][1], got
     else:
         assert got[-1] == (0, "ok"), got
+
+
+def test_people_skeleton_node_reads_contested_m(tmp_path, monkeypatch) -> None:
+    """`contested_m` under vmocap_skeleton reaches the several-people skeleton stages (a real
+    node from the launch file's parameters); a negative distance is refused at load."""
+    from vmocap_core import graph_config
+
+    for k, v in domain_env(14).items():
+        monkeypatch.setenv(k, v)
+    from vmocap_ros.common import init_rclpy
+    from vmocap_ros.nodes.skeleton_people import PeopleSkeletonNode
+
+    _, rig_path, kps = synthetic_bag(tmp_path / "in.mcap", 2)
+    cfg = write_config(tmp_path / "g.yaml", rig_path, kps, ["vmocap_skeleton"], "single_process",
+                       extra={"/**": {"max_people": 2}, "vmocap_skeleton": {"hri": False, "contested_m": 0.05}})
+    rclpy = init_rclpy()
+    node = PeopleSkeletonNode(graph_config.load(cfg))
+    try:
+        assert node.skeletons.people.contested_m == 0.05 and node.skeletons.people.max_people == 2
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+    bad = write_config(tmp_path / "bad.yaml", rig_path, kps, ["vmocap_skeleton"], "single_process",
+                       extra={"/**": {"max_people": 2}, "vmocap_skeleton": {"contested_m": -0.1}})
+    with pytest.raises(graph_config.GraphConfigError, match="contested_m"):
+        graph_config.load(bad).node_params("vmocap_skeleton")

@@ -162,6 +162,8 @@ NODE_PARAMS: dict[str, list[Param]] = {
               "once)", 0.0, 86400.0),
         Param("confirm_frames", 3, "several people: a person's track (new, or found again) is published once this "
               "many frame sets agreed with its skeleton (check_confirm_frames if larger)", 0, 600),
+        Param("contested_m", 0.1, "several people: a lattice marker this close (m) to another person's is one body "
+              "part both searches found, and neither person's IK uses it in that frame set (0: off)", 0.0, 1.0),
     ],
     "vmocap_recorder": [
         Param("output", "", "MCAP file to write (renamed from .partial when closed)", path=True),

@@ -38,7 +38,7 @@ class PeopleSkeletonNode(VmocapNode):
         self.slots = range(p["max_people"])
         self.skeletons = PeopleSkeletons(config.skeleton_config(name, p), PeopleConfig(
             max_people=p["max_people"], end_after_s=p["end_after_s"], remember_s=p["remember_s"],
-            confirm_frames=p["confirm_frames"]))
+            confirm_frames=p["confirm_frames"], contested_m=p["contested_m"]))
         t = self.topics
         self.pubs = {t.slot(k).feedback: self.publisher(CLOUD, t.slot(k).feedback, depth=50, latched=True)
                      for k in self.slots}
